@@ -1,0 +1,259 @@
+"""The multi-actor update step: MA-TD3, MA-DDPG, TD3 and DDPG on one code path.
+
+K actors and n·K critics live in batched ensembles. One `update()` is one critic step for
+every live actor's critics (Eq. 5 with the Eq. 9 target) and, every d steps, one actor step
+(Eq. 7) followed by the soft target update (Eq. 4). TD3 is K=1, n=2; DDPG is K=1, n=1.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from mam_core.config import AlgoConfig
+from mam_core.ensemble import ActorEnsemble, CriticEnsemble, soft_update
+
+
+@dataclass(frozen=True)
+class EnvSpec:
+    """What the networks need to know about an environment."""
+
+    obs_dim: int
+    act_dim: int
+    max_action: tuple[float, ...]  # per action dimension, symmetric bounds ±max_action
+
+    @classmethod
+    def from_env(cls, env: Any) -> "EnvSpec":
+        space = env.action_space
+        if not np.allclose(space.low, -space.high):
+            raise ValueError("only symmetric action bounds (low == -high) are supported")
+        return cls(int(np.prod(env.observation_space.shape)), int(space.shape[0]),
+                   tuple(float(h) for h in space.high))
+
+    @classmethod
+    def from_env_id(cls, env_id: str) -> "EnvSpec":
+        import gymnasium as gym
+
+        import mam_core.envs  # noqa: F401  (registers AppleCollect-v0)
+
+        env = gym.make(env_id)
+        try:
+            return cls.from_env(env)
+        finally:
+            env.close()
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"obs_dim": self.obs_dim, "act_dim": self.act_dim, "max_action": list(self.max_action)}
+
+
+def weighted_target(q_next: torch.Tensor, eta: float) -> torch.Tensor:
+    """Eq. 9 without reward and discount: q_next [K, n, B] of Q'_ji(s', ã_j) -> [K, B].
+
+    (1−η)·min_i Q'_ki + η/(n(K−1))·Σ_{j≠k} Σ_i Q'_ji. With K=1 or η=0 this is TD3's clipped
+    double-Q target (n=2) or DDPG's target (n=1).
+    """
+    k, n, _ = q_next.shape
+    own = q_next.min(dim=1).values
+    if k == 1 or eta == 0.0:
+        return own
+    per_actor = q_next.sum(dim=1)  # [K, B]
+    others = per_actor.sum(dim=0, keepdim=True) - per_actor
+    return (1.0 - eta) * own + (eta / (n * (k - 1))) * others
+
+
+def critic_target(reward: torch.Tensor, not_done: torch.Tensor, q_next: torch.Tensor,
+                  gamma: float, eta: float) -> torch.Tensor:
+    """y_k = r + γ(1−d)·weighted_target: reward/not_done [B], q_next [K, n, B] -> [K, B]."""
+    return reward + gamma * not_done * weighted_target(q_next, eta)
+
+
+def critic_loss(q: torch.Tensor, y: torch.Tensor, live: torch.Tensor) -> torch.Tensor:
+    """Eq. 5 summed over members: q [K, n, B], y [K, B], live [K] (0/1) -> scalar.
+
+    Each critic gets its own MSE; eliminated actors' critics contribute nothing (frozen).
+    """
+    per_member = (q - y.unsqueeze(1)).pow(2).mean(dim=-1)  # [K, n]
+    return (per_member.sum(dim=1) * live).sum()
+
+
+def actor_loss(q1: torch.Tensor, live: torch.Tensor) -> torch.Tensor:
+    """Eq. 7: actor k ascends Q_k1(s, π_k(s)); q1 [K, B], live [K] -> scalar (summed over k)."""
+    return (-q1.mean(dim=-1) * live).sum()
+
+
+def pick_device(device: str) -> torch.device:
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError("--device cuda asked for, but torch sees no CUDA device")
+    return torch.device(device)
+
+
+class MultiActorAgent:
+    """Networks, targets, optimizers and the update step of Algorithm 1.
+
+    Usage: `agent.update(batch)` with batch tensors `obs, action, reward, next_obs, not_done`
+    on `agent.device`; `agent.eliminate(survivor)` at step C; `agent.actor_params(k)` for the
+    workers; `state_dict()` / `load_state_dict()` for pickle-free checkpoints.
+    """
+
+    def __init__(self, cfg: AlgoConfig, spec: EnvSpec, device: str | torch.device = "cpu") -> None:
+        self.cfg = cfg
+        self.spec = spec
+        self.device = torch.device(device) if not isinstance(device, torch.device) else device
+        self.eta = cfg.effective_eta
+        k, n = cfg.actors, cfg.critics_per_actor
+        gen = torch.Generator().manual_seed(cfg.seed)
+        self.actor = ActorEnsemble(k, spec.obs_dim, spec.act_dim, cfg.hidden, np.array(spec.max_action), gen)
+        self.critic = CriticEnsemble(k, n, spec.obs_dim, spec.act_dim, cfg.hidden, gen)
+        self.actor.to(self.device)
+        self.critic.to(self.device)
+        self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
+        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
+        self.actor_params_list = list(self.actor.parameters())
+        adam = dict(lr=cfg.lr, foreach=True)
+        self.actor_opt = torch.optim.Adam(self.actor_params_list, **adam)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), **adam)
+        self.noise_gen = torch.Generator(device=self.device).manual_seed(cfg.seed + 1)
+        self.max_action = self.actor.max_action
+        self.first_critics = torch.arange(k, device=self.device) * n
+        self.live = torch.ones(k, device=self.device)
+        self._tau_actor = torch.full((k, 1, 1), cfg.tau, device=self.device)
+        self._tau_critic = torch.full((k * n, 1, 1), cfg.tau, device=self.device)
+        self.updates = 0
+        self.actor_updates = 0
+        self.versions = [0] * k  # bumped on every actor step of a live actor
+
+    # -- the update step -------------------------------------------------------------------
+    def update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
+        cfg, k, n = self.cfg, self.cfg.actors, self.cfg.critics_per_actor
+        obs, action, reward = batch["obs"], batch["action"], batch["reward"]
+        next_obs, not_done = batch["next_obs"], batch["not_done"]
+
+        with torch.no_grad():
+            # Target policy smoothing: ã_j = clip(π'_j(s') + clip(N(0, σ̃), ±c), ±max_action).
+            next_action = self.actor_target(next_obs)  # [K, B, A]
+            if cfg.target_smoothing:
+                noise = torch.randn(next_action.shape, generator=self.noise_gen, device=self.device)
+                noise = (noise * (cfg.policy_noise * self.max_action)).clamp(
+                    -cfg.noise_clip * self.max_action, cfg.noise_clip * self.max_action)
+                next_action = torch.maximum(torch.minimum(next_action + noise, self.max_action),
+                                            -self.max_action)
+            q_next = self.critic_target(next_obs, self.critic.per_actor_actions(next_action))
+            # Eq. 9: weighted target, one y_k per actor.
+            y = critic_target(reward, not_done, q_next.view(k, n, -1), cfg.gamma, self.eta)
+
+        # Eq. 5: critic regression for every live actor's n critics.
+        q = self.critic(obs, action.unsqueeze(0).expand(k * n, -1, -1)).view(k, n, -1)
+        loss_q = critic_loss(q, y, self.live)
+        self.critic_opt.zero_grad(set_to_none=True)
+        loss_q.backward()
+        self.critic_opt.step()
+        self.updates += 1
+
+        metrics = [loss_q.detach(), q.detach().mean(dim=(1, 2))]
+        if self.updates % cfg.policy_delay == 0:
+            # Eq. 7: actor k follows its first critic Q_k1; gradients only for actor params.
+            pi = self.actor(obs)
+            q1 = self.critic(obs, pi, members=self.first_critics)
+            loss_pi = actor_loss(q1, self.live)
+            grads = torch.autograd.grad(loss_pi, self.actor_params_list)
+            for p, g in zip(self.actor_params_list, grads):
+                p.grad = g
+            self.actor_opt.step()
+            self.actor_opt.zero_grad(set_to_none=True)
+            self.actor_updates += 1
+            for j in range(k):
+                if self.live[j] > 0:
+                    self.versions[j] += 1
+            # Eq. 4: soft target update; eliminated members' targets stay frozen.
+            soft_update(self.actor_target, self.actor, self._tau_actor)
+            soft_update(self.critic_target, self.critic, self._tau_critic)
+            metrics.append(loss_pi.detach().reshape(1))
+        values = torch.cat([m.reshape(-1) for m in metrics]).tolist()
+        out = {"loss/critic": values[0]}
+        out.update({f"q/actor{j}": values[1 + j] for j in range(k)})
+        if len(values) > 1 + k:
+            out["loss/actor"] = values[1 + k]
+        return out
+
+    # -- obsolescence ----------------------------------------------------------------------
+    def eliminate(self, survivor: int) -> None:
+        """Freeze every actor but `survivor` with its critics and targets (Sec. 3.1.1).
+
+        Frozen members keep serving the Eq. 9 sum through their target networks. Their Adam
+        moments are zeroed: with zero gradients from the masked losses, Adam then moves them
+        by exactly zero.
+        """
+        k, n = self.cfg.actors, self.cfg.critics_per_actor
+        if not 0 <= survivor < k:
+            raise ValueError(f"survivor {survivor} out of range for K={k}")
+        self.live.zero_()
+        self.live[survivor] = 1.0
+        self._tau_actor.copy_(self.live.view(k, 1, 1) * self.cfg.tau)
+        self._tau_critic.copy_(self.live.repeat_interleave(n).view(k * n, 1, 1) * self.cfg.tau)
+        frozen_actor = self.live == 0
+        frozen_critic = frozen_actor.repeat_interleave(n)
+        for opt, mask in ((self.actor_opt, frozen_actor), (self.critic_opt, frozen_critic)):
+            for group in opt.param_groups:
+                for p in group["params"]:
+                    state = opt.state.get(p, {})
+                    for key in ("exp_avg", "exp_avg_sq"):
+                        if key in state:
+                            state[key][mask] = 0.0
+
+    @property
+    def live_actors(self) -> list[bool]:
+        return [bool(v) for v in self.live.tolist()]
+
+    # -- weights for workers and the referee ---------------------------------------------------
+    def actor_params(self, k: int) -> dict[str, np.ndarray]:
+        return self.actor.net.member_state(k)
+
+    def actor_shapes(self) -> dict[str, tuple[int, ...]]:
+        return self.actor.net.member_shapes()
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, k: int) -> np.ndarray:
+        """Deterministic action of actor k for a batch of observations (evaluation)."""
+        o = torch.as_tensor(np.asarray(obs, dtype=np.float32), device=self.device)
+        members = torch.tensor([k], device=self.device)
+        return self.actor(o.reshape(-1, self.spec.obs_dim), members)[0].cpu().numpy()
+
+    @torch.no_grad()
+    def q_value(self, obs: np.ndarray, action: np.ndarray, k: int) -> np.ndarray:
+        """Q_k1(s, a) of the current critic (Eq. 17's estimate)."""
+        o = torch.as_tensor(np.asarray(obs, dtype=np.float32), device=self.device).reshape(-1, self.spec.obs_dim)
+        a = torch.as_tensor(np.asarray(action, dtype=np.float32), device=self.device).reshape(1, -1, self.spec.act_dim)
+        members = self.first_critics[k:k + 1]
+        return self.critic(o, a, members=members)[0].cpu().numpy()
+
+    # -- checkpoints (tensors and plain containers only: loadable with weights_only=True) ----
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
+            "actor_target": self.actor_target.state_dict(), "critic_target": self.critic_target.state_dict(),
+            "actor_opt": self.actor_opt.state_dict(), "critic_opt": self.critic_opt.state_dict(),
+            "noise_gen": self.noise_gen.get_state(),
+            "live": self.live.clone(), "updates": self.updates, "actor_updates": self.actor_updates,
+            "versions": list(self.versions),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.actor.load_state_dict(state["actor"])
+        self.critic.load_state_dict(state["critic"])
+        self.actor_target.load_state_dict(state["actor_target"])
+        self.critic_target.load_state_dict(state["critic_target"])
+        self.actor_opt.load_state_dict(state["actor_opt"])
+        self.critic_opt.load_state_dict(state["critic_opt"])
+        self.noise_gen.set_state(state["noise_gen"])
+        live = state["live"].to(self.device)
+        self.updates = int(state["updates"])
+        self.actor_updates = int(state["actor_updates"])
+        self.versions = [int(v) for v in state["versions"]]
+        if float(live.sum()) < self.cfg.actors:
+            self.eliminate(int(torch.argmax(live)))

@@ -1,0 +1,139 @@
+"""Hyperparameters of MA-TD3 / MA-DDPG / TD3 / DDPG with the paper's defaults.
+
+One flat, frozen dataclass (paper symbols in the help text). `defaults_for(algo)` gives
+Table 3 (TD3 family) or Table 1 (DDPG family); `resolve(algo, **overrides)` applies
+user flags on top and checks them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+ALGOS = ("ma-td3", "td3", "ma-ddpg", "ddpg")
+
+
+@dataclass(frozen=True)
+class AlgoConfig:
+    algo: str = "ma-td3"
+    actors: int = 2  # K: number of actors
+    critics_per_actor: int = 2  # n: 2 for the TD3 family (clipped double Q), 1 for DDPG
+    workers: int = 3  # M: environment slots
+    eliminate_at: int = 300_000  # C: env step at which all but the best actor are eliminated
+    compete_every: int = 5_000  # A: env steps between evaluation / allocation rounds
+    eta: float = 0.1  # η: weight of the other actors' Q-values in the target (Eq. 9)
+    batch_size: int = 256
+    lr: float = 3e-4  # actor and critic learning rate (Adam)
+    tau: float = 0.005  # τ: soft target update rate (Eq. 4)
+    gamma: float = 0.99  # discount
+    explore_noise: float = 0.1  # σ of Gaussian exploration noise, times max_action
+    policy_noise: float = 0.2  # σ̃ of target policy smoothing, times max_action (TD3 family)
+    noise_clip: float = 0.5  # c: clip of the smoothing noise, times max_action
+    target_smoothing: bool = True  # TD3's target policy smoothing; off for DDPG
+    policy_delay: int = 2  # d: actor and target updates every d critic updates
+    start_steps: int = 25_000  # transitions collected with uniform random actions first
+    hidden: tuple[int, ...] = (256, 256)
+    buffer_size: int = 1_000_000
+    eval_episodes: int = 20  # episodes per actor in each evaluation round (paper: 20)
+    eval_every: int = 5_000  # env steps between evaluations after elimination (learning curves)
+    utd: float = 1.0  # gradient updates per received transition
+    no_ot: bool = False  # ablation "w/o OT": uniform fixed allocation, no elimination
+    no_wt: bool = False  # ablation "w/o WT": η = 0
+    single_env_after_elimination: bool = False  # paper's schedule: survivor runs one slot only
+    seed: int = 0
+    device: str = "auto"  # auto | cpu | cuda
+
+    @property
+    def effective_eta(self) -> float:
+        """η used in Eq. 9: zero for `--no-wt` and for a single actor."""
+        return 0.0 if self.no_wt or self.actors == 1 else self.eta
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["hidden"] = list(self.hidden)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "AlgoConfig":
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown config keys: {sorted(unknown)}")
+        d = dict(d)
+        if "hidden" in d:
+            d["hidden"] = tuple(int(h) for h in d["hidden"])
+        return validate(cls(**d))
+
+
+_TD3_FAMILY = dict(
+    critics_per_actor=2, target_smoothing=True, policy_delay=2, batch_size=256,
+    start_steps=25_000, eliminate_at=300_000, compete_every=5_000, eta=0.1,
+)
+_DDPG_FAMILY = dict(
+    # Table 1; MA-DDPG shows obsolescence alone, so η defaults to 0 (DESIGN.md).
+    critics_per_actor=1, target_smoothing=False, policy_delay=1, batch_size=100,
+    start_steps=10_000, eliminate_at=24_000, compete_every=1_000, eta=0.0,
+)
+_PER_ALGO: dict[str, dict[str, Any]] = {
+    "ma-td3": dict(_TD3_FAMILY, actors=2, workers=3),
+    "td3": dict(_TD3_FAMILY, actors=1, workers=1, eta=0.0),
+    "ma-ddpg": dict(_DDPG_FAMILY, actors=3, workers=5),
+    "ddpg": dict(_DDPG_FAMILY, actors=1, workers=1),
+}
+
+
+def defaults_for(algo: str) -> AlgoConfig:
+    if algo not in _PER_ALGO:
+        raise ValueError(f"unknown algo {algo!r}; choose one of {', '.join(ALGOS)}")
+    return AlgoConfig(algo=algo, **_PER_ALGO[algo])
+
+
+def resolve(algo: str, **overrides: Any) -> AlgoConfig:
+    """Paper defaults for `algo` with the non-None `overrides` applied, validated."""
+    base = defaults_for(algo)
+    known = {f.name for f in dataclasses.fields(AlgoConfig)}
+    unknown = set(overrides) - known
+    if unknown:
+        raise ValueError(f"unknown option(s): {sorted(unknown)}")
+    changes = {k: v for k, v in overrides.items() if v is not None}
+    if "hidden" in changes:
+        changes["hidden"] = tuple(int(h) for h in changes["hidden"])
+    return validate(dataclasses.replace(base, **changes))
+
+
+def validate(cfg: AlgoConfig) -> AlgoConfig:
+    problems = []
+    if cfg.algo not in ALGOS:
+        problems.append(f"algo must be one of {ALGOS}")
+    if cfg.actors < 1:
+        problems.append("actors (K) must be >= 1")
+    if cfg.critics_per_actor < 1:
+        problems.append("critics_per_actor (n) must be >= 1")
+    if cfg.workers < 1:
+        problems.append("workers (M) must be >= 1")
+    if not 0.0 <= cfg.eta < 1.0:
+        problems.append("eta must be in [0, 1)")
+    if cfg.compete_every < 1:
+        problems.append("compete_every (A) must be >= 1")
+    if cfg.eliminate_at < 0:
+        problems.append("eliminate_at (C) must be >= 0")
+    if cfg.batch_size < 1 or cfg.buffer_size < cfg.batch_size:
+        problems.append("need 1 <= batch_size <= buffer_size")
+    if not 0.0 < cfg.tau <= 1.0:
+        problems.append("tau must be in (0, 1]")
+    if not 0.0 <= cfg.gamma <= 1.0:
+        problems.append("gamma must be in [0, 1]")
+    if cfg.policy_delay < 1:
+        problems.append("policy_delay (d) must be >= 1")
+    if cfg.utd <= 0:
+        problems.append("utd must be > 0")
+    if cfg.start_steps < 0 or cfg.eval_episodes < 1 or cfg.eval_every < 1:
+        problems.append("start_steps >= 0, eval_episodes >= 1 and eval_every >= 1 required")
+    if not cfg.hidden or any(h < 1 for h in cfg.hidden):
+        problems.append("hidden sizes must be positive")
+    if cfg.device not in ("auto", "cpu", "cuda"):
+        problems.append("device must be auto, cpu or cuda")
+    if problems:
+        raise ValueError("invalid configuration: " + "; ".join(problems))
+    return cfg
