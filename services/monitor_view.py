@@ -1,0 +1,329 @@
+"""What `mam watch` shows, without the network: a state fed with decoded messages, and its view.
+
+The monitor service decodes `allocation`, `eval`, `stats/learner` and `done` messages and the
+liveliness events of `alive/<role>/<id>`, and hands the bodies (the same fields as the run's
+JSONL rows) to `MonitorState`. `render(state)` turns the state into rich tables; the service
+redraws it in a `rich.live.Live`. Keeping this part pure lets tests drive it with a fake clock.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from rich.console import Group, RenderableType
+from rich.panel import Panel
+from rich.table import Table
+from rich.text import Text
+
+HISTORY = 8  # allocation rounds kept for the history table
+
+
+@dataclass
+class WorkerView:
+    """One env worker slot as the monitor last saw it."""
+
+    alive: bool | None = None  # None: never seen on liveliness (known only from stats/allocation)
+    last_seen: float | None = None  # clock time of the last sign of life
+    actor: int | None = None
+    received: int = 0  # transitions the learner accepted from it
+    rate: float | None = None  # transitions/s
+    lag: int | None = None  # policy versions behind the learner
+    last_seq: int | None = None
+
+
+@dataclass(frozen=True)
+class AllocationRound:
+    round: int
+    env_steps: int
+    probabilities: tuple[float, ...]
+    counts: tuple[int, ...]
+    reason: str
+
+
+def _float(value: Any) -> float | None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        return None
+    return float(value)
+
+
+def _int(value: Any) -> int | None:
+    if isinstance(value, bool) or not isinstance(value, int):
+        return None
+    return value
+
+
+def _floats(values: Any) -> list[float | None]:
+    return [_float(v) for v in values] if isinstance(values, list) else []
+
+
+def _ints(values: Any) -> list[int | None]:
+    return [_int(v) for v in values] if isinstance(values, list) else []
+
+
+class MonitorState:
+    """Everything `mam watch` knows about a run, updated one message at a time."""
+
+    def __init__(
+        self,
+        run: str = "",
+        env_id: str = "",
+        algo: str = "",
+        steps: int | None = None,
+        now: Callable[[], float] = time.monotonic,
+        history: int = HISTORY,
+    ) -> None:
+        self.run, self.env_id, self.algo, self.steps = run, env_id, algo, steps
+        self.now = now
+        self.probabilities: list[float | None] = []
+        self.counts: list[int | None] = []
+        self.eliminated: list[bool] = []
+        self.survivor: int | None = None
+        self.round: int | None = None
+        self.history: deque[AllocationRound] = deque(maxlen=history)
+        self.last_mean: list[float | None] = []  # last evaluated mean return per actor
+        self.eval_round: int | None = None
+        self.last_bias: dict[str, Any] | None = None
+        self.stats: dict[str, Any] | None = None
+        self.stats_seen: float | None = None
+        self.steps_per_s: float | None = None  # learner env steps/s from consecutive stats
+        self.updates_per_s: float | None = None
+        self.workers: dict[str, WorkerView] = {}
+        self.roles: dict[tuple[str, str], tuple[bool, float]] = {}  # (role, id) -> (alive, when)
+        self.summary: dict[str, Any] | None = None
+
+    # --- inputs ------------------------------------------------------------------------------
+
+    def on_config(self, d: Mapping[str, Any]) -> None:
+        """A run's `config.json` (if the monitor can read it): names and budget for the header."""
+        self.run = str(d.get("run") or self.run)
+        self.env_id = str(d.get("env_id") or self.env_id)
+        self.algo = str(d.get("algo") or self.algo)
+        self.steps = _int(d.get("steps")) or self.steps
+
+    def on_allocation(self, d: Mapping[str, Any]) -> None:
+        self.probabilities = _floats(d.get("probabilities")) or self.probabilities
+        self.counts = _ints(d.get("counts")) or self.counts
+        if isinstance(d.get("eliminated"), list):
+            self.eliminated = [bool(e) for e in d["eliminated"]]
+        self.survivor = _int(d.get("survivor"))
+        self.round = _int(d.get("round"))
+        slots = d.get("slots")
+        if isinstance(slots, Mapping):
+            for worker, actor in slots.items():
+                self._worker(str(worker)).actor = _int(actor)
+        self.history.append(
+            AllocationRound(
+                round=_int(d.get("round")) or 0,
+                env_steps=_int(d.get("env_steps")) or 0,
+                probabilities=tuple(p if p is not None else math.nan for p in _floats(d.get("probabilities"))),
+                counts=tuple(c if c is not None else 0 for c in _ints(d.get("counts"))),
+                reason=str(d.get("reason", "")),
+            )
+        )
+
+    def on_eval(self, d: Mapping[str, Any]) -> None:
+        means = _floats(d.get("mean"))
+        if len(self.last_mean) < len(means):
+            self.last_mean += [None] * (len(means) - len(self.last_mean))
+        for k, m in enumerate(means):
+            if m is not None:  # an actor not evaluated this round keeps its last return
+                self.last_mean[k] = m
+        self.eval_round = _int(d.get("round"))
+        if isinstance(d.get("bias"), Mapping):
+            self.last_bias = dict(d["bias"])
+
+    def on_stats(self, d: Mapping[str, Any]) -> None:
+        now = self.now()
+        previous, previous_t = self.stats, self.stats_seen
+        if previous is not None and previous_t is not None and now > previous_t:
+            dt = now - previous_t
+            steps, steps0 = _int(d.get("env_steps")), _int(previous.get("env_steps"))
+            updates, updates0 = _int(d.get("updates")), _int(previous.get("updates"))
+            if steps is not None and steps0 is not None:
+                self.steps_per_s = max(0, steps - steps0) / dt
+            if updates is not None and updates0 is not None:
+                self.updates_per_s = max(0, updates - updates0) / dt
+        per_worker = d.get("per_worker")
+        if isinstance(per_worker, Mapping):
+            previous_workers = (previous or {}).get("per_worker")
+            previous_workers = previous_workers if isinstance(previous_workers, Mapping) else {}
+            for worker, info in per_worker.items():
+                if not isinstance(info, Mapping):
+                    continue
+                view = self._worker(str(worker))
+                received = _int(info.get("received")) or 0
+                before_info = previous_workers.get(worker)
+                before = _int(before_info.get("received")) if isinstance(before_info, Mapping) else None
+                if before is None or received > before:
+                    view.last_seen = now  # the learner got data from it since the last stats
+                rate = _float(info.get("rate"))
+                if rate is None and before is not None and previous_t is not None and now > previous_t:
+                    rate = max(0, received - before) / (now - previous_t)
+                view.received, view.rate = received, rate
+                view.actor = _int(info.get("actor")) if info.get("actor") is not None else view.actor
+                view.lag = _int(info.get("lag"))
+                view.last_seq = _int(info.get("last_seq"))
+        self.stats, self.stats_seen = dict(d), now
+
+    def on_alive(self, role: str, id: str, alive: bool) -> None:
+        now = self.now()
+        self.roles[(role, id)] = (alive, now)
+        if role == "worker":
+            view = self._worker(id)
+            view.alive, view.last_seen = alive, now  # a departure is the last time it was up
+
+    def on_done(self, d: Mapping[str, Any]) -> None:
+        self.summary = dict(d)
+        survivor = _int(d.get("survivor"))
+        if survivor is not None:
+            self.survivor = survivor
+
+    # --- derived ------------------------------------------------------------------------------
+
+    def _worker(self, worker: str) -> WorkerView:
+        return self.workers.setdefault(worker, WorkerView())
+
+    @property
+    def n_actors(self) -> int:
+        stats = self.stats or {}
+        lists = (self.probabilities, self.counts, self.eliminated, self.last_mean,
+                 stats.get("q_means") or [], stats.get("versions") or [])
+        return max(len(x) for x in lists if isinstance(x, list))
+
+    @property
+    def done(self) -> bool:
+        return self.summary is not None or bool((self.stats or {}).get("done"))
+
+    def seconds_ago(self, when: float | None) -> float | None:
+        return None if when is None else max(0.0, self.now() - when)
+
+    def actor_status(self, k: int) -> str:
+        if self.survivor == k:
+            return "survivor"
+        if k < len(self.eliminated) and self.eliminated[k]:
+            return "eliminated"
+        return "live"
+
+
+# --- view -------------------------------------------------------------------------------------
+
+
+def _fmt(value: float | None, spec: str = ".3g") -> str:
+    return "—" if value is None else format(value, spec)
+
+
+def _at(values: Any, k: int) -> Any:
+    return values[k] if isinstance(values, list) and k < len(values) else None
+
+
+def _header(state: MonitorState) -> Panel:
+    name = " · ".join(x for x in (state.run, state.algo, state.env_id) if x) or "mam"
+    stats = state.stats
+    roles = "  ".join(
+        f"{role} {id}: " + ("[green]up[/green]" if alive else "[red]gone[/red]")
+        for (role, id), (alive, _) in sorted(state.roles.items()) if role != "worker"
+    )
+    if stats is None:
+        body = Text.from_markup("[yellow]waiting for learner…[/yellow]" + (f"\n{roles}" if roles else ""))
+        return Panel(body, title=name, border_style="yellow")
+    steps = _int(stats.get("env_steps"))
+    budget = f" / {state.steps:,}" if state.steps else ""
+    losses = stats.get("losses") or {}
+    lines = [
+        f"env steps [bold]{steps:,}[/bold]{budget}" if steps is not None else "env steps —",
+        f"updates [bold]{_int(stats.get('updates')) or 0:,}[/bold]",
+        f"updates/s {_fmt(state.updates_per_s, '.1f')}",
+        f"transitions/s {_fmt(state.steps_per_s, '.1f')}",
+        f"utd {_fmt(_float(stats.get('utd')), '.3f')}",
+    ]
+    second = [
+        f"critic loss {_fmt(_float(losses.get('critic')), '.4g')}",
+        f"actor loss {_fmt(_float(losses.get('actor')), '.4g')}",
+        f"accept until {_fmt(_float(stats.get('accept_until')), ',.0f')}",
+        f"last stats {_fmt(state.seconds_ago(state.stats_seen), '.1f')}s ago",
+    ]
+    rejected = stats.get("rejected") or {}
+    if isinstance(rejected, Mapping) and any(rejected.values()):
+        second.append("rejected " + ", ".join(f"{r}={n}" for r, n in sorted(rejected.items()) if n))
+    text = "   ".join(lines) + "\n" + "   ".join(second)
+    if roles:
+        text += "\n" + roles
+    if state.done:
+        text += "\n[bold green]done[/bold green]"
+        if state.summary and _float(state.summary.get("wall_time_s")) is not None:
+            text += f" in {state.summary['wall_time_s']:.0f}s"
+    return Panel(Text.from_markup(text), title=name, border_style="green" if state.done else "blue")
+
+
+def _actors_table(state: MonitorState) -> Table:
+    title = "actors" + (f" (round {state.round})" if state.round is not None else "")
+    table = Table(title=title, title_justify="left")
+    for col in ("actor", "P_k", "I_k", "last mean return", "status", "policy version", "mean Q"):
+        table.add_column(col, justify="left" if col in ("actor", "status") else "right")
+    stats = state.stats or {}
+    if state.n_actors == 0:
+        table.add_row("—", "", "", "", "no allocation yet", "", "")
+    for k in range(state.n_actors):
+        status = state.actor_status(k)
+        style = {"survivor": "bold green", "eliminated": "dim"}.get(status, "")
+        shown = {"survivor": "★ survivor", "eliminated": "✗ eliminated"}.get(status, "live")
+        table.add_row(
+            f"{k}",
+            _fmt(_at(state.probabilities, k), ".3f"),
+            _fmt(_at(state.counts, k), "d"),
+            _fmt(_at(state.last_mean, k), ".2f"),
+            shown,
+            _fmt(_int(_at(stats.get("versions"), k)), "d"),
+            _fmt(_float(_at(stats.get("q_means"), k)), ".3g"),
+            style=style,
+        )
+    return table
+
+
+def _workers_table(state: MonitorState) -> Table:
+    table = Table(title="workers", title_justify="left")
+    for col in ("worker", "state", "actor", "transitions", "steps/s", "policy lag", "last seen"):
+        table.add_column(col, justify="left" if col in ("worker", "state") else "right")
+    if not state.workers:
+        table.add_row("—", "no workers yet", "", "", "", "", "")
+    for worker, view in sorted(state.workers.items()):
+        alive = {True: "[green]alive[/green]", False: "[red]gone[/red]", None: "[dim]?[/dim]"}[view.alive]
+        ago = state.seconds_ago(view.last_seen)
+        table.add_row(
+            worker,
+            Text.from_markup(alive),
+            _fmt(view.actor, "d"),
+            f"{view.received:,}",
+            _fmt(view.rate, ".1f"),
+            _fmt(view.lag, "d"),
+            "—" if ago is None else f"{ago:.1f}s ago",
+            style="dim" if view.alive is False else "",
+        )
+    return table
+
+
+def _history_table(state: MonitorState) -> Table:
+    table = Table(title="allocation history", title_justify="left")
+    for col in ("round", "env step", "P", "I", "reason"):
+        table.add_column(col, justify="right" if col in ("round", "env step") else "left")
+    if not state.history:
+        table.add_row("—", "", "", "", "no allocation yet")
+    for r in reversed(state.history):
+        table.add_row(
+            str(r.round),
+            f"{r.env_steps:,}",
+            "[" + ", ".join(_fmt(p if math.isfinite(p) else None, ".3f") for p in r.probabilities) + "]",
+            "[" + ", ".join(str(c) for c in r.counts) + "]",
+            r.reason,
+        )
+    return table
+
+
+def render(state: MonitorState) -> RenderableType:
+    """The whole `mam watch` screen for one state; cheap enough to redraw a few times a second."""
+    return Group(_header(state), _actors_table(state), _workers_table(state), _history_table(state))

@@ -1,0 +1,345 @@
+"""PNG plots of a run directory (`mam plot RUN_DIR`).
+
+Reads the JSONL metrics a run writes (`eval.jsonl`, `allocation.jsonl`, `learner.jsonl`) plus
+`config.json` / `summary.json`, and writes into `RUN_DIR/plots/`:
+
+- `learning_curves.png`  mean evaluation return per actor (±1 std over episodes), elimination at C
+- `allocation.png`       I_k (slots per actor, stacked) and P_k (Eq. 8) over env steps
+- `bias.png`             estimation bias rate (Eq. 17), only when evaluations carried it
+- `learner.png`          critic loss, actor loss, updates per transition, mean Q per actor
+
+A run may still be going: the last JSONL line can be half written and is skipped. A plot whose
+data is absent is skipped. Figures use the object API (`Figure` + Agg canvas), never pyplot,
+so plotting changes no global matplotlib state of the calling process.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+log = logging.getLogger(__name__)
+
+PLOTS_DIR = "plots"
+DPI = 120
+
+
+# --- reading -------------------------------------------------------------------------------
+
+
+def read_jsonl(path: Path | str) -> list[dict[str, Any]]:
+    """Rows of a JSONL file; blank, partial (a live run's last line) or corrupt lines are skipped.
+
+    A missing file gives []. Only JSON objects count as rows.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except FileNotFoundError:
+        return []
+    lines = text.splitlines()
+    last = max((i for i, line in enumerate(lines) if line.strip()), default=-1)
+    rows: list[dict[str, Any]] = []
+    for i, line in enumerate(lines):
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            if i != last:  # a trailing partial line is expected while a run is live; others are not
+                log.warning("%s:%d: skipping corrupt line", path, i + 1)
+            continue
+        if isinstance(row, dict):
+            rows.append(row)
+    return rows
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (FileNotFoundError, json.JSONDecodeError, UnicodeDecodeError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _num(value: Any) -> float:
+    """A metric value as float; None, strings and other junk become NaN (a gap in the line)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return math.nan
+    return float(value)
+
+
+def _rows_with_steps(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [r for r in rows if isinstance(r.get("env_steps"), (int, float))]
+
+
+# --- run facts ------------------------------------------------------------------------------
+
+
+def _survivor(summary: dict[str, Any], allocation: list[dict[str, Any]]) -> int | None:
+    if isinstance(summary.get("survivor"), int):
+        return summary["survivor"]
+    for row in reversed(allocation):
+        if isinstance(row.get("survivor"), int):
+            return row["survivor"]
+    return None
+
+
+def _elimination_step(config: dict[str, Any], allocation: list[dict[str, Any]], last_step: float) -> float | None:
+    """Env step of the elimination: the referee's record, else C from the config once reached."""
+    for row in allocation:
+        if row.get("reason") == "elimination" and isinstance(row.get("env_steps"), (int, float)):
+            return float(row["env_steps"])
+    algo = config.get("algo_config") or {}
+    c = algo.get("eliminate_at")
+    if algo.get("no_ot") or not isinstance(c, (int, float)) or c <= 0 or c > last_step:
+        return None
+    return float(c)
+
+
+def _title(config: dict[str, Any]) -> str:
+    parts = [str(config[k]) for k in ("run", "algo", "env_id") if config.get(k)]
+    return " · ".join(parts)
+
+
+def _actor_label(k: int, survivor: int | None) -> str:
+    return f"actor {k} (survivor)" if k == survivor else f"actor {k}"
+
+
+def _mark_elimination(ax: Axes, step: float | None, label: bool = True) -> None:
+    if step is not None:
+        ax.axvline(step, color="0.3", linestyle="--", linewidth=1.0,
+                   label=f"elimination @ {step:,.0f}" if label else None)
+
+
+def _save(fig: Figure, path: Path) -> Path:
+    FigureCanvasAgg(fig)
+    fig.savefig(path, dpi=DPI)
+    return path
+
+
+def _n_actors(*lists: Sequence[Any]) -> int:
+    return max((len(x) for x in lists if isinstance(x, list)), default=0)
+
+
+# --- plots ----------------------------------------------------------------------------------
+
+
+def plot_learning_curves(
+    evals: list[dict[str, Any]], survivor: int | None, elimination: float | None, title: str, path: Path
+) -> Path | None:
+    """Mean evaluation return per actor with a ±1 std band over the evaluation episodes."""
+    evals = _rows_with_steps(evals)
+    k_actors = max((_n_actors(r.get("mean"), r.get("returns")) for r in evals), default=0)
+    if k_actors == 0:
+        return None
+    fig = Figure(figsize=(8, 4.8), layout="constrained")
+    ax = fig.add_subplot()
+    for k in range(k_actors):
+        xs, mean, std = [], [], []
+        for row in evals:
+            returns = row.get("returns") or []
+            episodes = [_num(v) for v in returns[k]] if k < len(returns) and isinstance(returns[k], list) else []
+            episodes = [v for v in episodes if math.isfinite(v)]
+            means = row.get("mean") or []
+            m = _num(means[k]) if k < len(means) else math.nan
+            if not math.isfinite(m) and episodes:
+                m = float(np.mean(episodes))
+            if not math.isfinite(m):
+                continue  # actor not evaluated this round (e.g. eliminated)
+            xs.append(float(row["env_steps"]))
+            mean.append(m)
+            std.append(float(np.std(episodes)) if episodes else 0.0)
+        if not xs:
+            continue
+        x, m, s = np.asarray(xs), np.asarray(mean), np.asarray(std)
+        color = f"C{k % 10}"
+        ax.plot(x, m, color=color, marker="o", markersize=3, linewidth=2.2 if k == survivor else 1.5,
+                label=_actor_label(k, survivor))
+        ax.fill_between(x, m - s, m + s, color=color, alpha=0.18, linewidth=0)
+    _mark_elimination(ax, elimination)
+    ax.set_xlabel("env steps (transitions received by the learner)")
+    ax.set_ylabel("mean evaluation return")
+    ax.set_title(f"Learning curves — {title}" if title else "Learning curves")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize="small")
+    return _save(fig, path)
+
+
+def plot_allocation(
+    allocation: list[dict[str, Any]], last_step: float, survivor: int | None, elimination: float | None,
+    title: str, path: Path,
+) -> Path | None:
+    """I_k stacked (slots per actor, sums to M) and P_k, both held until the next allocation."""
+    rows = [r for r in _rows_with_steps(allocation)
+            if isinstance(r.get("counts"), list) or isinstance(r.get("probabilities"), list)]
+    if not rows:
+        return None
+    k_actors = max(_n_actors(r.get("counts"), r.get("probabilities")) for r in rows)
+    x = np.asarray([float(r["env_steps"]) for r in rows])
+    counts = np.full((k_actors, len(rows)), np.nan)
+    probs = np.full((k_actors, len(rows)), np.nan)
+    for j, row in enumerate(rows):
+        for k, v in enumerate((row.get("counts") or [])[:k_actors]):
+            counts[k, j] = _num(v)
+        for k, v in enumerate((row.get("probabilities") or [])[:k_actors]):
+            probs[k, j] = _num(v)
+    # Hold the last allocation until the end of the data so the final step is visible.
+    if last_step > x[-1]:
+        x = np.append(x, last_step)
+        counts = np.concatenate([counts, counts[:, -1:]], axis=1)
+        probs = np.concatenate([probs, probs[:, -1:]], axis=1)
+
+    fig = Figure(figsize=(9, 6), layout="constrained")
+    ax_i, ax_p = fig.subplots(2, 1, sharex=True, height_ratios=[3, 2])
+    colors = [f"C{k % 10}" for k in range(k_actors)]
+    labels = [_actor_label(k, survivor) for k in range(k_actors)]
+    ax_i.stackplot(x, np.nan_to_num(counts), labels=labels, colors=colors, step="post", alpha=0.8)
+    ax_i.set_ylabel("slots $I_k$")
+    m_total = np.nanmax(np.nansum(counts, axis=0)) if np.isfinite(counts).any() else 0
+    if m_total > 0:
+        ax_i.set_ylim(0, m_total)
+        ax_i.set_yticks(range(int(m_total) + 1))
+    ax_i.set_title(f"Allocation — {title}" if title else "Allocation")
+    ax_i.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small")
+    _mark_elimination(ax_i, elimination, label=False)
+    for k in range(k_actors):
+        ax_p.step(x, probs[k], where="post", color=colors[k], linewidth=1.6, label=f"$P_{{{k}}}$")
+    _mark_elimination(ax_p, elimination)
+    ax_p.set_ylim(-0.02, 1.02)
+    ax_p.set_ylabel("probability $P_k$ (Eq. 8)")
+    ax_p.set_xlabel("env steps")
+    ax_p.grid(alpha=0.3)
+    ax_p.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small")
+    return _save(fig, path)
+
+
+def plot_bias(evals: list[dict[str, Any]], title: str, path: Path) -> Path | None:
+    """Estimation bias rate (Eq. 17) and the two Q values it compares."""
+    rows = [r for r in _rows_with_steps(evals) if isinstance(r.get("bias"), dict)]
+    if not rows:
+        return None
+    fig = Figure(figsize=(8, 6), layout="constrained")
+    ax_rate, ax_q = fig.subplots(2, 1, sharex=True)
+    actors = sorted({int(r["bias"].get("actor", 0)) for r in rows if isinstance(r["bias"].get("actor", 0), int)})
+    for k in actors:
+        sel = [r for r in rows if r["bias"].get("actor", 0) == k]
+        x = [float(r["env_steps"]) for r in sel]
+        color = f"C{k % 10}"
+        ax_rate.plot(x, [_num(r["bias"].get("bias_rate")) for r in sel], color=color, marker="o", markersize=3,
+                     label=f"actor {k}")
+        ax_q.plot(x, [_num(r["bias"].get("q_estimate")) for r in sel], color=color, marker="o", markersize=3,
+                  label=f"actor {k}: critic $\\hat Q$")
+        ax_q.plot(x, [_num(r["bias"].get("q_true")) for r in sel], color=color, linestyle="--",
+                  label=f"actor {k}: Monte-Carlo $Q^*$")
+    ax_rate.axhline(0.0, color="0.3", linewidth=0.8)
+    ax_rate.set_ylabel("bias rate $(\\hat Q - Q^*)/|Q^*|$")
+    ax_rate.set_title(f"Estimation bias (Eq. 17) — {title}" if title else "Estimation bias (Eq. 17)")
+    ax_rate.grid(alpha=0.3)
+    ax_rate.legend(loc="best", fontsize="small")
+    ax_q.set_ylabel("Q at start states")
+    ax_q.set_xlabel("env steps")
+    ax_q.grid(alpha=0.3)
+    ax_q.legend(loc="best", fontsize="small")
+    return _save(fig, path)
+
+
+def plot_learner(learner: list[dict[str, Any]], target_utd: float | None, title: str, path: Path) -> Path | None:
+    """Critic loss, actor loss, updates per transition and mean Q per actor over env steps."""
+    rows = _rows_with_steps(learner)
+    if not rows:
+        return None
+    x = np.asarray([float(r["env_steps"]) for r in rows])
+    critic = np.asarray([_num(r.get("loss/critic")) for r in rows])
+    actor = np.asarray([_num(r.get("loss/actor")) for r in rows])
+    utd = np.asarray([_num(r.get("utd")) for r in rows])
+    q_keys = sorted({k for r in rows for k in r if k.startswith("q/actor")}, key=lambda s: (len(s), s))
+
+    fig = Figure(figsize=(8, 8 if q_keys else 6.5), layout="constrained")
+    axes = fig.subplots(4 if q_keys else 3, 1, sharex=True)
+    ax_c, ax_a, ax_u = axes[:3]
+    ax_c.plot(x, critic, color="C0", linewidth=1.2)
+    if np.isfinite(critic).any() and np.nanmin(critic) > 0:
+        ax_c.set_yscale("log")
+    ax_c.set_ylabel("critic loss")
+    ax_c.set_title(f"Learner — {title}" if title else "Learner")
+    ax_a.plot(x, actor, color="C1", linewidth=1.2)
+    ax_a.set_ylabel("actor loss")
+    ax_u.plot(x, utd, color="C2", linewidth=1.2, label="measured")
+    if target_utd is not None:
+        ax_u.axhline(target_utd, color="0.3", linestyle="--", linewidth=1.0, label=f"target {target_utd:g}")
+        ax_u.legend(loc="best", fontsize="small")
+    ax_u.set_ylabel("updates / transition")
+    if q_keys:
+        for key in q_keys:
+            k = key.removeprefix("q/actor")
+            color = f"C{int(k) % 10}" if k.isdigit() else None
+            axes[3].plot(x, [_num(r.get(key)) for r in rows], color=color, linewidth=1.2, label=f"actor {k}")
+        axes[3].set_ylabel("mean Q")
+        axes[3].legend(loc="best", fontsize="small")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("env steps")
+    return _save(fig, path)
+
+
+# --- entry points ---------------------------------------------------------------------------
+
+
+def plot_run(run_dir: Path) -> list[Path]:
+    """Write every plot whose data is present into `run_dir/plots/`; return the files written."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"run directory not found: {run_dir}")
+    config = _read_json(run_dir / "config.json")
+    summary = _read_json(run_dir / "summary.json")
+    evals = read_jsonl(run_dir / "eval.jsonl")
+    allocation = read_jsonl(run_dir / "allocation.jsonl")
+    learner = read_jsonl(run_dir / "learner.jsonl")
+
+    steps = [float(r["env_steps"]) for r in _rows_with_steps(evals + allocation + learner)]
+    if isinstance(summary.get("env_steps"), (int, float)):
+        steps.append(float(summary["env_steps"]))
+    last_step = max(steps, default=0.0)
+    survivor = _survivor(summary, allocation)
+    elimination = _elimination_step(config, allocation, last_step)
+    title = _title(config)
+    utd = _num((config.get("algo_config") or {}).get("utd"))
+    target_utd = utd if math.isfinite(utd) else None
+
+    out = run_dir / PLOTS_DIR
+    out.mkdir(exist_ok=True)
+    written = [
+        plot_learning_curves(evals, survivor, elimination, title, out / "learning_curves.png"),
+        plot_allocation(allocation, last_step, survivor, elimination, title, out / "allocation.png"),
+        plot_bias(evals, title, out / "bias.png"),
+        plot_learner(learner, target_utd, title, out / "learner.png"),
+    ]
+    return [p for p in written if p is not None]
+
+
+def main(run_dir: Path | str) -> list[Path]:
+    """Plot a run directory; the files written."""
+    return plot_run(Path(run_dir))
+
+
+def plot_command(run_dir: Path) -> None:
+    """Write PNG curves (learning curves, allocation, bias rate, learner) into RUN_DIR/plots."""
+    from rich.console import Console
+
+    console = Console()
+    files = main(run_dir)
+    if not files:
+        console.print(f"[yellow]no metrics to plot in {run_dir}[/yellow]")
+        return
+    for path in files:
+        console.print(f"[green]wrote[/green] {path}")

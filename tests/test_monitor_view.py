@@ -1,0 +1,111 @@
+"""`mam watch` without the network: MonitorState fed with decoded messages, rendered to text."""
+
+import pytest
+from rich.console import Console
+
+from services.monitor_view import MonitorState, render
+
+
+class FakeClock:
+    def __init__(self, t: float = 100.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _text(state: MonitorState) -> str:
+    console = Console(record=True, width=140, color_system=None)
+    console.print(render(state))
+    return console.export_text()
+
+
+def _stats(env_steps: int, updates: int, received: dict[str, int], done: bool = False) -> dict:
+    return {
+        "env_steps": env_steps, "updates": updates, "accept_until": env_steps + 500, "utd": 0.98,
+        "losses": {"critic": 0.125, "actor": -3.5}, "q_means": [12.5, 20.25], "versions": [40, 41],
+        "per_worker": {w: {"received": n, "last_seq": n // 50, "actor": i % 2, "lag": i, "rate": None}
+                       for i, (w, n) in enumerate(received.items())},
+        "rejected": {"bad_shape": 2}, "done": done,
+    }
+
+
+def _allocation(rnd: int, step: int, p: list[float], counts: list[int], slots: dict, survivor=None, reason="round"):
+    return {"t": 1.0, "round": rnd, "env_steps": step, "returns": None, "probabilities": p, "counts": counts,
+            "slots": slots, "eliminated": [survivor is not None and k != survivor for k in range(len(p))],
+            "survivor": survivor, "reason": reason}
+
+
+def test_empty_state_renders_waiting():
+    state = MonitorState(now=FakeClock())
+    text = _text(state)
+    assert "waiting for learner" in text
+    assert "no workers yet" in text
+    assert "no allocation yet" in text
+
+
+def test_state_tracks_allocation_eval_and_rates():
+    clock = FakeClock(100.0)
+    state = MonitorState(run="r1", env_id="Hopper-v5", algo="ma-td3", steps=1_000_000, now=clock)
+    state.on_alive("learner", "0", True)
+    for w in ("w0", "w1", "w2"):
+        state.on_alive("worker", w, True)
+    state.on_allocation(_allocation(0, 0, [0.5, 0.5], [2, 1], {"w0": 0, "w1": 0, "w2": 1}, reason="initial"))
+    state.on_allocation(_allocation(1, 5_000, [0.25, 0.75], [1, 2], {"w0": 1, "w1": 0, "w2": 1}))
+    assert state.probabilities == [0.25, 0.75]
+    assert state.counts == [1, 2]
+    assert state.workers["w0"].actor == 1
+    assert len(state.history) == 2
+
+    state.on_eval({"t": 2.0, "round": 1, "env_steps": 5_000, "returns": [[1.0, 2.0], [3.0, 5.0]],
+                   "mean": [1.5, 4.0], "versions": [10, 10], "bias": None})
+    assert state.last_mean == [1.5, 4.0]
+
+    state.on_stats(_stats(10_000, 8_000, {"w0": 3_000, "w1": 3_000, "w2": 4_000}))
+    assert state.steps_per_s is None  # one stats message gives no rate yet
+    clock.t = 102.0
+    state.on_stats(_stats(12_000, 9_000, {"w0": 3_800, "w1": 3_000, "w2": 5_200}))
+    assert state.steps_per_s == pytest.approx(1_000.0)
+    assert state.updates_per_s == pytest.approx(500.0)
+    assert state.workers["w0"].rate == pytest.approx(400.0)  # derived from received when rate is absent
+    assert state.workers["w2"].received == 5_200
+    assert state.workers["w0"].last_seen == 102.0
+    assert state.workers["w1"].last_seen == 100.0  # nothing new from w1 in the second stats
+
+    clock.t = 105.0
+    state.on_alive("worker", "w1", False)
+    assert state.workers["w1"].alive is False
+    assert state.workers["w1"].last_seen == 105.0
+    clock.t = 107.5
+    assert state.seconds_ago(state.workers["w1"].last_seen) == pytest.approx(2.5)
+
+    text = _text(state)
+    for expected in ("r1", "ma-td3", "Hopper-v5", "12,000 / 1,000,000", "0.250", "0.750", "500.0", "1000.0",
+                     "w0", "w1", "w2", "gone", "alive", "2.5s ago", "bad_shape=2", "4.00"):
+        assert expected in text, expected
+    assert "waiting for learner" not in text
+
+
+def test_elimination_marks_survivor_and_keeps_last_returns():
+    state = MonitorState(now=FakeClock())
+    state.on_allocation(_allocation(1, 1_000, [0.2, 0.3, 0.5], [1, 1, 3], {"w0": 0, "w1": 1, "w2": 2}))
+    state.on_eval({"t": 3.0, "round": 2, "env_steps": 24_000, "returns": [[1.0], [2.0], [9.0]],
+                   "mean": [1.0, 2.0, 9.0], "versions": [1, 1, 1], "bias": None})
+    state.on_allocation(_allocation(2, 24_000, [0.0, 0.0, 1.0], [0, 0, 3], {"w0": 2, "w1": 2, "w2": 2},
+                                    survivor=2, reason="elimination"))
+    # After elimination only the survivor is evaluated; the others keep their last return.
+    state.on_eval({"t": 4.0, "round": 3, "env_steps": 25_000, "returns": [[], [], [10.0]],
+                   "mean": [None, None, 10.0], "versions": [1, 1, 2], "bias": None})
+    assert state.survivor == 2
+    assert state.eliminated == [True, True, False]
+    assert state.last_mean == [1.0, 2.0, 10.0]
+    assert [state.actor_status(k) for k in range(3)] == ["eliminated", "eliminated", "survivor"]
+    assert {w.actor for w in state.workers.values()} == {2}
+
+    state.on_stats(_stats(25_000, 24_000, {"w0": 9_000}, done=True))
+    state.on_done({"final_returns": [1.0, 2.0, 10.0], "survivor": 2, "env_steps": 25_000, "updates": 24_000,
+                   "wall_time_s": 321.0})
+    text = _text(state)
+    assert "survivor" in text and "eliminated" in text
+    assert "1.000" in text and "elimination" in text
+    assert "done" in text and "321s" in text

@@ -1,0 +1,130 @@
+"""`mam plot`: PNGs from a run directory, tolerant of a live run's partial last line."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.plot import plot_run, read_jsonl
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+K, M, A, C, STEPS = 3, 5, 1_000, 12_000, 20_000
+
+
+def _write_jsonl(path: Path, rows: list[dict], partial: str | None = None) -> None:
+    with path.open("w") as f:
+        for row in rows:
+            f.write(json.dumps(row) + "\n")
+        if partial is not None:
+            f.write(partial)  # a run still writing: no newline, cut mid-object
+
+
+def make_run(run_dir: Path, with_bias: bool = True) -> Path:
+    """A small MA-DDPG-like run: K=3 actors, rounds every A, actor 1 survives at C."""
+    rng = np.random.default_rng(0)
+    run_dir.mkdir(parents=True)
+    config = {
+        "run": "test-run", "env_id": "AppleCollect-v0", "algo": "ma-ddpg", "steps": STEPS,
+        "algo_config": {"actors": K, "workers": M, "eliminate_at": C, "compete_every": A, "eta": 0.0, "utd": 1.0},
+        "endpoint": "tcp/127.0.0.1:7447",
+    }
+    (run_dir / "config.json").write_text(json.dumps(config))
+
+    evals, allocs, learner = [], [], []
+    skill = np.array([0.5, 1.0, 0.3])
+    survivor = None
+    allocs.append({"t": 0.0, "round": 0, "env_steps": 0, "returns": None, "probabilities": [1 / K] * K,
+                   "counts": [2, 2, 1], "slots": {f"w{i}": i % K for i in range(M)}, "eliminated": [False] * K,
+                   "survivor": None, "reason": "initial"})
+    for rnd, step in enumerate(range(A, STEPS + 1, A), start=1):
+        live = [survivor is None or k == survivor for k in range(K)]
+        returns = [list(rng.normal(skill[k] * step / 200, 5.0, size=10)) if live[k] else [] for k in range(K)]
+        mean = [float(np.mean(r)) if r else None for r in returns]
+        bias = None
+        if with_bias and rnd % 3 == 0:
+            q_true = float(np.mean(returns[1]))
+            bias = {"actor": 1, "q_estimate": q_true * 1.1 + 1, "q_true": q_true, "bias_rate": 0.1 + 1 / abs(q_true)}
+        evals.append({"t": rnd * 2.0, "round": rnd, "env_steps": step, "returns": returns, "mean": mean,
+                      "versions": [step // 2] * K, "bias": bias})
+        if step < C:
+            r = np.array([m for m in mean if m is not None])
+            p = (r - r.min() + 1.0) / (r - r.min() + 1.0).sum()
+            slots = {f"w{i}": int(rng.choice(K, p=p)) for i in range(M)}
+            counts = [sum(1 for a in slots.values() if a == k) for k in range(K)]
+            allocs.append({"t": rnd * 2.0, "round": rnd, "env_steps": step, "returns": mean, "probabilities": list(p),
+                           "counts": counts, "slots": slots, "eliminated": [False] * K, "survivor": None,
+                           "reason": "round"})
+        elif survivor is None:
+            survivor = int(np.argmax([m if m is not None else -np.inf for m in mean]))
+            allocs.append({"t": rnd * 2.0, "round": rnd, "env_steps": step, "returns": mean,
+                           "probabilities": [float(k == survivor) for k in range(K)],
+                           "counts": [M if k == survivor else 0 for k in range(K)],
+                           "slots": {f"w{i}": survivor for i in range(M)},
+                           "eliminated": [k != survivor for k in range(K)], "survivor": survivor,
+                           "reason": "elimination"})
+    for i, step in enumerate(range(0, STEPS + 1, 400)):
+        learner.append({"t": i * 0.5, "env_steps": step, "updates": max(0, step - 2_000),
+                        "utd": 1.0 + 0.05 * np.sin(i) if step > 2_000 else 0.0, "transitions_per_s": 800.0,
+                        "updates_per_s": 790.0, "loss/critic": 10.0 / (1 + i) + 0.1,
+                        "loss/actor": None if step < 3_000 else -step / 1_000,
+                        **{f"q/actor{k}": skill[k] * step / 1_000 for k in range(K)},
+                        "versions": [step // 2] * K, "live": [True] * K})
+
+    _write_jsonl(run_dir / "eval.jsonl", evals, partial='{"t": 99.0, "round": 21, "env_ste')
+    _write_jsonl(run_dir / "allocation.jsonl", allocs)
+    _write_jsonl(run_dir / "learner.jsonl", learner, partial='{"t": 99.0, "env_steps": 2')
+    (run_dir / "summary.json").write_text(json.dumps(
+        {"final_returns": evals[-1]["mean"], "survivor": survivor, "env_steps": STEPS, "updates": STEPS - 2_000,
+         "wall_time_s": 60.0}))
+    return run_dir
+
+
+def _assert_png(path: Path) -> None:
+    assert path.is_file()
+    data = path.read_bytes()
+    assert len(data) > 1_000
+    assert data[:8] == PNG_MAGIC
+
+
+def test_read_jsonl_skips_partial_and_blank_lines(tmp_path):
+    path = tmp_path / "m.jsonl"
+    path.write_text('{"a": 1}\n\n   \n{"a": 2}\n[1, 2]\n{"a": 3, "b"')
+    assert read_jsonl(path) == [{"a": 1}, {"a": 2}]
+    assert read_jsonl(tmp_path / "missing.jsonl") == []
+    path.write_text('{"a": 1}')  # complete last line without a newline is a row
+    assert read_jsonl(path) == [{"a": 1}]
+
+
+def test_plot_run_writes_all_plots(tmp_path):
+    run = make_run(tmp_path / "run")
+    assert len(read_jsonl(run / "eval.jsonl")) == STEPS // A  # partial last line dropped
+    files = plot_run(run)
+    names = {p.name for p in files}
+    assert names == {"learning_curves.png", "allocation.png", "bias.png", "learner.png"}
+    for path in files:
+        assert path.parent == run / "plots"
+        _assert_png(path)
+
+
+def test_no_bias_data_means_no_bias_png(tmp_path):
+    run = make_run(tmp_path / "run", with_bias=False)
+    files = plot_run(run)
+    assert {p.name for p in files} == {"learning_curves.png", "allocation.png", "learner.png"}
+    assert not (run / "plots" / "bias.png").exists()
+
+
+def test_missing_data_skips_plots(tmp_path):
+    run = tmp_path / "empty"
+    run.mkdir()
+    assert plot_run(run) == []
+    row = {"t": 0.1, "env_steps": 0, "updates": 0, "utd": 0.0, "loss/critic": 1.0, "loss/actor": None}
+    (run / "learner.jsonl").write_text(json.dumps(row) + "\n")
+    files = plot_run(run)
+    assert [p.name for p in files] == ["learner.png"]
+    _assert_png(files[0])
+
+
+def test_missing_run_dir_raises(tmp_path):
+    with pytest.raises(FileNotFoundError, match="run directory"):
+        plot_run(tmp_path / "nope")
