@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 run: $(STAMP)
-	$(VENV)/bin/mam run $(RUN_ARGS)
+	$(VENV)/bin/mam run --config deploy/demo.toml $(RUN_ARGS)
 
 test: $(STAMP)
 	$(PY) -m pytest -q

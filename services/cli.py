@@ -1,0 +1,91 @@
+"""`mam`: the umbrella command (run, watch, plot, and the role commands)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import typer
+
+from services import bus, options
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="Multi-actor mechanism (MA-TD3, MA-DDPG) over Zenoh: run, watch and plot training runs.")
+
+
+@app.command()
+def run(
+    env: options.Env = None, algo: options.Algo = None, steps: options.Steps = None,
+    actors: options.Actors = None, workers: options.Workers = None, eliminate_at: options.EliminateAt = None,
+    compete_every: options.CompeteEvery = None, eta: options.Eta = None, eval_episodes: options.EvalEpisodes = None,
+    eval_every: options.EvalEvery = None, start_steps: options.StartSteps = None, batch_size: options.BatchSize = None,
+    utd: options.Utd = None, no_ot: options.NoOt = None, no_wt: options.NoWt = None, seed: options.Seed = None,
+    device: options.Device = None, hidden: options.Hidden = None, config: options.ConfigFile = None,
+    single_env_after_elimination: options.SingleEnv = None,
+    run_name: options.Run = None, run_dir: options.RunDir = None,
+    sync_every: int = typer.Option(None, help="publish actor weights every N updates (default 100)"),
+    save_replay: bool = typer.Option(None, help="include the replay buffer in checkpoints"),
+    no_plot: bool = typer.Option(False, "--no-plot", help="skip the PNG plots at the end"),
+) -> None:
+    """Train on this box: learner + referee + M workers over an embedded loopback Zenoh."""
+    from services.launcher import run_local
+
+    logging.basicConfig(level=logging.WARNING)
+    cfg = options.build_run_config(dict(
+        env=env, algo=algo, steps=steps, actors=actors, workers=workers, eliminate_at=eliminate_at,
+        compete_every=compete_every, eta=eta, eval_episodes=eval_episodes, eval_every=eval_every,
+        start_steps=start_steps, batch_size=batch_size, utd=utd, no_ot=no_ot, no_wt=no_wt, seed=seed,
+        device=device, hidden=hidden, single_env_after_elimination=single_env_after_elimination,
+        run=run_name, sync_every=sync_every, save_replay=save_replay), config)
+    summary = run_local(cfg, run_dir or Path("runs") / cfg.run, plot=not no_plot)
+    if not summary:
+        raise typer.Exit(1)
+
+
+@app.command()
+def watch(
+    run_name: options.Run = None, connect: options.Connect = None, zenoh_config: options.ZenohConfig = None,
+    keep: bool = typer.Option(False, help="keep watching after the run is done"),
+) -> None:
+    """Live view of a run from anywhere on the network (only subscribes)."""
+    from services.monitor import watch as watch_run
+
+    if not run_name:
+        raise typer.BadParameter("--run NAME is required (printed by `mam run`, in RUN_DIR/config.json)")
+    options.check_run_name(run_name)
+    conf = bus.make_config(connect=connect or ["tcp/127.0.0.1:7447"], config_file=zenoh_config)
+    watch_run(run_name, conf, until_done=not keep)
+
+
+@app.command()
+def plot(run_dir: Path = typer.Argument(..., help="a run directory written by `mam run`")) -> None:
+    """Learning curves per actor, allocation over time, bias rate and learner curves as PNG."""
+    from services.plot import plot_command
+
+    if not run_dir.is_dir():
+        raise typer.BadParameter(f"{run_dir} is not a directory")
+    plot_command(run_dir)
+
+
+def _role(name: str):
+    def command(ctx: typer.Context) -> None:
+        import importlib
+
+        module = importlib.import_module(f"services.{name}")
+        module.app(ctx.args, prog_name=f"mam {name}", standalone_mode=True)
+
+    command.__doc__ = f"Same as `mam-{name}` (pass its flags after the name)."
+    return command
+
+
+for _name in ("learner", "worker", "referee"):
+    app.command(_name, context_settings={"allow_extra_args": True, "ignore_unknown_options": True,
+                                         "help_option_names": []})(_role(_name))
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,388 @@
+"""`mam-learner`: replay buffer, all K actors and n·K critics, the rate limiter, checkpoints.
+
+One loop: drain transitions into the replay buffer, run as many updates as `utd` allows,
+publish weights every `sync_every` updates and stats (with the rate limiter's credit) a few
+times a second, follow the referee's eliminations, checkpoint, and end the run at `--steps`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import signal
+import socket
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import typer
+
+from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
+from mam_core.replay import ReplayBuffer
+from services import bus, keys, options
+from services.codec import (Allocation, Done, LearnerStats, MessageError, TransitionBatch, TransitionSpec,
+                            Weights, decode, encode)
+from services.options import RunConfig, write_json
+
+log = logging.getLogger("mam.learner")
+
+STATS_PERIOD_S = 0.1
+LOG_PERIOD_S = 1.0
+CHECKPOINT_FILE = "learner.pt"
+
+
+class JsonlWriter:
+    """Append-only JSON lines, flushed per row so a crash loses at most one line."""
+
+    def __init__(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._f = open(path, "a", buffering=1)
+
+    def write(self, row: dict[str, Any]) -> None:
+        self._f.write(json.dumps(row, allow_nan=True) + "\n")
+
+    def close(self) -> None:
+        self._f.close()
+
+
+def save_checkpoint(run_dir: Path, agent: MultiActorAgent, buffer: ReplayBuffer, counters: dict[str, Any],
+                    cfg: RunConfig) -> Path:
+    """Atomic, pickle-free checkpoint (tensors and plain containers; load with weights_only=True)."""
+    path = run_dir / "checkpoints" / CHECKPOINT_FILE
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {"agent": agent.state_dict(), "counters": counters, "config": json.dumps(cfg.to_dict())}
+    if cfg.save_replay:
+        state["replay"] = buffer.state_dict()
+    tmp = path.with_suffix(".tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def load_checkpoint(run_dir: Path) -> dict[str, Any]:
+    path = run_dir / "checkpoints" / CHECKPOINT_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"no checkpoint at {path}")
+    return torch.load(path, weights_only=True, map_location="cpu")
+
+
+class Learner:
+    def __init__(self, cfg: RunConfig, session: Any, run_dir: Path, resume: dict[str, Any] | None = None) -> None:
+        self.cfg = cfg
+        self.algo = cfg.algo
+        self.session = session
+        self.run_dir = run_dir
+        self.id = f"{socket.gethostname()}-{os.getpid()}"
+        self.spec = EnvSpec.from_env_id(cfg.env_id)
+        self.device = pick_device(self.algo.device)
+        torch.manual_seed(self.algo.seed)
+        self.agent = MultiActorAgent(self.algo, self.spec, self.device)
+        capacity = min(self.algo.buffer_size, cfg.steps + cfg.tolerance)
+        self.buffer = ReplayBuffer(capacity, self.spec.obs_dim, self.spec.act_dim, self.device, self.algo.seed)
+        self.transition_spec = TransitionSpec(self.spec.obs_dim, self.spec.act_dim, self.algo.actors,
+                                              max_rows=4096, max_action=max(self.spec.max_action))
+        self.tracker = bus.SequenceTracker()
+        self.rejects = bus.RejectLog(log, "transitions")
+        self.per_worker: dict[str, dict[str, Any]] = {}
+        self.metrics: dict[str, float] = {}
+        self.env_steps = 0  # transitions received into the buffer (the budget's unit)
+        self.episode_returns: list[float] = []
+        self.survivor: int | None = None
+        self.started = time.monotonic()
+        self.stop_requested = False
+        if resume is not None:
+            self._restore(resume)
+
+    # -- wiring -------------------------------------------------------------------------------
+    def _restore(self, state: dict[str, Any]) -> None:
+        self.agent.load_state_dict(state["agent"])
+        c = state["counters"]
+        self.env_steps = int(c["env_steps"])
+        if "replay" in state:
+            self.buffer.load_state_dict(state["replay"])
+        live = self.agent.live_actors
+        if sum(live) == 1 and self.algo.actors > 1:
+            self.survivor = live.index(True)
+        log.info("resumed at %d transitions, %d updates (replay rows: %d)", self.env_steps, self.agent.updates,
+                 len(self.buffer))
+
+    def serve(self) -> None:
+        run = self.cfg.run
+        s = self.session
+        self.config_pub = bus.declare_latest_publisher(s, keys.config(run))
+        self.config_pub.put(encode("config", {"config": self.cfg.to_dict()}, sender=self.id, seq=0))
+        self.weights_pubs = [bus.declare_latest_publisher(s, keys.weights(run, k)) for k in range(self.algo.actors)]
+        self.stats_pub = bus.declare_latest_publisher(s, keys.learner_stats(run))
+        self.done_pub = bus.declare_latest_publisher(s, keys.done(run))
+        self.token = bus.declare_alive(s, run, "learner", self.id)
+        self.workers = bus.watch_alive(s, run, "worker")
+        self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
+        self.inbox = bus.Inbox(maxsize=8192).subscribe(s, keys.transitions_all(run))
+        self.log_writer = JsonlWriter(self.run_dir / "learner.jsonl")
+        self.seq = 0
+        try:
+            self._loop()
+        finally:
+            self.inbox.close()
+            self.allocation.close()
+            self.workers.close()
+            self.log_writer.close()
+
+    # -- the loop -----------------------------------------------------------------------------
+    def _loop(self) -> None:
+        self.publish_weights(all_actors=True)
+        last_stats = last_log = 0.0
+        last_checkpoint_updates = self.agent.updates
+        last_sync = self.agent.updates
+        last_log_steps, last_log_updates, last_log_t = self.env_steps, self.agent.updates, time.monotonic()
+        self.rates = (0.0, 0.0)
+        while not self.stop_requested:
+            self.ingest(self.inbox.drain(max_items=256))
+            self.follow_allocation()
+            budget_done = self.env_steps >= self.cfg.steps
+            ran = self.run_updates(deadline=time.monotonic() + 0.02)
+            if self.agent.updates - last_sync >= self.cfg.sync_every:
+                self.publish_weights()
+                last_sync = self.agent.updates
+            now = time.monotonic()
+            if now - last_stats >= STATS_PERIOD_S or ran == 0:
+                if now - last_stats >= STATS_PERIOD_S / 4:
+                    self.publish_stats()
+                    last_stats = now
+            if now - last_log >= LOG_PERIOD_S:
+                dt = max(now - last_log_t, 1e-9)
+                self.rates = ((self.env_steps - last_log_steps) / dt, (self.agent.updates - last_log_updates) / dt)
+                last_log_steps, last_log_updates, last_log_t = self.env_steps, self.agent.updates, now
+                self.write_log()
+                last_log = now
+            if self.agent.updates - last_checkpoint_updates >= self.cfg.checkpoint_every:
+                self.checkpoint()
+                last_checkpoint_updates = self.agent.updates
+            if budget_done and self.agent.updates >= self.updates_allowed():
+                self.finish()
+                return
+            if ran == 0:
+                item = self.inbox.get(timeout=0.005)  # learner ahead of collection: wait for data
+                if item is not None:
+                    self.ingest([item])
+        # Stopped by a signal: keep a usable checkpoint; the run is not done.
+        self.write_log()
+        self.checkpoint()
+
+    def updates_allowed(self) -> int:
+        """Rate limiter: updates may reach utd × (transitions − start_steps)."""
+        if self.env_steps < self.algo.start_steps or len(self.buffer) < self.algo.batch_size:
+            return 0
+        return int(self.algo.utd * (self.env_steps - self.algo.start_steps))
+
+    def accept_until(self) -> int:
+        """Credit: collection may run `tolerance` transitions ahead of what utd has consumed."""
+        consumed = self.algo.start_steps + math.ceil(self.agent.updates / self.algo.utd)
+        if self.env_steps < self.algo.start_steps:
+            consumed = self.algo.start_steps
+        return min(self.cfg.steps, consumed + self.cfg.tolerance)
+
+    def run_updates(self, deadline: float) -> int:
+        ran = 0
+        allowed = self.updates_allowed()
+        while self.agent.updates < allowed:
+            self.metrics = self.agent.update(self.buffer.sample(self.algo.batch_size))
+            ran += 1
+            if time.monotonic() > deadline:
+                break
+        return ran
+
+    def ingest(self, items: list[bus.Received]) -> None:
+        for item in items:
+            sender = keys.parse_last(item.key)
+            try:
+                batch = TransitionBatch.from_bytes(item.payload, self.transition_spec)
+                if batch.worker != sender:
+                    raise MessageError("sender_mismatch", f"key says {sender}, message says {batch.worker}")
+                if batch.version > self.agent.versions[batch.actor]:
+                    raise MessageError("future_version", f"version {batch.version} > {self.agent.versions[batch.actor]}")
+            except MessageError as e:
+                self.rejects.reject(sender, e)
+                continue
+            status = self.tracker.observe(batch.worker, batch.incarnation, batch.batch_seq)
+            if status == bus.DUPLICATE:
+                self.rejects.reject(sender, "duplicate")
+                continue
+            self.buffer.add_batch(batch.obs, batch.action, batch.reward, batch.next_obs, batch.terminated,
+                                  actor=batch.actor, version=batch.version)
+            self.env_steps += batch.rows
+            w = self.per_worker.setdefault(batch.worker, {"received": 0, "rows_since": 0, "t_since": time.monotonic(),
+                                                          "rate": 0.0})
+            if w.get("incarnation") != batch.incarnation:
+                w["incarnation"], w["incarnation_rows"] = batch.incarnation, 0
+            w["received"] += batch.rows
+            w["incarnation_rows"] += batch.rows
+            w["last_seq"] = batch.batch_seq
+            w["actor"] = batch.actor
+            w["lag"] = self.agent.versions[batch.actor] - batch.version if batch.version >= 0 else 0
+            w["last_seen"] = time.monotonic()
+            w["rows_since"] += batch.rows
+            if batch.episode_return:
+                self.episode_returns.extend(batch.episode_return)
+
+    def follow_allocation(self) -> None:
+        """Train only the survivor once the referee has eliminated the others (Sec. 3.1.1)."""
+        item = self.allocation.fresh().get(keys.allocation(self.cfg.run))
+        if item is None or self.survivor is not None:
+            return
+        try:
+            alloc = Allocation.from_bytes(item.payload, self.algo.actors)
+        except MessageError as e:
+            self.rejects.reject(keys.parse_last(item.key), e)
+            return
+        if alloc.survivor is not None:
+            self.survivor = alloc.survivor
+            self.agent.eliminate(alloc.survivor)
+            log.info("eliminated all actors but %d at %d transitions", alloc.survivor, self.env_steps)
+            self.publish_weights(all_actors=True)
+
+    # -- publishing ---------------------------------------------------------------------------
+    def publish_weights(self, all_actors: bool = False) -> None:
+        live = self.agent.live_actors
+        for k in range(self.algo.actors):
+            if not (live[k] or all_actors):
+                continue
+            msg = Weights(k, self.agent.versions[k], self.agent.actor_params(k), self.spec.obs_dim,
+                          self.spec.act_dim, max(self.spec.max_action), tuple(self.algo.hidden))
+            self.weights_pubs[k].put(msg.to_bytes(self.id, self._next_seq()))
+
+    def _next_seq(self) -> int:
+        self.seq += 1
+        return self.seq
+
+    def stats(self, done: bool = False) -> LearnerStats:
+        now = time.monotonic()
+        per_worker = {}
+        for wid, w in self.per_worker.items():
+            dt = now - w["t_since"]
+            if dt >= 1.0:
+                w["rate"], w["rows_since"], w["t_since"] = w["rows_since"] / dt, 0, now
+            per_worker[wid] = {"received": w["received"], "last_seq": w["last_seq"],
+                               "incarnation": w["incarnation"], "incarnation_rows": w["incarnation_rows"],
+                               "actor": w["actor"], "lag": w["lag"], "rate": round(w["rate"], 2)}
+        losses = {k.split("/", 1)[1]: v for k, v in self.metrics.items() if k.startswith("loss/")}
+        q_means = [self.metrics.get(f"q/actor{k}", float("nan")) for k in range(self.algo.actors)]
+        consumed = max(self.env_steps - self.algo.start_steps, 0)
+        return LearnerStats(
+            env_steps=self.env_steps, updates=self.agent.updates, accept_until=self.accept_until(),
+            utd=self.agent.updates / consumed if consumed else 0.0, losses=losses, q_means=tuple(q_means),
+            versions=tuple(self.agent.versions), per_worker=per_worker, rejected=self.rejects.counts(),
+            done=done, live=tuple(self.agent.live_actors), workers=len(self.workers.live()),
+            steps=self.cfg.steps)
+
+    def publish_stats(self, done: bool = False) -> None:
+        self.stats_pub.put(self.stats(done).to_bytes(self.id, self._next_seq()))
+
+    def write_log(self) -> None:
+        consumed = max(self.env_steps - self.algo.start_steps, 0)
+        row = {"t": round(time.monotonic() - self.started, 3), "env_steps": self.env_steps,
+               "updates": self.agent.updates, "utd": self.agent.updates / consumed if consumed else 0.0,
+               "transitions_per_s": round(self.rates[0], 2), "updates_per_s": round(self.rates[1], 2),
+               "versions": list(self.agent.versions), "live": self.agent.live_actors,
+               "lost": self.tracker.lost, "duplicates": self.tracker.duplicates,
+               "rejected": self.rejects.total, "buffer": len(self.buffer)}
+        row.update(self.metrics)
+        if self.episode_returns:
+            row["train_return"] = float(np.mean(self.episode_returns))
+            self.episode_returns.clear()
+        self.log_writer.write(row)
+
+    def checkpoint(self) -> None:
+        counters = {"env_steps": self.env_steps, "per_worker": json.dumps(self.tracker.per_sender())}
+        path = save_checkpoint(self.run_dir, self.agent, self.buffer, counters, self.cfg)
+        log.info("checkpoint %s at %d updates", path, self.agent.updates)
+
+    def finish(self) -> None:
+        """Budget reached: final weights, checkpoint, then tell everyone until they have left."""
+        self.publish_weights(all_actors=True)
+        self.write_log()
+        self.checkpoint()
+        self.publish_stats(done=True)
+        msg = Done("budget", self.env_steps, self.agent.updates)
+        deadline = time.monotonic() + 10.0
+        # The last put before close can be lost: repeat until workers have gone (their tokens vanish).
+        while True:
+            self.done_pub.put(msg.to_bytes(self.id, self._next_seq()))
+            self.publish_stats(done=True)
+            if not self.workers.live() or time.monotonic() > deadline:
+                break
+            time.sleep(0.1)
+        log.info("done: %d transitions, %d updates, lost %d, duplicates %d, rejected %d", self.env_steps,
+                 self.agent.updates, self.tracker.lost, self.tracker.duplicates, self.rejects.total)
+
+
+def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None:
+    run_dir.mkdir(parents=True, exist_ok=True)
+    state = load_checkpoint(run_dir) if resume else None
+    if state is not None:
+        cfg = RunConfig.from_dict({**json.loads(state["config"]), "steps": cfg.steps})
+    write_json(run_dir / "config.json", cfg.to_dict())
+    with bus.session_scope(conf) as session:
+        learner = Learner(cfg, session, run_dir, state)
+
+        def on_signal(signum: int, _frame: Any) -> None:
+            learner.stop_requested = True
+
+        signal.signal(signal.SIGTERM, on_signal)
+        signal.signal(signal.SIGINT, on_signal)
+        learner.serve()
+
+
+app = typer.Typer(add_completion=False, help=__doc__)
+
+
+@app.command()
+def learner_command(
+    env: options.Env = None, algo: options.Algo = None, steps: options.Steps = None,
+    actors: options.Actors = None, workers: options.Workers = None, eliminate_at: options.EliminateAt = None,
+    compete_every: options.CompeteEvery = None, eta: options.Eta = None, eval_episodes: options.EvalEpisodes = None,
+    eval_every: options.EvalEvery = None, start_steps: options.StartSteps = None, batch_size: options.BatchSize = None,
+    utd: options.Utd = None, no_ot: options.NoOt = None, no_wt: options.NoWt = None, seed: options.Seed = None,
+    device: options.Device = None, hidden: options.Hidden = None, config: options.ConfigFile = None,
+    single_env_after_elimination: options.SingleEnv = None,
+    run: options.Run = None, connect: options.Connect = None, listen: options.Listen = None,
+    zenoh_config: options.ZenohConfig = None, run_dir: options.RunDir = None,
+    sync_every: int = typer.Option(100, help="publish actor weights every N updates"),
+    checkpoint_every: int = typer.Option(50_000, help="updates between checkpoints"),
+    save_replay: bool = typer.Option(False, help="include the replay buffer in checkpoints"),
+    resume: Path = typer.Option(None, help="resume the run in this run directory from its checkpoint"),
+    run_config: Path = typer.Option(None, help="a resolved config.json (written by `mam run`)"),
+    verbose: bool = typer.Option(False, "--verbose", "-v"),
+) -> None:
+    """Run the learner: replay buffer, K actors and n·K critics, weights and stats publisher."""
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    if run_config is not None:
+        cfg = RunConfig.from_dict(json.loads(run_config.read_text()))
+    elif resume is not None:
+        cfg = RunConfig.from_dict(json.loads((resume / "config.json").read_text()))
+    else:
+        cfg = options.build_run_config(dict(
+            env=env, algo=algo, steps=steps, actors=actors, workers=workers, eliminate_at=eliminate_at,
+            compete_every=compete_every, eta=eta, eval_episodes=eval_episodes, eval_every=eval_every,
+            start_steps=start_steps, batch_size=batch_size, utd=utd, no_ot=no_ot, no_wt=no_wt, seed=seed,
+            device=device, hidden=hidden, single_env_after_elimination=single_env_after_elimination, run=run,
+            sync_every=sync_every, checkpoint_every=checkpoint_every, save_replay=save_replay), config)
+    if steps is not None and (run_config is not None or resume is not None):
+        cfg = RunConfig.from_dict({**cfg.to_dict(), "steps": steps})
+    listen = listen or ([] if connect else ["tcp/0.0.0.0:7447"])
+    conf = bus.make_config(connect=connect, listen=listen, config_file=zenoh_config)
+    directory = resume or run_dir or Path("runs") / cfg.run
+    main(cfg, conf, directory, resume=resume is not None)
+
+
+def cli() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    cli()

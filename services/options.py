@@ -1,0 +1,168 @@
+"""Command-line options shared by `mam run` and `mam-learner`, and the resolved run config.
+
+Precedence: paper defaults for `--algo` < TOML file (`--config`) < flags on the command line.
+The learner publishes the resolved `RunConfig` on `mam/<run>/config`, so workers, the referee
+and monitors need only `--run` and `--connect`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import re
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Any, Optional
+
+import typer
+
+from mam_core.config import ALGOS, AlgoConfig, resolve
+
+# -- algorithm flags (paper symbol in brackets), the same on every command that takes them ----
+Env = Annotated[Optional[str], typer.Option("--env", help="Gymnasium env id, e.g. HalfCheetah-v5 or AppleCollect-v0")]
+Algo = Annotated[Optional[str], typer.Option("--algo", help=f"one of {', '.join(ALGOS)}")]
+Steps = Annotated[Optional[int], typer.Option("--steps", help="budget: environment transitions received by the learner")]
+Actors = Annotated[Optional[int], typer.Option("--actors", help="[K] number of actors")]
+Workers = Annotated[Optional[int], typer.Option("--workers", help="[M] environment slots (worker processes)")]
+EliminateAt = Annotated[Optional[int], typer.Option("--eliminate-at", help="[C] env step of the elimination")]
+CompeteEvery = Annotated[Optional[int], typer.Option("--compete-every", help="[A] env steps between allocation rounds")]
+Eta = Annotated[Optional[float], typer.Option("--eta", help="[η] weight of the other actors' Q-values (Eq. 9)")]
+EvalEpisodes = Annotated[Optional[int], typer.Option("--eval-episodes", help="episodes per actor per evaluation")]
+EvalEvery = Annotated[Optional[int], typer.Option("--eval-every", help="env steps between evaluations after elimination")]
+StartSteps = Annotated[Optional[int], typer.Option("--start-steps", help="first transitions use uniform random actions")]
+BatchSize = Annotated[Optional[int], typer.Option("--batch-size", help="mini-batch size")]
+Utd = Annotated[Optional[float], typer.Option("--utd", help="gradient updates per received transition")]
+NoOt = Annotated[Optional[bool], typer.Option("--no-ot", help="ablation: uniform fixed allocation, no elimination")]
+NoWt = Annotated[Optional[bool], typer.Option("--no-wt", help="ablation: no Q-value weighting (η = 0)")]
+Seed = Annotated[Optional[int], typer.Option("--seed", help="random seed")]
+Device = Annotated[Optional[str], typer.Option("--device", help="auto, cpu or cuda (learner)")]
+Hidden = Annotated[Optional[str], typer.Option("--hidden", help="hidden layer sizes, e.g. 256,256")]
+ConfigFile = Annotated[Optional[Path], typer.Option("--config", help="TOML file holding any of these options")]
+SingleEnv = Annotated[Optional[bool], typer.Option(
+    "--single-env-after-elimination", help="paper's schedule: the survivor runs one slot only")]
+
+# -- network flags ----------------------------------------------------------------------------
+Run = Annotated[Optional[str], typer.Option("--run", help="run name: the key-expression namespace mam/<run>/...")]
+Connect = Annotated[Optional[list[str]], typer.Option("--connect", help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447")]
+Listen = Annotated[Optional[list[str]], typer.Option("--listen", help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447")]
+ZenohConfig = Annotated[Optional[Path], typer.Option("--zenoh-config", help="Zenoh JSON5 config file")]
+RunDir = Annotated[Optional[Path], typer.Option("--run-dir", help="directory for this process's logs and outputs")]
+
+_RUN_NAME = re.compile(r"[A-Za-z0-9_.\-]+")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Everything a run needs beyond the algorithm: env, budget, service knobs."""
+
+    run: str
+    env_id: str
+    steps: int
+    algo: AlgoConfig
+    sync_every: int = 100  # publish actor weights every N updates
+    checkpoint_every: int = 50_000  # updates between checkpoints (and on exit)
+    send_batch: int = 32  # transitions per message from a worker
+    band: int = 0  # rate limiter tolerance in transitions (0: automatic)
+    save_replay: bool = False
+    endpoint: str = ""  # where clients connect (written to config.json)
+
+    @property
+    def tolerance(self) -> int:
+        """Rate limiter band: how far collection may run ahead of utd (transitions)."""
+        if self.band > 0:
+            return self.band
+        return max(4 * self.algo.workers * self.send_batch, 256)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["algo"] = self.algo.to_dict()
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "RunConfig":
+        d = dict(d)
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown run config keys: {sorted(unknown)}")
+        d["algo"] = AlgoConfig.from_dict(d["algo"])
+        cfg = cls(**d)
+        check_run_name(cfg.run)
+        if cfg.steps < 1:
+            raise ValueError("steps must be >= 1")
+        return cfg
+
+
+def check_run_name(name: str) -> str:
+    if not _RUN_NAME.fullmatch(name or "") or len(name) > 128:
+        raise ValueError(f"run name {name!r}: use letters, digits, '_', '.', '-' only")
+    return name
+
+
+def default_run_name(env_id: str, algo: str) -> str:
+    env = re.sub(r"[^A-Za-z0-9]+", "", env_id.split("-")[0]).lower()
+    return f"{algo}-{env}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid() % 10000}"
+
+
+def load_toml(path: Path | None) -> dict[str, Any]:
+    """A TOML file's options with `-` in keys read as `_` (`eliminate-at` == `eliminate_at`)."""
+    if path is None:
+        return {}
+    if not path.is_file():
+        raise typer.BadParameter(f"config file {path} does not exist")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise typer.BadParameter(f"{path}: {e}") from e
+    flat: dict[str, Any] = {}
+    for key, value in data.items():
+        if isinstance(value, dict):  # allow [algo] / [run] sections
+            flat.update({k.replace("-", "_"): v for k, v in value.items()})
+        else:
+            flat[key.replace("-", "_")] = value
+    return flat
+
+
+_RUN_FIELDS = {"run", "env_id", "env", "steps", "algo", "sync_every", "checkpoint_every", "send_batch",
+               "band", "save_replay"}
+
+
+def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig:
+    """Merge TOML and command-line values (command line wins) into a validated RunConfig."""
+    merged = load_toml(config_file)
+    merged.update({k: v for k, v in cli.items() if v is not None})
+    if "env" in merged:
+        merged["env_id"] = merged.pop("env")
+    env_id = merged.pop("env_id", None)
+    if not env_id:
+        raise typer.BadParameter("--env is required (in a flag or the --config file)")
+    algo_name = merged.pop("algo", None) or "ma-td3"
+    if algo_name not in ALGOS:
+        raise typer.BadParameter(f"--algo must be one of {', '.join(ALGOS)}, not {algo_name!r}")
+    steps = merged.pop("steps", None)
+    if steps is None or int(steps) < 1:
+        raise typer.BadParameter("--steps must be a positive number of transitions")
+    run_fields = {k: merged.pop(k) for k in list(merged) if k in _RUN_FIELDS}
+    if isinstance(merged.get("hidden"), str):
+        merged["hidden"] = tuple(int(h) for h in merged["hidden"].split(",") if h.strip())
+    try:
+        algo = resolve(algo_name, **merged)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from e
+    run = run_fields.pop("run", None) or default_run_name(env_id, algo_name)
+    try:
+        check_run_name(run)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from e
+    return RunConfig(run=run, env_id=env_id, steps=int(steps), algo=algo, **run_fields)
+
+
+def write_json(path: Path, data: Any) -> None:
+    """Atomic write: a reader never sees half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=True))
+    os.replace(tmp, path)

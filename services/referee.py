@@ -1,0 +1,278 @@
+"""`mam-referee`: evaluates the actors and decides which actor each worker slot runs (Eq. 8).
+
+Every A env steps (read from the learner's stats) it evaluates each live actor over
+`eval_episodes` deterministic episodes, recomputes P_k (Eq. 8), draws a new slot -> actor
+allocation over the live workers and publishes `allocation` and `eval`. At C it eliminates all
+but the best actor. When a worker joins or leaves it re-allocates at once with the current P.
+After elimination (or without obsolescence) it keeps evaluating every `eval_every` steps for
+learning curves. Its state is saved to `referee_state.json` so a restarted referee goes on.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import socket
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import typer
+
+import mam_core.envs  # noqa: F401
+from mam_core.agent import EnvSpec
+from mam_core.ensemble import ActorEnsemble
+from mam_core.evaluation import evaluate_policy
+from mam_core.obsolescence import Obsolescence, counts
+from mam_core.reference import obsolescence_for
+from services import bus, keys, options
+from services.codec import Allocation, Eval, LearnerStats, MessageError, Weights
+from services.learner import JsonlWriter
+from services.options import RunConfig, write_json
+from services.worker import fetch_config
+
+log = logging.getLogger("mam.referee")
+
+STATE_FILE = "referee_state.json"
+
+
+class Referee:
+    def __init__(self, cfg: RunConfig, session: Any, run_dir: Path) -> None:
+        self.cfg = cfg
+        self.algo = cfg.algo
+        self.session = session
+        self.run_dir = run_dir
+        self.id = f"{socket.gethostname()}-{os.getpid()}"
+        self.rejects = bus.RejectLog(log, "message")
+        self.spec = EnvSpec.from_env_id(cfg.env_id)
+        torch.set_num_threads(1)
+        self.actors = ActorEnsemble(self.algo.actors, self.spec.obs_dim, self.spec.act_dim, self.algo.hidden,
+                                    np.asarray(self.spec.max_action, np.float32)).requires_grad_(False)
+        self.shapes = self.actors.net.member_shapes()
+        self.versions = [-1] * self.algo.actors
+        self.schedule: Obsolescence = obsolescence_for(self.algo)
+        self.rng = np.random.default_rng(self.algo.seed + 17)
+        self.slots: dict[str, int] = {}
+        self.eval_round = 0
+        self.next_curve_eval = self.algo.eval_every
+        self.stats: LearnerStats | None = None
+        self.seq = 0
+        self.stop_requested = False
+        self.started = time.monotonic()
+        self._load_state()
+
+    # -- state (recovery after a restart) -----------------------------------------------------
+    def _load_state(self) -> None:
+        path = self.run_dir / STATE_FILE
+        if not path.is_file():
+            return
+        try:
+            data = json.loads(path.read_text())
+            self.schedule = Obsolescence.from_dict(data["schedule"])
+            self.slots = {str(w): int(k) for w, k in data["slots"].items()}
+            self.eval_round = int(data["eval_round"])
+            self.next_curve_eval = int(data["next_curve_eval"])
+            log.info("recovered referee state: round %d, P %s, survivor %s", self.schedule.round,
+                     self.schedule.probabilities.round(3).tolist(), self.schedule.survivor)
+        except (ValueError, KeyError, TypeError) as e:
+            log.warning("ignoring unreadable %s: %s", path, e)
+
+    def _save_state(self) -> None:
+        write_json(self.run_dir / STATE_FILE, {
+            "schedule": self.schedule.to_dict(), "slots": self.slots, "eval_round": self.eval_round,
+            "next_curve_eval": self.next_curve_eval})
+
+    # -- wiring -------------------------------------------------------------------------------
+    def serve(self) -> None:
+        run, s = self.cfg.run, self.session
+        self.alloc_pub = bus.declare_latest_publisher(s, keys.allocation(run))
+        self.eval_pub = bus.declare_latest_publisher(s, keys.eval(run))
+        self.weights = bus.Latest.subscribe(s, keys.weights_all(run))
+        self.stats_sub = bus.Latest.subscribe(s, keys.learner_stats(run))
+        self.done = bus.Latest.subscribe(s, keys.done(run))
+        self.workers = bus.watch_alive(s, run, "worker")
+        self.token = bus.declare_alive(s, run, "referee", self.id)
+        self.alloc_log = JsonlWriter(self.run_dir / "allocation.jsonl")
+        self.eval_log = JsonlWriter(self.run_dir / "eval.jsonl")
+        try:
+            self._loop()
+        finally:
+            self.token.undeclare()
+            for sub in (self.weights, self.stats_sub, self.done, self.workers):
+                sub.close()
+            self.alloc_log.close()
+            self.eval_log.close()
+
+    def _loop(self) -> None:
+        self.publish_allocation("initial" if not self.slots else "recovered", returns=None)
+        while not self.stop_requested:
+            self.refresh()
+            if self.done.get(keys.done(self.cfg.run)) is not None:
+                self.final_evaluation()
+                return
+            if set(self.workers.live()) != set(self.slots):
+                self.publish_allocation("workers-changed", returns=None)
+            steps = self.stats.env_steps if self.stats else 0
+            if self.schedule.due_elimination(steps) or self.schedule.due_round(steps):
+                self.compete(steps)
+            elif steps >= self.next_curve_eval and steps >= self.algo.start_steps:
+                self.evaluate(steps)
+                self.next_curve_eval = (steps // self.algo.eval_every + 1) * self.algo.eval_every
+                self._save_state()
+            else:
+                self.stats_sub.wait_fresh(timeout=0.1)
+
+    def refresh(self) -> None:
+        for key, item in self.weights.fresh().items():
+            try:
+                w = Weights.from_bytes(item.payload, self.shapes, self.algo.actors)
+            except MessageError as e:
+                self.rejects.reject(keys.parse_last(key), e)
+                continue
+            if w.version >= self.versions[w.actor]:
+                self.actors.net.load_member(w.actor, w.params)
+                self.versions[w.actor] = w.version
+        item = self.stats_sub.fresh().get(keys.learner_stats(self.cfg.run))
+        if item is not None:
+            try:
+                self.stats = LearnerStats.from_bytes(item.payload)
+            except MessageError as e:
+                self.rejects.reject("learner", e)
+
+    # -- evaluation and competition -------------------------------------------------------------
+    def policy(self, k: int):
+        members = torch.tensor([k])
+
+        def act(obs: np.ndarray) -> np.ndarray:
+            with torch.inference_mode():
+                return self.actors(torch.as_tensor(obs, dtype=torch.float32), members)[0].numpy()
+        return act
+
+    def evaluate(self, steps: int, only_live: bool = True) -> list[float | None]:
+        """Deterministic returns of each live actor (eval.jsonl row, `eval` topic)."""
+        live = self.schedule.live
+        returns: list[list[float]] = []
+        for k in range(self.algo.actors):
+            if (only_live and not live[k]) or self.versions[k] < 0:
+                returns.append([])
+                continue
+            r = evaluate_policy(self.policy(k), self.cfg.env_id, self.algo.eval_episodes,
+                                seed=self.algo.seed + 1_000_003 + steps)
+            returns.append([float(x) for x in r])
+        means = [float(np.mean(r)) if r else None for r in returns]
+        self.eval_round += 1
+        msg = Eval(self.eval_round, steps, tuple(tuple(r) for r in returns), tuple(means), tuple(self.versions))
+        self.eval_pub.put(msg.to_bytes(self.id, self._next_seq()))
+        self.eval_log.write({"t": round(time.monotonic() - self.started, 3), "round": self.eval_round,
+                             "env_steps": steps, "returns": returns, "mean": means, "versions": list(self.versions),
+                             "bias": None})
+        log.info("eval at %d steps: %s", steps, [None if m is None else round(m, 2) for m in means])
+        return means
+
+    def compete(self, steps: int) -> None:
+        """One obsolescence round (Eq. 8), or the elimination at C."""
+        means = self.evaluate(steps)
+        # Actors without a return (eliminated or no weights yet) get the lowest seen, never favoured.
+        known = [m for m in means if m is not None]
+        floor = min(known) if known else 0.0
+        returns = np.array([floor if m is None else m for m in means])
+        eliminating = self.schedule.due_elimination(steps)
+        self.schedule.record_evaluation(steps, returns)
+        reason = "elimination" if eliminating else "round"
+        self.publish_allocation(reason, returns=returns.tolist(), redraw=True)
+        self.next_curve_eval = (steps // self.algo.eval_every + 1) * self.algo.eval_every
+        self._save_state()
+
+    def publish_allocation(self, reason: str, returns: list[float] | None, redraw: bool = False) -> None:
+        """Slots keep their actor unless `redraw`; new workers draw with the current P."""
+        live_workers = sorted(self.workers.live())
+        if redraw or self.schedule.survivor is not None or not self.schedule.config.enabled:
+            self.slots = dict(self.schedule.allocation(live_workers, self.rng)) if live_workers else {}
+        else:
+            kept = {w: k for w, k in self.slots.items() if w in live_workers and self.schedule.live[k]}
+            new = [w for w in live_workers if w not in kept]
+            if new:
+                kept.update(self.schedule.allocation(new, self.rng))
+            self.slots = kept
+        if self.schedule.survivor is not None and self.algo.single_env_after_elimination and self.slots:
+            first = sorted(self.slots)[0]
+            self.slots = {first: self.schedule.survivor}
+        i_k = counts(self.slots, self.algo.actors).astype(int).tolist()
+        steps = self.stats.env_steps if self.stats else 0
+        msg = Allocation(self.schedule.round, steps, None if returns is None else tuple(returns),
+                         tuple(float(p) for p in self.schedule.probabilities), tuple(i_k), dict(self.slots),
+                         tuple(bool(e) for e in self.schedule.eliminated), self.schedule.survivor, reason)
+        self.alloc_pub.put(msg.to_bytes(self.id, self._next_seq()))
+        self.alloc_log.write({"t": round(time.monotonic() - self.started, 3), "round": self.schedule.round,
+                              "env_steps": steps, "returns": returns,
+                              "probabilities": [float(p) for p in self.schedule.probabilities], "counts": i_k,
+                              "slots": dict(self.slots), "eliminated": [bool(e) for e in self.schedule.eliminated],
+                              "survivor": self.schedule.survivor, "reason": reason})
+        log.info("allocation (%s) round %d: P=%s I=%s", reason, self.schedule.round,
+                 np.round(self.schedule.probabilities, 3).tolist(), i_k)
+
+    def final_evaluation(self) -> None:
+        """After the learner's `done`: evaluate the final weights and write summary.json."""
+        time.sleep(0.5)  # the final weights are published just before done
+        self.refresh()
+        steps = self.stats.env_steps if self.stats else 0
+        means = self.evaluate(steps)
+        survivor = self.schedule.survivor
+        if survivor is None and any(m is not None for m in means):
+            survivor = None if self.algo.actors > 1 else 0
+        write_json(self.run_dir / "summary.json", {
+            "run": self.cfg.run, "env_id": self.cfg.env_id, "algo": self.algo.algo,
+            "final_returns": means, "survivor": survivor, "env_steps": steps,
+            "updates": self.stats.updates if self.stats else 0,
+            "wall_time_s": round(time.monotonic() - self.started, 2),
+            "rounds": self.schedule.round, "probabilities": self.schedule.probabilities.tolist(),
+            "rejected": self.rejects.counts()})
+
+    def _next_seq(self) -> int:
+        self.seq += 1
+        return self.seq
+
+
+def main(run: str, conf: Any, run_dir: Path) -> None:
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with bus.session_scope(conf, retry_for=30.0) as session:
+        cfg = fetch_config(session, run, bus.RejectLog(log, "config"))
+        referee = Referee(cfg, session, run_dir)
+
+        def on_signal(signum: int, _frame: Any) -> None:
+            referee.stop_requested = True
+
+        signal.signal(signal.SIGTERM, on_signal)
+        signal.signal(signal.SIGINT, on_signal)
+        referee.serve()
+
+
+app = typer.Typer(add_completion=False, help=__doc__)
+
+
+@app.command()
+def referee_command(
+    run: options.Run = None, connect: options.Connect = None, listen: options.Listen = None,
+    zenoh_config: options.ZenohConfig = None, run_dir: options.RunDir = None,
+    verbose: bool = typer.Option(False, "--verbose", "-v"),
+) -> None:
+    """Run the referee of a run: evaluation rounds, P_k, slot allocation, elimination."""
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    if not run:
+        raise typer.BadParameter("--run NAME is required")
+    options.check_run_name(run)
+    conf = bus.make_config(connect=connect or ["tcp/127.0.0.1:7447"], listen=listen, config_file=zenoh_config)
+    main(run, conf, run_dir or Path("runs") / run)
+
+
+def cli() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    cli()

@@ -1,0 +1,276 @@
+"""`mam-worker`: one environment slot. Runs the actor the allocation gives it, publishes transitions.
+
+The worker needs only `--run` and `--connect`: the env, K and the noise come from the learner's
+config topic. It keeps a CPU copy of every actor (refreshed from the weights topic), explores
+with Gaussian noise (uniform random actions during the run's first `start_steps`), sends
+transitions in small batches tagged with worker id, incarnation, actor and policy version,
+pauses when the learner's credit is used up, and exits when the run is done.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import socket
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+import typer
+
+import mam_core.envs  # noqa: F401  (registers AppleCollect-v0)
+from mam_core.agent import EnvSpec
+from mam_core.ensemble import ActorEnsemble
+from services import bus, keys, options
+from services.codec import Allocation, LearnerStats, MessageError, TransitionBatch, Weights, decode
+from services.options import RunConfig
+
+log = logging.getLogger("mam.worker")
+
+CONFIG_WAIT_S = 600.0  # how long a worker waits for a learner to appear
+MAX_BATCH_AGE_S = 0.05  # a partial batch is sent after this long
+
+
+def fetch_config(session: Any, run: str, rejects: bus.RejectLog, timeout: float = CONFIG_WAIT_S) -> RunConfig:
+    """The run's resolved config from the learner's config topic (waits for a learner)."""
+    latest = bus.Latest.subscribe(session, keys.config(run))
+    deadline = time.monotonic() + timeout
+    try:
+        while time.monotonic() < deadline:
+            if not latest.wait(keys.config(run), timeout=1.0):
+                log.info("waiting for the learner of run %r ...", run)
+                continue
+            item = latest.get(keys.config(run))
+            try:
+                msg = decode(item.payload)
+                return RunConfig.from_dict(msg["config"])
+            except (MessageError, KeyError, TypeError, ValueError) as e:
+                rejects.reject(keys.parse_last(item.key), MessageError("config", str(e)[:200]))
+                latest.fresh()
+                time.sleep(0.5)
+        raise TimeoutError(f"no learner published a config for run {run!r} within {timeout:.0f} s")
+    finally:
+        latest.close()
+
+
+class Worker:
+    def __init__(self, cfg: RunConfig, session: Any, worker_id: str, slot_index: int = 0) -> None:
+        self.cfg = cfg
+        self.algo = cfg.algo
+        self.session = session
+        self.id = worker_id
+        self.incarnation = uuid.uuid4().hex[:12]
+        self.rejects = bus.RejectLog(log, "message")
+        self.env = gym.make(cfg.env_id)
+        self.spec = EnvSpec.from_env(self.env)
+        self.max_action = np.asarray(self.spec.max_action, np.float32)
+        seed = self.algo.seed * 7919 + slot_index * 104_729 + int(self.incarnation[:6], 16) % 1000
+        self.rng = np.random.default_rng(seed)
+        self.env.action_space.seed(seed)
+        self.obs, _ = self.env.reset(seed=seed)
+        torch.set_num_threads(1)
+        self.actors = ActorEnsemble(self.algo.actors, self.spec.obs_dim, self.spec.act_dim, self.algo.hidden,
+                                    self.max_action).requires_grad_(False)
+        self.shapes = self.actors.net.member_shapes()
+        self.versions = [-1] * self.algo.actors  # -1: no weights yet
+        self.actor = slot_index % self.algo.actors  # until the first allocation arrives
+        self.stats: LearnerStats | None = None
+        self.batch_seq = 0
+        self.sent_rows = 0
+        self.episode_return = 0.0
+        self.finished_returns: list[float] = []
+        self.stop_requested = False
+        self._reset_pending()
+
+    def _reset_pending(self) -> None:
+        n, o, a = self.cfg.send_batch, self.spec.obs_dim, self.spec.act_dim
+        self.p_obs = np.empty((n, o), np.float32)
+        self.p_action = np.empty((n, a), np.float32)
+        self.p_reward = np.empty(n, np.float32)
+        self.p_next = np.empty((n, o), np.float32)
+        self.p_term = np.empty(n, np.bool_)
+        self.p_n = 0
+        self.p_actor = -1
+        self.p_version = -1
+        self.p_started = time.monotonic()
+
+    # -- the loop -----------------------------------------------------------------------------
+    def serve(self) -> None:
+        run, s = self.cfg.run, self.session
+        self.pub = bus.declare_reliable_publisher(s, keys.transitions(run, self.id))
+        self.weights = bus.Latest.subscribe(s, keys.weights_all(run))
+        self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
+        self.stats_sub = bus.Latest.subscribe(s, keys.learner_stats(run))
+        self.done = bus.Latest.subscribe(s, keys.done(run))
+        self.token = bus.declare_alive(s, run, "worker", self.id)
+        log.info("worker %s (incarnation %s) on %s, run %s", self.id, self.incarnation, self.cfg.env_id, run)
+        try:
+            self._loop()
+        finally:
+            self.flush()
+            self.token.undeclare()
+            for sub in (self.weights, self.allocation, self.stats_sub, self.done):
+                sub.close()
+
+    def _loop(self) -> None:
+        idle_since: float | None = None
+        while not self.stop_requested:
+            if self.done.get(keys.done(self.cfg.run)) is not None:
+                log.info("run is done after %d transitions from this worker", self.sent_rows)
+                return
+            self.refresh()
+            if not self.may_send():
+                self.flush()
+                idle_since = idle_since or time.monotonic()
+                self.stats_sub.wait_fresh(timeout=0.05)  # pause (rate limiter or no learner): no spinning
+                continue
+            idle_since = None
+            random_phase = self.in_random_phase()
+            if not random_phase and self.versions[self.actor] < 0:
+                self.weights.wait_fresh(timeout=0.05)  # weights for our actor not here yet
+                continue
+            self.step(random_phase)
+
+    def refresh(self) -> None:
+        for key, item in self.weights.fresh().items():
+            try:
+                w = Weights.from_bytes(item.payload, self.shapes, self.algo.actors)
+            except MessageError as e:
+                self.rejects.reject(keys.parse_last(key), e)
+                continue
+            if w.version > self.versions[w.actor] or self.versions[w.actor] < 0:
+                self.actors.net.load_member(w.actor, w.params)
+                self.versions[w.actor] = w.version
+        item = self.allocation.fresh().get(keys.allocation(self.cfg.run))
+        if item is not None:
+            try:
+                alloc = Allocation.from_bytes(item.payload, self.algo.actors)
+                if self.id in alloc.slots:
+                    self.actor = alloc.slots[self.id]
+                elif alloc.survivor is not None:
+                    self.actor = alloc.survivor
+            except MessageError as e:
+                self.rejects.reject("referee", e)
+        item = self.stats_sub.fresh().get(keys.learner_stats(self.cfg.run))
+        if item is not None:
+            try:
+                self.stats = LearnerStats.from_bytes(item.payload)
+            except MessageError as e:
+                self.rejects.reject("learner", e)
+
+    def in_flight(self) -> int:
+        """Rows sent by this incarnation that the learner has not reported yet."""
+        if self.stats is None:
+            return self.sent_rows
+        mine = self.stats.per_worker.get(self.id)
+        seen = mine["incarnation_rows"] if mine and mine.get("incarnation") == self.incarnation else 0
+        return max(self.sent_rows - seen, 0)
+
+    def may_send(self) -> bool:
+        """Rate limiter: keep this worker's unreported rows within its share of the learner's credit."""
+        st = self.stats
+        if st is None or st.done:
+            return False
+        room = st.accept_until - st.env_steps
+        share = max(room // max(st.workers, 1), 1) if room > 0 else 0
+        return self.in_flight() + self.p_n < share
+
+    def in_random_phase(self) -> bool:
+        st = self.stats
+        return st is None or st.env_steps + self.in_flight() < self.algo.start_steps
+
+    def step(self, random_phase: bool) -> None:
+        if random_phase:
+            action, actor, version = self.env.action_space.sample().astype(np.float32), self.actor, -1
+        else:
+            actor, version = self.actor, self.versions[self.actor]
+            with torch.inference_mode():
+                o = torch.from_numpy(np.asarray(self.obs, np.float32)).view(1, -1)
+                action = self.actors(o, members=torch.tensor([actor]))[0, 0].numpy()
+            noise = self.rng.normal(0.0, self.algo.explore_noise, self.spec.act_dim).astype(np.float32)
+            action = np.clip(action + noise * self.max_action, -self.max_action, self.max_action)
+        if self.p_n and (actor != self.p_actor or version != self.p_version):
+            self.flush()  # a batch carries one actor and one policy version
+        next_obs, reward, terminated, truncated, _ = self.env.step(action)
+        i = self.p_n
+        self.p_obs[i] = self.obs
+        self.p_action[i] = action
+        self.p_reward[i] = reward
+        self.p_next[i] = next_obs
+        self.p_term[i] = terminated  # truncation is not terminal: the target still bootstraps
+        self.p_actor, self.p_version = actor, version
+        if self.p_n == 0:
+            self.p_started = time.monotonic()
+        self.p_n += 1
+        self.episode_return += float(reward)
+        if terminated or truncated:
+            self.finished_returns.append(self.episode_return)
+            self.episode_return = 0.0
+            self.obs, _ = self.env.reset()
+        else:
+            self.obs = next_obs
+        if self.p_n >= self.cfg.send_batch or time.monotonic() - self.p_started > MAX_BATCH_AGE_S:
+            self.flush()
+
+    def flush(self) -> None:
+        if self.p_n == 0:
+            return
+        n = self.p_n
+        batch = TransitionBatch(self.id, self.incarnation, self.batch_seq, self.p_actor, self.p_version,
+                                self.p_obs[:n], self.p_action[:n], self.p_reward[:n], self.p_next[:n],
+                                self.p_term[:n], tuple(self.finished_returns) or None)
+        self.pub.put(batch.to_bytes())
+        self.batch_seq += 1
+        self.sent_rows += n
+        self.finished_returns = []
+        self.p_n = 0
+
+
+def main(run: str, conf: Any, worker_id: str, slot_index: int = 0) -> None:
+    with bus.session_scope(conf, retry_for=30.0) as session:
+        cfg = fetch_config(session, run, bus.RejectLog(log, "config"))
+        worker = Worker(cfg, session, worker_id, slot_index)
+
+        def on_signal(signum: int, _frame: Any) -> None:
+            worker.stop_requested = True
+
+        signal.signal(signal.SIGTERM, on_signal)
+        signal.signal(signal.SIGINT, on_signal)
+        worker.serve()
+
+
+app = typer.Typer(add_completion=False, help=__doc__)
+
+
+@app.command()
+def worker_command(
+    run: options.Run = None, connect: options.Connect = None, listen: options.Listen = None,
+    zenoh_config: options.ZenohConfig = None,
+    id: str = typer.Option(None, "--id", help="worker id (slot name); default HOST-PID"),  # noqa: A002
+    slot: int = typer.Option(0, help="slot index: picks the actor before the first allocation and the env seed"),
+    verbose: bool = typer.Option(False, "--verbose", "-v"),
+) -> None:
+    """Run one environment slot of a run (needs only --run and --connect)."""
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    if not run:
+        raise typer.BadParameter("--run NAME is required (the learner prints it and writes it to config.json)")
+    options.check_run_name(run)
+    worker_id = id or f"{socket.gethostname()}-{os.getpid()}"
+    keys.check_name(worker_id, "worker id")
+    conf = bus.make_config(connect=connect or ["tcp/127.0.0.1:7447"], listen=listen, config_file=zenoh_config)
+    main(run, conf, worker_id, slot)
+
+
+def cli() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    cli()
