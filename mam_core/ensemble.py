@@ -67,8 +67,9 @@ class EnsembleMLP(nn.Module):
     @torch.no_grad()
     def load_member(self, k: int, params: dict[str, np.ndarray]) -> None:
         for i, (w, b) in enumerate(zip(self.weights, self.biases)):
-            w[k].copy_(torch.as_tensor(np.asarray(params[f"w{i}"]), dtype=w.dtype))
-            b[k].copy_(torch.as_tensor(np.asarray(params[f"b{i}"]), dtype=b.dtype))
+            # np.array copies: decoded wire arrays are read-only views.
+            w[k].copy_(torch.from_numpy(np.array(params[f"w{i}"], dtype=np.float32)))
+            b[k].copy_(torch.from_numpy(np.array(params[f"b{i}"], dtype=np.float32)))
 
 
 class ActorEnsemble(nn.Module):

@@ -25,6 +25,25 @@ from services.codec import Allocation, Eval, LearnerStats, MessageError
 from services.options import RunConfig, write_json
 
 STOP_GRACE_S = 15.0
+PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:
+    """Runs in the child before exec: SIGTERM it if the launcher dies (even by SIGKILL)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except OSError:
+        pass
+
+
+class Interrupted(Exception):
+    """SIGTERM / SIGINT reached the launcher."""
+
+
+def _raise_interrupted(signum: int, _frame: Any) -> None:
+    raise Interrupted(signal.Signals(signum).name)
 
 
 @dataclass
@@ -49,7 +68,7 @@ class LocalCluster:
         with open(log_path, "ab") as out:
             proc = subprocess.Popen([sys.executable, "-m", f"services.{role.split('-')[0]}", *args],
                                     stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                    start_new_session=True)
+                                    start_new_session=True, preexec_fn=_die_with_parent)
         child = Child(role, proc, log_path)
         self.children.append(child)
         return child
@@ -99,15 +118,22 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
     console.print(f"run dir {run_dir}   watch live: [cyan]mam watch --run {cfg.run} --connect {endpoint}[/]")
     started = time.monotonic()
     interrupted = False
-    cluster.start()
+    previous = {sig: signal.signal(sig, _raise_interrupted) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
-        finished = follow(cfg, endpoint, cluster, console)
-    except KeyboardInterrupt:
-        interrupted, finished = True, False
-        console.print("[yellow]interrupted: stopping all processes (the learner writes a checkpoint)[/]")
-    if finished:
-        cluster.wait(60.0)  # learner, referee (final evaluation) and workers exit on their own
-    cluster.stop()
+        cluster.start()
+        try:
+            finished = follow(cfg, endpoint, cluster, console)
+            if finished:
+                cluster.wait(60.0)  # learner, referee (final evaluation) and workers exit on their own
+        except (Interrupted, KeyboardInterrupt):
+            interrupted = True
+            console.print("[yellow]interrupted: stopping all processes (the learner writes a checkpoint)[/]")
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        cluster.stop()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     failed = [c for c in cluster.children if c.proc.returncode not in (0, -signal.SIGTERM, None)]
     for c in failed:
         console.print(f"[red]{c.role} exited with {c.proc.returncode}[/]: see {c.log}")
@@ -148,7 +174,7 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
         evals = bus.Latest.subscribe(session, keys.eval(cfg.run))
         alloc: Allocation | None = None
         last_eval = ""
-        columns = (TextColumn("[bold]env steps"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+        columns = (TextColumn("[bold]steps"), BarColumn(bar_width=24), MofNCompleteColumn(), TimeElapsedColumn(),
                    TimeRemainingColumn(), TextColumn("{task.fields[info]}"))
         try:
             with Progress(*columns, console=console, transient=False) as progress:
@@ -170,14 +196,14 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                     if item is not None:
                         try:
                             ev = Eval.from_bytes(item.payload, cfg.algo.actors)
-                            last_eval = "eval " + " ".join("-" if m is None else f"{m:.1f}" for m in ev.mean)
+                            last_eval = "R=[" + " ".join("-" if m is None else f"{m:.1f}" for m in ev.mean) + "]"
                         except MessageError:
                             pass
                     item = stats.get(keys.learner_stats(cfg.run))
                     if item is not None:
                         try:
                             st = LearnerStats.from_bytes(item.payload)
-                            info = f"upd {st.updates:,}  {describe_allocation(alloc)}  {last_eval}"
+                            info = f"upd {st.updates:,}  I={list(alloc.counts) if alloc else '-'}  {last_eval}"
                             progress.update(task, completed=min(st.env_steps, cfg.steps), info=info)
                             if st.done:
                                 return True

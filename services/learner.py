@@ -80,6 +80,8 @@ class Learner:
         self.spec = EnvSpec.from_env_id(cfg.env_id)
         self.device = pick_device(self.algo.device)
         torch.manual_seed(self.algo.seed)
+        if cfg.learner_threads > 0:
+            torch.set_num_threads(cfg.learner_threads)
         self.agent = MultiActorAgent(self.algo, self.spec, self.device)
         capacity = min(self.algo.buffer_size, cfg.steps + cfg.tolerance)
         self.buffer = ReplayBuffer(capacity, self.spec.obs_dim, self.spec.act_dim, self.device, self.algo.seed)

@@ -67,6 +67,8 @@ class RunConfig:
     send_batch: int = 32  # transitions per message from a worker
     band: int = 0  # rate limiter tolerance in transitions (0: automatic)
     save_replay: bool = False
+    learner_threads: int = 1  # torch threads of the learner (0: torch's default); 1 avoids
+    # OpenMP spin contention with the workers on a small box
     endpoint: str = ""  # where clients connect (written to config.json)
 
     @property
@@ -127,7 +129,7 @@ def load_toml(path: Path | None) -> dict[str, Any]:
 
 
 _RUN_FIELDS = {"run", "env_id", "env", "steps", "algo", "sync_every", "checkpoint_every", "send_batch",
-               "band", "save_replay"}
+               "band", "save_replay", "learner_threads"}
 
 
 def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig:
