@@ -107,7 +107,9 @@ def make_config(
     if "timestamping" not in text:
         conf.insert_json5("timestamping/enabled", "true")
     if mode is None and "mode" not in text:
-        mode = "client" if connect and not listen else "peer"
+        # A session that only listens is the hub of a star: it must route between its clients
+        # (a peer forwards data but not every liveliness/query path), so it is a router.
+        mode = "client" if connect and not listen else ("router" if listen and not connect else "peer")
     if mode is not None:
         conf.insert_json5("mode", json.dumps(mode))
     if connect:

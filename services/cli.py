@@ -78,7 +78,7 @@ def _role(name: str):
     return command
 
 
-for _name in ("learner", "worker", "referee"):
+for _name in ("learner", "worker", "referee", "router"):
     app.command(_name, context_settings={"allow_extra_args": True, "ignore_unknown_options": True,
                                          "help_option_names": []})(_role(_name))
 

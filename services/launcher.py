@@ -73,13 +73,18 @@ class LocalCluster:
         self.children.append(child)
         return child
 
-    def start(self) -> None:
+    def start_learner_and_referee(self) -> None:
         run, rd = self.cfg.run, str(self.run_dir)
         self.spawn("learner", ["--run-config", str(self.run_dir / "config.json"), "--listen", self.endpoint,
                                "--run-dir", rd])
         self.spawn("referee", ["--run", run, "--connect", self.endpoint, "--run-dir", rd])
+
+    def start_workers(self) -> None:
+        """After the referee is up, so the first allocation round is a barrier from step 0."""
+        run, rd = self.cfg.run, str(self.run_dir)
         for i in range(self.cfg.algo.workers):
-            self.spawn(f"worker-{i}", ["--run", run, "--connect", self.endpoint, "--id", f"w{i}", "--slot", str(i)])
+            self.spawn(f"worker-{i}", ["--run", run, "--connect", self.endpoint, "--id", f"w{i}", "--slot", str(i),
+                                         "--run-dir", rd])
 
     def failed(self) -> list[Child]:
         """Children that exited with an error."""
@@ -120,7 +125,7 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
     interrupted = False
     previous = {sig: signal.signal(sig, _raise_interrupted) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
-        cluster.start()
+        cluster.start_learner_and_referee()
         try:
             finished = follow(cfg, endpoint, cluster, console)
             if finished:
@@ -172,6 +177,14 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
         stats = bus.Latest.subscribe(session, keys.learner_stats(cfg.run))
         allocation = bus.Latest.subscribe(session, keys.allocation(cfg.run))
         evals = bus.Latest.subscribe(session, keys.eval(cfg.run))
+        roles = bus.watch_alive(session, cfg.run)
+        with console.status("starting learner and referee"):
+            while not {"learner", "referee"} <= {role for role, _ in roles.members()}:
+                if cluster.failed():
+                    return False
+                time.sleep(0.1)
+        roles.close()
+        cluster.start_workers()
         alloc: Allocation | None = None
         last_eval = ""
         columns = (TextColumn("[bold]steps"), BarColumn(bar_width=24), MofNCompleteColumn(), TimeElapsedColumn(),

@@ -32,6 +32,7 @@ log = logging.getLogger("mam.learner")
 
 STATS_PERIOD_S = 0.1
 LOG_PERIOD_S = 1.0
+HEARTBEAT_S = 2.0  # config re-published this often
 CHECKPOINT_FILE = "learner.pt"
 
 
@@ -90,10 +91,12 @@ class Learner:
         self.tracker = bus.SequenceTracker()
         self.rejects = bus.RejectLog(log, "transitions")
         self.per_worker: dict[str, dict[str, Any]] = {}
+        self.stream_rows: dict[str, int] = {}  # rows per worker/incarnation (proof of exactly-once)
         self.metrics: dict[str, float] = {}
         self.env_steps = 0  # transitions received into the buffer (the budget's unit)
         self.episode_returns: list[float] = []
         self.survivor: int | None = None
+        self.round_done_at = 0  # env step of the last obsolescence round the referee published
         self.started = time.monotonic()
         self.stop_requested = False
         if resume is not None:
@@ -116,28 +119,30 @@ class Learner:
         run = self.cfg.run
         s = self.session
         self.config_pub = bus.declare_latest_publisher(s, keys.config(run))
-        self.config_pub.put(encode("config", {"config": self.cfg.to_dict()}, sender=self.id, seq=0))
         self.weights_pubs = [bus.declare_latest_publisher(s, keys.weights(run, k)) for k in range(self.algo.actors)]
         self.stats_pub = bus.declare_latest_publisher(s, keys.learner_stats(run))
         self.done_pub = bus.declare_latest_publisher(s, keys.done(run))
         self.token = bus.declare_alive(s, run, "learner", self.id)
         self.workers = bus.watch_alive(s, run, "worker")
+        self.referees = bus.watch_alive(s, run, "referee")
         self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
         self.inbox = bus.Inbox(maxsize=8192).subscribe(s, keys.transitions_all(run))
         self.log_writer = JsonlWriter(self.run_dir / "learner.jsonl")
         self.seq = 0
+        self.publish_config()
         try:
             self._loop()
         finally:
             self.inbox.close()
             self.allocation.close()
             self.workers.close()
+            self.referees.close()
             self.log_writer.close()
 
     # -- the loop -----------------------------------------------------------------------------
     def _loop(self) -> None:
         self.publish_weights(all_actors=True)
-        last_stats = last_log = 0.0
+        last_stats = last_log = last_heartbeat = 0.0
         last_checkpoint_updates = self.agent.updates
         last_sync = self.agent.updates
         last_log_steps, last_log_updates, last_log_t = self.env_steps, self.agent.updates, time.monotonic()
@@ -155,6 +160,9 @@ class Learner:
                 if now - last_stats >= STATS_PERIOD_S / 4:
                     self.publish_stats()
                     last_stats = now
+            if now - last_heartbeat >= HEARTBEAT_S:  # late joiners also get it from the cache
+                self.publish_config()
+                last_heartbeat = now
             if now - last_log >= LOG_PERIOD_S:
                 dt = max(now - last_log_t, 1e-9)
                 self.rates = ((self.env_steps - last_log_steps) / dt, (self.agent.updates - last_log_updates) / dt)
@@ -182,11 +190,27 @@ class Learner:
         return int(self.algo.utd * (self.env_steps - self.algo.start_steps))
 
     def accept_until(self) -> int:
-        """Credit: collection may run `tolerance` transitions ahead of what utd has consumed."""
+        """Credit: collection may run `tolerance` transitions ahead of what utd has consumed,
+        and never past the next obsolescence round until the referee has published it."""
         consumed = self.algo.start_steps + math.ceil(self.agent.updates / self.algo.utd)
         if self.env_steps < self.algo.start_steps:
             consumed = self.algo.start_steps
-        return min(self.cfg.steps, consumed + self.cfg.tolerance)
+        limit = min(self.cfg.steps, consumed + self.cfg.tolerance)
+        boundary = self.next_round_boundary()
+        if boundary is not None and self.referees.live():
+            limit = min(limit, boundary)
+        return limit
+
+    def next_round_boundary(self) -> int | None:
+        """Env step of the next allocation round (A, 2A, ... before C) or of the elimination (C).
+
+        Rounds are barriers, as in Algorithm 1: the allocation for steps (jA, (j+1)A] is
+        decided from the evaluation at jA. Without a live referee there is no barrier.
+        """
+        a, c = self.algo.compete_every, self.algo.eliminate_at
+        if self.algo.no_ot or self.algo.actors == 1 or self.survivor is not None or self.round_done_at >= c:
+            return None
+        return min((self.round_done_at // a + 1) * a, c)
 
     def run_updates(self, deadline: float) -> int:
         ran = 0
@@ -217,6 +241,8 @@ class Learner:
             self.buffer.add_batch(batch.obs, batch.action, batch.reward, batch.next_obs, batch.terminated,
                                   actor=batch.actor, version=batch.version)
             self.env_steps += batch.rows
+            stream = f"{batch.worker}/{batch.incarnation}"
+            self.stream_rows[stream] = self.stream_rows.get(stream, 0) + batch.rows
             w = self.per_worker.setdefault(batch.worker, {"received": 0, "rows_since": 0, "t_since": time.monotonic(),
                                                           "rate": 0.0})
             if w.get("incarnation") != batch.incarnation:
@@ -232,16 +258,21 @@ class Learner:
                 self.episode_returns.extend(batch.episode_return)
 
     def follow_allocation(self) -> None:
-        """Train only the survivor once the referee has eliminated the others (Sec. 3.1.1)."""
+        """Lift the round barrier once the referee has published the round; train only the
+        survivor once it has eliminated the others (Sec. 3.1.1)."""
         item = self.allocation.fresh().get(keys.allocation(self.cfg.run))
-        if item is None or self.survivor is not None:
+        if item is None:
             return
         try:
             alloc = Allocation.from_bytes(item.payload, self.algo.actors)
         except MessageError as e:
             self.rejects.reject(keys.parse_last(item.key), e)
             return
-        if alloc.survivor is not None:
+        if alloc.reason in ("round", "elimination"):
+            a, c = self.algo.compete_every, self.algo.eliminate_at
+            done_at = c if alloc.env_steps >= c else (alloc.env_steps // a) * a
+            self.round_done_at = max(self.round_done_at, done_at)
+        if alloc.survivor is not None and self.survivor is None:
             self.survivor = alloc.survivor
             self.agent.eliminate(alloc.survivor)
             log.info("eliminated all actors but %d at %d transitions", alloc.survivor, self.env_steps)
@@ -278,8 +309,16 @@ class Learner:
             env_steps=self.env_steps, updates=self.agent.updates, accept_until=self.accept_until(),
             utd=self.agent.updates / consumed if consumed else 0.0, losses=losses, q_means=tuple(q_means),
             versions=tuple(self.agent.versions), per_worker=per_worker, rejected=self.rejects.counts(),
-            done=done, live=tuple(self.agent.live_actors), workers=len(self.workers.live()),
+            done=done, live=tuple(self.agent.live_actors), workers=self.active_workers(now),
             steps=self.cfg.steps)
+
+    def active_workers(self, now: float) -> int:
+        """Workers sharing the credit: live tokens, or recent senders if tokens are not seen."""
+        recent = sum(1 for w in self.per_worker.values() if now - w["last_seen"] < 5.0)
+        return max(len(self.workers.live()), recent)
+
+    def publish_config(self) -> None:
+        self.config_pub.put(encode("config", {"config": self.cfg.to_dict()}, sender=self.id, seq=self._next_seq()))
 
     def publish_stats(self, done: bool = False) -> None:
         self.stats_pub.put(self.stats(done).to_bytes(self.id, self._next_seq()))
@@ -318,6 +357,12 @@ class Learner:
             if not self.workers.live() or time.monotonic() > deadline:
                 break
             time.sleep(0.1)
+        write_json(self.run_dir / "transport.json", {
+            "env_steps": self.env_steps, "updates": self.agent.updates, "lost": self.tracker.lost,
+            "duplicates": self.tracker.duplicates, "rejected": self.rejects.counts(),
+            "per_worker": {w: {k: v for k, v in d.items() if k in ("received", "incarnation", "last_seq")}
+                           for w, d in self.per_worker.items()},
+            "rows_per_stream": dict(self.stream_rows), "streams": self.tracker.per_sender()})
         log.info("done: %d transitions, %d updates, lost %d, duplicates %d, rejected %d", self.env_steps,
                  self.agent.updates, self.tracker.lost, self.tracker.duplicates, self.rejects.total)
 
@@ -328,7 +373,7 @@ def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None
     if state is not None:
         cfg = RunConfig.from_dict({**json.loads(state["config"]), "steps": cfg.steps})
     write_json(run_dir / "config.json", cfg.to_dict())
-    with bus.session_scope(conf) as session:
+    with bus.session_scope(conf, retry_for=30.0) as session:  # a router may still be starting
         learner = Learner(cfg, session, run_dir, state)
 
         def on_signal(signum: int, _frame: Any) -> None:

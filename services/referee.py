@@ -38,6 +38,7 @@ from services.worker import fetch_config
 log = logging.getLogger("mam.referee")
 
 STATE_FILE = "referee_state.json"
+HEARTBEAT_S = 2.0  # the current allocation is re-published this often
 
 
 class Referee:
@@ -124,6 +125,9 @@ class Referee:
                 self.next_curve_eval = (steps // self.algo.eval_every + 1) * self.algo.eval_every
                 self._save_state()
             else:
+                if time.monotonic() - self.last_publish > HEARTBEAT_S:
+                    self.alloc_pub.put(self.last_allocation)  # heartbeat: the same decision again
+                    self.last_publish = time.monotonic()
                 self.stats_sub.wait_fresh(timeout=0.1)
 
     def refresh(self) -> None:
@@ -206,7 +210,9 @@ class Referee:
         msg = Allocation(self.schedule.round, steps, None if returns is None else tuple(returns),
                          tuple(float(p) for p in self.schedule.probabilities), tuple(i_k), dict(self.slots),
                          tuple(bool(e) for e in self.schedule.eliminated), self.schedule.survivor, reason)
-        self.alloc_pub.put(msg.to_bytes(self.id, self._next_seq()))
+        self.last_allocation = msg.to_bytes(self.id, self._next_seq())
+        self.alloc_pub.put(self.last_allocation)
+        self.last_publish = time.monotonic()
         self.alloc_log.write({"t": round(time.monotonic() - self.started, 3), "round": self.schedule.round,
                               "env_steps": steps, "returns": returns,
                               "probabilities": [float(p) for p in self.schedule.probabilities], "counts": i_k,

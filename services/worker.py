@@ -29,7 +29,7 @@ from mam_core.agent import EnvSpec
 from mam_core.ensemble import ActorEnsemble
 from services import bus, keys, options
 from services.codec import Allocation, LearnerStats, MessageError, TransitionBatch, Weights, decode
-from services.options import RunConfig
+from services.options import RunConfig, write_json
 
 log = logging.getLogger("mam.worker")
 
@@ -60,7 +60,9 @@ def fetch_config(session: Any, run: str, rejects: bus.RejectLog, timeout: float 
 
 
 class Worker:
-    def __init__(self, cfg: RunConfig, session: Any, worker_id: str, slot_index: int = 0) -> None:
+    def __init__(self, cfg: RunConfig, session: Any, worker_id: str, slot_index: int = 0,
+                 run_dir: Path | None = None) -> None:
+        self.run_dir = run_dir
         self.cfg = cfg
         self.algo = cfg.algo
         self.session = session
@@ -114,6 +116,7 @@ class Worker:
             self._loop()
         finally:
             self.flush()
+            self.write_report()
             self.token.undeclare()
             for sub in (self.weights, self.allocation, self.stats_sub, self.done):
                 sub.close()
@@ -136,6 +139,14 @@ class Worker:
                 self.weights.wait_fresh(timeout=0.05)  # weights for our actor not here yet
                 continue
             self.step(random_phase)
+
+    def write_report(self) -> None:
+        """What this incarnation sent (compared with the learner's transport.json in tests)."""
+        if self.run_dir is None:
+            return
+        write_json(self.run_dir / "workers" / f"{self.id}-{self.incarnation}.json", {
+            "worker": self.id, "incarnation": self.incarnation, "sent_rows": self.sent_rows,
+            "batches": self.batch_seq, "rejected": self.rejects.counts()})
 
     def refresh(self) -> None:
         for key, item in self.weights.fresh().items():
@@ -232,10 +243,10 @@ class Worker:
         self.p_n = 0
 
 
-def main(run: str, conf: Any, worker_id: str, slot_index: int = 0) -> None:
+def main(run: str, conf: Any, worker_id: str, slot_index: int = 0, run_dir: Path | None = None) -> None:
     with bus.session_scope(conf, retry_for=30.0) as session:
         cfg = fetch_config(session, run, bus.RejectLog(log, "config"))
-        worker = Worker(cfg, session, worker_id, slot_index)
+        worker = Worker(cfg, session, worker_id, slot_index, run_dir)
 
         def on_signal(signum: int, _frame: Any) -> None:
             worker.stop_requested = True
@@ -254,6 +265,7 @@ def worker_command(
     zenoh_config: options.ZenohConfig = None,
     id: str = typer.Option(None, "--id", help="worker id (slot name); default HOST-PID"),  # noqa: A002
     slot: int = typer.Option(0, help="slot index: picks the actor before the first allocation and the env seed"),
+    run_dir: options.RunDir = None,
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Run one environment slot of a run (needs only --run and --connect)."""
@@ -265,7 +277,7 @@ def worker_command(
     worker_id = id or f"{socket.gethostname()}-{os.getpid()}"
     keys.check_name(worker_id, "worker id")
     conf = bus.make_config(connect=connect or ["tcp/127.0.0.1:7447"], listen=listen, config_file=zenoh_config)
-    main(run, conf, worker_id, slot)
+    main(run, conf, worker_id, slot, run_dir)
 
 
 def cli() -> None:

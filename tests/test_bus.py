@@ -323,7 +323,7 @@ def test_make_config_modes_and_endpoints(tmp_path):
     assert "tcp/127.0.0.1:1" in conf.get_json("connect/endpoints")
     assert conf.get_json("scouting/multicast/enabled") == "false"
     assert conf.get_json("scouting/gossip/enabled") == "false"
-    assert "peer" in make_config(listen=["tcp/127.0.0.1:2"]).get_json("mode")
+    assert "router" in make_config(listen=["tcp/127.0.0.1:2"]).get_json("mode")  # the hub of a star
     assert "router" in make_config(listen=["tcp/127.0.0.1:2"], mode="router").get_json("mode")
     with pytest.raises(ValueError):
         make_config(mode="server")

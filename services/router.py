@@ -1,0 +1,48 @@
+"""`mam router`: a Zenoh router for multi-host runs, with nothing to install beyond this package.
+
+A zenoh-python session in `router` mode routes data, queries and liveliness tokens between its
+clients (learner, referee, workers, monitors), so hosts form a star around it. It outlives runs:
+many runs (distinct `--run` names) can share one router.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+
+import typer
+
+from services import bus, options
+
+log = logging.getLogger("mam.router")
+
+app = typer.Typer(add_completion=False, help=__doc__)
+
+
+def serve(conf, stop: threading.Event) -> None:
+    with bus.session_scope(conf) as session:
+        log.info("router %s up", session.zid())
+        stop.wait()
+
+
+@app.command()
+def router_command(
+    listen: options.Listen = None, connect: options.Connect = None, zenoh_config: options.ZenohConfig = None,
+) -> None:
+    """Run a Zenoh router (default: listen on tcp/0.0.0.0:7447) until SIGTERM / Ctrl-C."""
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    listen = listen or ([] if zenoh_config else ["tcp/0.0.0.0:7447"])
+    conf = bus.make_config(connect=connect, listen=listen, config_file=zenoh_config, mode="router")
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    serve(conf, stop)
+
+
+def cli() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    cli()

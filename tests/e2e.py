@@ -1,0 +1,79 @@
+"""Helpers for end-to-end tests: real `mam` processes on loopback, their run directories."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+from services.plot import read_jsonl
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def unique_run(prefix: str) -> str:
+    return f"{prefix}-{uuid.uuid4().hex[:8]}"
+
+
+def mam(*args: str, timeout: float = 300, cwd: Path = ROOT) -> subprocess.CompletedProcess:
+    """`mam ARGS` as a user runs it; raises with the output on a non-zero exit."""
+    env = dict(os.environ, COLUMNS="160", PYTHONWARNINGS="ignore")
+    proc = subprocess.run([sys.executable, "-m", "services.cli", *args], cwd=cwd, env=env, text=True,
+                          capture_output=True, timeout=timeout)
+    if proc.returncode != 0:
+        raise AssertionError(f"mam {' '.join(args)} exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}")
+    return proc
+
+
+def spawn(module: str, *args: str, log: Path) -> subprocess.Popen:
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "ab") as out:
+        return subprocess.Popen([sys.executable, "-m", f"services.{module}", *args], cwd=ROOT, stdout=out,
+                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
+                                env=dict(os.environ, PYTHONWARNINGS="ignore"))
+
+
+def stop(*procs: subprocess.Popen, timeout: float = 20.0) -> None:
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + timeout
+    for p in procs:
+        try:
+            p.wait(max(deadline - time.monotonic(), 0.1))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait(5)
+
+
+def processes_of(run: str) -> list[str]:
+    """Command lines of live processes that mention this run (none must be left behind)."""
+    out = subprocess.run(["ps", "-eo", "pid,args"], capture_output=True, text=True).stdout.splitlines()
+    return [line for line in out if run in line and "services." in line]
+
+
+def load(run_dir: Path) -> dict[str, Any]:
+    return {
+        "config": json.loads((run_dir / "config.json").read_text()),
+        "summary": json.loads((run_dir / "summary.json").read_text()),
+        "transport": json.loads((run_dir / "transport.json").read_text()),
+        "learner": read_jsonl(run_dir / "learner.jsonl"),
+        "eval": read_jsonl(run_dir / "eval.jsonl"),
+        "allocation": read_jsonl(run_dir / "allocation.jsonl"),
+        "workers": [json.loads(p.read_text()) for p in sorted((run_dir / "workers").glob("*.json"))],
+    }
+
+
+def assert_exactly_once(run: dict[str, Any]) -> None:
+    """Every transition a worker sent reached the replay buffer once: per worker incarnation."""
+    t = run["transport"]
+    assert t["lost"] == 0 and t["duplicates"] == 0 and t["rejected"] == {}
+    sent = {f"{w['worker']}/{w['incarnation']}": w["sent_rows"] for w in run["workers"]}
+    assert sent == t["rows_per_stream"]
+    assert sum(sent.values()) == t["env_steps"]

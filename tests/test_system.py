@@ -1,0 +1,173 @@
+"""The distributed system end to end: real processes, real Zenoh on loopback, real envs."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mam_core.obsolescence import allocation_probabilities
+from services import bus, keys
+from services.codec import Allocation, Weights
+from tests.e2e import assert_exactly_once, load, mam, processes_of, spawn, stop, unique_run
+
+SMALL = ["--hidden", "32,32", "--batch-size", "32", "--eval-episodes", "3"]
+
+
+def check_obsolescence(run: dict, a: int, c: int, workers: int, send_slack: int) -> None:
+    rounds = [r for r in run["allocation"] if r["reason"] in ("round", "elimination")]
+    # Rounds are barriers: each lands on its multiple of A (or C), late by at most in-flight batches.
+    boundaries = [min(b, c) for b in range(a, c + a, a)]
+    assert [r["env_steps"] // a * a if r["env_steps"] < c else c for r in rounds] == boundaries
+    for r in rounds:
+        b = r["env_steps"] // a * a if r["env_steps"] < c else c
+        assert b <= r["env_steps"] <= b + send_slack
+        assert sum(r["counts"]) == len(r["slots"]) <= workers  # a slow-starting worker may join later
+    for r in rounds[:-1]:  # Eq. 8 from the evaluation's returns
+        np.testing.assert_allclose(r["probabilities"], allocation_probabilities(r["returns"]), rtol=1e-9)
+    last = rounds[-1]
+    assert last["reason"] == "elimination"
+    survivor = last["survivor"]
+    assert survivor == int(np.argmax(last["returns"]))
+    assert [bool(e) for e in last["eliminated"]] == [k != survivor for k in range(len(last["returns"]))]
+    # After elimination every live slot runs the survivor, and only the survivor keeps learning.
+    assert len(last["slots"]) == workers
+    assert set(last["slots"].values()) == {survivor} and last["counts"][survivor] == workers
+    final = run["learner"][-1]
+    assert final["live"] == [k == survivor for k in range(len(last["returns"]))]
+
+
+def check_rate_limiter(run: dict, start: int, utd: float, band: int) -> None:
+    for row in run["learner"]:
+        if row["env_steps"] > start + band:
+            expected = utd * (row["env_steps"] - start)
+            assert expected - band * utd - 1 <= row["updates"] <= expected + 1, row
+    final = run["learner"][-1]
+    assert final["updates"] == int(utd * (final["env_steps"] - start))
+
+
+def test_mam_run_apple_collect_end_to_end(tmp_path: Path) -> None:
+    run_name, run_dir = unique_run("e2e-apple"), tmp_path / "run"
+    a, c, m, start, steps = 400, 1600, 3, 400, 2400
+    proc = mam("run", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--steps", str(steps), "--workers", str(m),
+               "--actors", "3", "--compete-every", str(a), "--eliminate-at", str(c), "--start-steps", str(start),
+               "--eval-every", "400", "--seed", "1", *SMALL, "--run", run_name, "--run-dir", str(run_dir))
+    assert "elimination" in proc.stdout and "survivor" in proc.stdout
+    run = load(run_dir)
+    assert_exactly_once(run)
+    cfg = run["config"]
+    send_slack = m * cfg["send_batch"]
+    assert steps <= run["transport"]["env_steps"] <= steps + send_slack
+    check_obsolescence(run, a, c, m, send_slack)
+    band = max(4 * m * cfg["send_batch"], 256)
+    check_rate_limiter(run, start, 1.0, band)
+    # The run directory of the design.
+    for name in ("config.json", "learner.jsonl", "eval.jsonl", "allocation.jsonl", "summary.json",
+                 "checkpoints/learner.pt", "plots/learning_curves.png", "plots/allocation.png"):
+        assert (run_dir / name).is_file(), name
+    assert run["summary"]["survivor"] == run["allocation"][-1]["survivor"]
+    assert cfg["endpoint"].startswith("tcp/127.0.0.1:")
+    assert processes_of(run_name) == []
+
+
+@pytest.mark.slow
+def test_mam_run_mujoco_end_to_end(tmp_path: Path) -> None:
+    run_name, run_dir = unique_run("e2e-ip"), tmp_path / "run"
+    a, c, m, start, steps = 500, 1500, 3, 500, 2500
+    mam("run", "--env", "InvertedPendulum-v5", "--algo", "ma-td3", "--steps", str(steps), "--workers", str(m),
+        "--actors", "2", "--compete-every", str(a), "--eliminate-at", str(c), "--start-steps", str(start),
+        "--eval-every", "500", "--seed", "2", *SMALL, "--run", run_name, "--run-dir", str(run_dir))
+    run = load(run_dir)
+    assert_exactly_once(run)
+    send_slack = m * run["config"]["send_batch"]
+    check_obsolescence(run, a, c, m, send_slack)
+    rounds = [r for r in run["allocation"] if r["reason"] == "round"]
+    # Different returns give different P (Eq. 8), and P is not stuck at uniform.
+    assert any(not np.allclose(r["probabilities"], 0.5) for r in rounds)
+    check_rate_limiter(run, start, 1.0, max(4 * m * run["config"]["send_batch"], 256))
+    assert processes_of(run_name) == []
+
+
+def test_late_worker_gets_weights_and_allocation_within_a_second(tmp_path: Path) -> None:
+    run = unique_run("late")
+    endpoint = bus.loopback_endpoint(bus.free_tcp_port())
+    learner = spawn("learner", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--steps", "1000000",
+                    "--start-steps", "200", "--compete-every", "300", "--eliminate-at", "100000", *SMALL,
+                    "--run", run, "--listen", endpoint, "--run-dir", str(tmp_path), log=tmp_path / "learner.log")
+    referee = spawn("referee", "--run", run, "--connect", endpoint, "--run-dir", str(tmp_path),
+                    log=tmp_path / "referee.log")
+    worker = spawn("worker", "--run", run, "--connect", endpoint, "--id", "w0", "--run-dir", str(tmp_path),
+                   log=tmp_path / "worker.log")
+    try:
+        conf = bus.make_config(connect=[endpoint])
+        with bus.session_scope(conf, retry_for=30) as s:
+            alloc = bus.Latest.subscribe(s, keys.allocation(run))
+            assert alloc.wait(keys.allocation(run), timeout=60), "no allocation from the referee"
+            deadline = time.monotonic() + 60  # the run is going: a round has happened
+            while Allocation.from_bytes(alloc.get(keys.allocation(run)).payload).round < 1:
+                assert time.monotonic() < deadline, "no allocation round within 60 s"
+                time.sleep(0.2)
+            alloc.close()
+        # A late joiner (a new worker's view) gets every actor's weights and the allocation at once.
+        with bus.session_scope(conf) as s:
+            t0 = time.monotonic()
+            weights = bus.Latest.subscribe(s, keys.weights_all(run))
+            allocation = bus.Latest.subscribe(s, keys.allocation(run))
+            while len(weights.snapshot()) < 3 or allocation.get(keys.allocation(run)) is None:
+                assert time.monotonic() - t0 < 1.0, f"late joiner waited > 1 s: {sorted(weights.snapshot())}"
+                time.sleep(0.005)
+            elapsed = time.monotonic() - t0
+            got = [Weights.from_bytes(weights.get(keys.weights(run, k)).payload) for k in range(3)]
+            assert [w.actor for w in got] == [0, 1, 2] and all(w.version >= 0 for w in got)
+            assert Allocation.from_bytes(allocation.get(keys.allocation(run)).payload).round >= 1
+            weights.close()
+            allocation.close()
+        assert elapsed < 1.0
+    finally:
+        stop(worker, referee, learner)
+    assert processes_of(run) == []
+
+
+def test_two_runs_on_one_router_never_cross(tmp_path: Path) -> None:
+    """Two runs share one `mam router`, with the same worker ids: namespaces keep them apart."""
+    endpoint = bus.loopback_endpoint(bus.free_tcp_port())
+    runs = [unique_run("iso-a"), unique_run("iso-b")]
+    common = ["--env", "AppleCollect-v0", "--algo", "ddpg", "--steps", "600", "--start-steps", "300", *SMALL]
+    procs = [spawn("router", "--listen", endpoint, log=tmp_path / "router.log")]
+    try:
+        for run in runs:
+            procs.append(spawn("learner", *common, "--run", run, "--connect", endpoint,
+                               "--run-dir", str(tmp_path / run), log=tmp_path / f"{run}-learner.log"))
+        for run in runs:
+            for w in ("w0", "w1"):
+                procs.append(spawn("worker", "--run", run, "--connect", endpoint, "--id", w,
+                                   "--run-dir", str(tmp_path / run), log=tmp_path / f"{run}-{w}.log"))
+        deadline = time.monotonic() + 180
+        while not all((tmp_path / run / "transport.json").is_file() for run in runs):
+            assert time.monotonic() < deadline, "runs did not finish"
+            time.sleep(0.5)
+        time.sleep(1.0)
+    finally:
+        stop(*reversed(procs))
+    for run in runs:
+        d = tmp_path / run
+        t = load_transport(d)
+        assert set(t["per_worker"]) == {"w0", "w1"} and t["rejected"] == {}
+        sent = {f"{w['worker']}/{w['incarnation']}" for w in read_reports(d)}
+        assert set(t["rows_per_stream"]) == sent  # only its own workers' incarnations
+        assert 600 <= t["env_steps"] <= 600 + 2 * 32
+    assert all(processes_of(run) == [] for run in runs)
+
+
+def load_transport(run_dir: Path) -> dict:
+    import json
+
+    return json.loads((run_dir / "transport.json").read_text())
+
+
+def read_reports(run_dir: Path) -> list[dict]:
+    import json
+
+    return [json.loads(p.read_text()) for p in (run_dir / "workers").glob("*.json")]
