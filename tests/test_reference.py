@@ -1,0 +1,53 @@
+"""The synchronous reference driver (Algorithm 1) and the purity of mam_core."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mam_core.config import resolve
+from mam_core.obsolescence import allocation_probabilities
+from mam_core.reference import run_reference
+
+
+def test_mam_core_never_imports_zenoh():
+    code = ("import sys, mam_core, mam_core.agent, mam_core.ensemble, mam_core.replay, mam_core.obsolescence, "
+            "mam_core.evaluation, mam_core.reference, mam_core.envs; "
+            "bad = [m for m in sys.modules if m.split('.')[0] in ('zenoh', 'services')]; "
+            "assert not bad, bad")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_reference_driver_follows_algorithm_1_schedule():
+    a, c, m = 300, 1200, 5
+    cfg = resolve("ma-ddpg", hidden=(32, 32), batch_size=32, start_steps=300, compete_every=a, eliminate_at=c,
+                  workers=m, eval_episodes=3, eval_every=300, seed=4)
+    result = run_reference("AppleCollect-v0", cfg, 1800)
+    steps = [row["env_steps"] for row in result.allocations]
+    # Sweeps of M slots: each round lands on the first sweep at or past its multiple of A.
+    assert steps == [0, 300, 600, 900, 1200]
+    for row, ev in zip(result.allocations[1:-1], result.evaluations):
+        np.testing.assert_allclose(row["probabilities"], allocation_probabilities(ev["mean"]))
+    survivor = result.survivor
+    elim_eval = next(e for e in result.evaluations if e["env_steps"] == 1200)
+    assert survivor == int(np.argmax(elim_eval["mean"]))
+    assert result.allocations[-1]["slots"] == [survivor] * m
+    assert result.env_steps == 1800
+    assert result.updates == 1800 - 300  # utd = 1 per transition after start_steps
+    last = result.evaluations[-1]
+    assert [m is None for m in last["mean"]] == [k != survivor for k in range(3)]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("algo, extra", [
+    ("td3", {}),
+    ("ma-td3", dict(workers=2, compete_every=2000, eliminate_at=10_000)),
+])
+def test_reference_driver_learns_inverted_pendulum(algo, extra):
+    cfg = resolve(algo, start_steps=1000, utd=2.0, eval_every=2000, eval_episodes=5, seed=0, **extra)
+    result = run_reference("InvertedPendulum-v5", cfg, 20_000)
+    best = max(max(m for m in row["mean"] if m is not None) for row in result.evaluations)
+    assert best >= 900, [row["mean"] for row in result.evaluations]
