@@ -575,6 +575,13 @@ class SequenceTracker:
                 return GAP
             return IN_ORDER
 
+    def restore(self, per_sender: dict[str, dict]) -> None:
+        """Continue from a checkpoint's ``per_sender()``: each sender's last incarnation."""
+        with self._lock:
+            for sender, s in per_sender.items():
+                self._next[(sender, s["incarnation"])] = int(s["last_seq"]) + 1
+                self._senders[sender] = dict(s)
+
     def expected(self, sender: str, incarnation: str) -> int:
         """The next seq expected from this stream (= how many were seen, when none is lost)."""
         with self._lock:

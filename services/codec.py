@@ -657,9 +657,11 @@ class LearnerStats:
     live: tuple[bool, ...] = ()
     workers: int = 0
     steps: int = 0
+    incarnation: str = ""  # changes when a learner restarts (workers reset their in-flight count)
 
     def to_bytes(self, sender: str, seq: int) -> bytes:
         body = {
+            "incarnation": self.incarnation,
             "env_steps": self.env_steps,
             "updates": self.updates,
             "accept_until": self.accept_until,
@@ -704,8 +706,9 @@ class LearnerStats:
             raise MessageError("type:live", "want bools")
         workers = _int(msg, "workers", lo=0) if "workers" in msg else 0
         steps = _int(msg, "steps", lo=0) if "steps" in msg else 0
+        incarnation = _text(msg, "incarnation") if "incarnation" in msg else ""
         return cls(env_steps, updates, accept_until, utd, losses, q_means, versions,
-                   per_worker, rejected, done, live, workers, steps)
+                   per_worker, rejected, done, live, workers, steps, incarnation)
 
     @classmethod
     def from_bytes(cls, payload: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> "LearnerStats":

@@ -14,6 +14,7 @@ import os
 import signal
 import socket
 import time
+import uuid
 from pathlib import Path
 from typing import Any
 
@@ -78,6 +79,7 @@ class Learner:
         self.session = session
         self.run_dir = run_dir
         self.id = f"{socket.gethostname()}-{os.getpid()}"
+        self.incarnation = uuid.uuid4().hex[:12]
         self.spec = EnvSpec.from_env_id(cfg.env_id)
         self.device = pick_device(self.algo.device)
         torch.manual_seed(self.algo.seed)
@@ -109,6 +111,8 @@ class Learner:
         self.env_steps = int(c["env_steps"])
         if "replay" in state:
             self.buffer.load_state_dict(state["replay"])
+        # Sequence numbers go on from the checkpoint: a gap then counts what died with the old learner.
+        self.tracker.restore(json.loads(c.get("per_worker", "{}")))
         live = self.agent.live_actors
         if sum(live) == 1 and self.algo.actors > 1:
             self.survivor = live.index(True)
@@ -268,7 +272,7 @@ class Learner:
         except MessageError as e:
             self.rejects.reject(keys.parse_last(item.key), e)
             return
-        if alloc.reason in ("round", "elimination"):
+        if alloc.round > 0:  # env_steps: where the current P was decided
             a, c = self.algo.compete_every, self.algo.eliminate_at
             done_at = c if alloc.env_steps >= c else (alloc.env_steps // a) * a
             self.round_done_at = max(self.round_done_at, done_at)
@@ -310,7 +314,7 @@ class Learner:
             utd=self.agent.updates / consumed if consumed else 0.0, losses=losses, q_means=tuple(q_means),
             versions=tuple(self.agent.versions), per_worker=per_worker, rejected=self.rejects.counts(),
             done=done, live=tuple(self.agent.live_actors), workers=self.active_workers(now),
-            steps=self.cfg.steps)
+            steps=self.cfg.steps, incarnation=self.incarnation)
 
     def active_workers(self, now: float) -> int:
         """Workers sharing the credit: live tokens, or recent senders if tokens are not seen."""
@@ -330,7 +334,8 @@ class Learner:
                "transitions_per_s": round(self.rates[0], 2), "updates_per_s": round(self.rates[1], 2),
                "versions": list(self.agent.versions), "live": self.agent.live_actors,
                "lost": self.tracker.lost, "duplicates": self.tracker.duplicates,
-               "rejected": self.rejects.total, "buffer": len(self.buffer)}
+               "rejected": self.rejects.total, "buffer": len(self.buffer),
+               "received": {w: d["received"] for w, d in self.per_worker.items()}}
         row.update(self.metrics)
         if self.episode_returns:
             row["train_return"] = float(np.mean(self.episode_returns))
@@ -421,6 +426,8 @@ def learner_command(
             sync_every=sync_every, checkpoint_every=checkpoint_every, save_replay=save_replay), config)
     if steps is not None and (run_config is not None or resume is not None):
         cfg = RunConfig.from_dict({**cfg.to_dict(), "steps": steps})
+    if not listen and not connect and cfg.endpoint:
+        listen = [cfg.endpoint]  # a resumed or launched learner comes back where its clients look
     listen = listen or ([] if connect else ["tcp/0.0.0.0:7447"])
     conf = bus.make_config(connect=connect, listen=listen, config_file=zenoh_config)
     directory = resume or run_dir or Path("runs") / cfg.run

@@ -59,6 +59,7 @@ class Referee:
         self.rng = np.random.default_rng(self.algo.seed + 17)
         self.slots: dict[str, int] = {}
         self.eval_round = 0
+        self.decided_at = 0  # env step of the evaluation behind the current P
         self.next_curve_eval = self.algo.eval_every
         self.stats: LearnerStats | None = None
         self.seq = 0
@@ -77,6 +78,7 @@ class Referee:
             self.slots = {str(w): int(k) for w, k in data["slots"].items()}
             self.eval_round = int(data["eval_round"])
             self.next_curve_eval = int(data["next_curve_eval"])
+            self.decided_at = int(data.get("decided_at", 0))
             log.info("recovered referee state: round %d, P %s, survivor %s", self.schedule.round,
                      self.schedule.probabilities.round(3).tolist(), self.schedule.survivor)
         except (ValueError, KeyError, TypeError) as e:
@@ -85,7 +87,7 @@ class Referee:
     def _save_state(self) -> None:
         write_json(self.run_dir / STATE_FILE, {
             "schedule": self.schedule.to_dict(), "slots": self.slots, "eval_round": self.eval_round,
-            "next_curve_eval": self.next_curve_eval})
+            "next_curve_eval": self.next_curve_eval, "decided_at": self.decided_at})
 
     # -- wiring -------------------------------------------------------------------------------
     def serve(self) -> None:
@@ -186,6 +188,7 @@ class Referee:
         returns = np.array([floor if m is None else m for m in means])
         eliminating = self.schedule.due_elimination(steps)
         self.schedule.record_evaluation(steps, returns)
+        self.decided_at = steps
         reason = "elimination" if eliminating else "round"
         self.publish_allocation(reason, returns=returns.tolist(), redraw=True)
         self.next_curve_eval = (steps // self.algo.eval_every + 1) * self.algo.eval_every
@@ -206,15 +209,16 @@ class Referee:
             first = sorted(self.slots)[0]
             self.slots = {first: self.schedule.survivor}
         i_k = counts(self.slots, self.algo.actors).astype(int).tolist()
-        steps = self.stats.env_steps if self.stats else 0
+        steps = self.decided_at  # when the current P was decided (the learner's round barrier reads it)
         msg = Allocation(self.schedule.round, steps, None if returns is None else tuple(returns),
                          tuple(float(p) for p in self.schedule.probabilities), tuple(i_k), dict(self.slots),
                          tuple(bool(e) for e in self.schedule.eliminated), self.schedule.survivor, reason)
         self.last_allocation = msg.to_bytes(self.id, self._next_seq())
         self.alloc_pub.put(self.last_allocation)
         self.last_publish = time.monotonic()
+        now_steps = self.stats.env_steps if self.stats else steps
         self.alloc_log.write({"t": round(time.monotonic() - self.started, 3), "round": self.schedule.round,
-                              "env_steps": steps, "returns": returns,
+                              "env_steps": max(now_steps, steps), "decided_at": steps, "returns": returns,
                               "probabilities": [float(p) for p in self.schedule.probabilities], "counts": i_k,
                               "slots": dict(self.slots), "eliminated": [bool(e) for e in self.schedule.eliminated],
                               "survivor": self.schedule.survivor, "reason": reason})

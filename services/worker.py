@@ -35,6 +35,7 @@ log = logging.getLogger("mam.worker")
 
 CONFIG_WAIT_S = 600.0  # how long a worker waits for a learner to appear
 MAX_BATCH_AGE_S = 0.05  # a partial batch is sent after this long
+STATUS_EVERY_S = 10.0
 
 
 def fetch_config(session: Any, run: str, rejects: bus.RejectLog, timeout: float = CONFIG_WAIT_S) -> RunConfig:
@@ -85,9 +86,12 @@ class Worker:
         self.stats: LearnerStats | None = None
         self.batch_seq = 0
         self.sent_rows = 0
+        self.sent_base = 0  # sent_rows when the current learner incarnation appeared
+        self.learner_incarnation: str | None = None
         self.episode_return = 0.0
         self.finished_returns: list[float] = []
         self.stop_requested = False
+        self.last_note = 0.0
         self._reset_pending()
 
     def _reset_pending(self) -> None:
@@ -123,7 +127,13 @@ class Worker:
 
     def _loop(self) -> None:
         idle_since: float | None = None
+        last_status = time.monotonic()
         while not self.stop_requested:
+            if time.monotonic() - last_status > STATUS_EVERY_S:
+                st = self.stats
+                log.info("sent %d rows, actor %d, weights %s, learner at %s/%s", self.sent_rows, self.actor,
+                         self.versions, st.env_steps if st else "?", st.accept_until if st else "?")
+                last_status = time.monotonic()
             if self.done.get(keys.done(self.cfg.run)) is not None:
                 log.info("run is done after %d transitions from this worker", self.sent_rows)
                 return
@@ -136,6 +146,9 @@ class Worker:
             idle_since = None
             random_phase = self.in_random_phase()
             if not random_phase and self.versions[self.actor] < 0:
+                if time.monotonic() - self.last_note > 5.0:
+                    log.info("waiting for the weights of actor %d", self.actor)
+                    self.last_note = time.monotonic()
                 self.weights.wait_fresh(timeout=0.05)  # weights for our actor not here yet
                 continue
             self.step(random_phase)
@@ -176,12 +189,20 @@ class Worker:
                 self.rejects.reject("learner", e)
 
     def in_flight(self) -> int:
-        """Rows sent by this incarnation that the learner has not reported yet."""
+        """Rows sent to the current learner by this incarnation that it has not reported yet.
+
+        A restarted learner (new incarnation) starts the count again: what was sent to the old
+        one was either received by it or died with it.
+        """
         if self.stats is None:
-            return self.sent_rows
+            return self.sent_rows - self.sent_base
+        if self.stats.incarnation != self.learner_incarnation:
+            self.learner_incarnation = self.stats.incarnation
+            self.sent_base = self.sent_rows
+            log.info("learner %s is up: sending again", self.learner_incarnation or "?")
         mine = self.stats.per_worker.get(self.id)
         seen = mine["incarnation_rows"] if mine and mine.get("incarnation") == self.incarnation else 0
-        return max(self.sent_rows - seen, 0)
+        return max(self.sent_rows - self.sent_base - seen, 0)
 
     def may_send(self) -> bool:
         """Rate limiter: keep this worker's unreported rows within its share of the learner's credit."""

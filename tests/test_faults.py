@@ -1,0 +1,207 @@
+"""Faults with real processes and `kill -9`: workers, the referee and the learner die and come back."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from mam_core.agent import EnvSpec, MultiActorAgent
+from mam_core.config import AlgoConfig
+from services import bus, keys
+from services.codec import Allocation, LearnerStats
+from services.plot import read_jsonl
+from tests.e2e import ROOT, assert_exactly_once, load, processes_of, spawn, stop, unique_run
+
+pytestmark = pytest.mark.slow
+
+SMALL = ["--hidden", "32,32", "--batch-size", "32", "--eval-episodes", "3"]
+
+
+class RunView:
+    """A client of the run: latest learner stats and allocation."""
+
+    def __init__(self, run: str, endpoint: str) -> None:
+        self.run = run
+        self.session = bus.open_session(bus.make_config(connect=[endpoint]), retry_for=30)
+        self.stats = bus.Latest.subscribe(self.session, keys.learner_stats(run))
+        self.alloc = bus.Latest.subscribe(self.session, keys.allocation(run))
+
+    def learner(self) -> LearnerStats | None:
+        item = self.stats.get(keys.learner_stats(self.run))
+        return None if item is None else LearnerStats.from_bytes(item.payload)
+
+    def allocation(self) -> Allocation | None:
+        item = self.alloc.get(keys.allocation(self.run))
+        return None if item is None else Allocation.from_bytes(item.payload)
+
+    def wait(self, predicate, timeout: float = 120.0, what: str = "condition"):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            value = predicate()
+            if value:
+                return value
+            time.sleep(0.05)
+        raise AssertionError(f"timed out waiting for {what}")
+
+    def steps(self) -> int:
+        st = self.learner()
+        return st.env_steps if st else 0
+
+    def close(self) -> None:
+        self.stats.close()
+        self.alloc.close()
+        self.session.close()
+
+
+def cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def start_run(tmp_path: Path, run: str, endpoint: str, steps: int, extra: list[str] = (), workers: int = 3):
+    learner = spawn("learner", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--steps", str(steps),
+                    "--start-steps", "300", "--compete-every", "500", "--eliminate-at", "1000000", *SMALL, *extra,
+                    "--run", run, "--listen", endpoint, "--run-dir", str(tmp_path), log=tmp_path / "learner.log")
+    referee = spawn("referee", "--run", run, "--connect", endpoint, "--run-dir", str(tmp_path),
+                    log=tmp_path / "referee.log")
+    ws = {f"w{i}": spawn("worker", "--run", run, "--connect", endpoint, "--id", f"w{i}", "--run-dir", str(tmp_path),
+                         log=tmp_path / f"w{i}.log") for i in range(workers)}
+    return learner, referee, ws
+
+
+def wait_for_file(path: Path, timeout: float = 180.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not path.is_file():
+        assert time.monotonic() < deadline, f"{path} never appeared"
+        time.sleep(0.2)
+
+
+def test_worker_killed_and_restarted(tmp_path: Path) -> None:
+    run, endpoint = unique_run("kill-worker"), bus.loopback_endpoint(bus.free_tcp_port())
+    learner, referee, ws = start_run(tmp_path, run, endpoint, steps=5000)
+    view = RunView(run, endpoint)
+    try:
+        view.wait(lambda: view.steps() > 1500 and (st := view.learner()).per_worker.get("w1", {}).get("received"),
+                  what="1500 steps, some from w1")
+        ws["w1"].send_signal(signal.SIGKILL)
+        ws["w1"].wait()
+        killed_at = time.monotonic()
+        # Its slot leaves the allocation at once (liveliness), the others go on.
+        view.wait(lambda: (a := view.allocation()) and "w1" not in a.slots and len(a.slots) == 2, 5,
+                  "an allocation without w1")
+        assert time.monotonic() - killed_at < 3.0
+        before = view.steps()
+        view.wait(lambda: view.steps() > before + 300, 60, "progress without w1")
+        # A restarted worker (new incarnation) rejoins with the current weights and allocation.
+        ws["w1"] = spawn("worker", "--run", run, "--connect", endpoint, "--id", "w1", "--run-dir", str(tmp_path),
+                         log=tmp_path / "w1-again.log")
+        view.wait(lambda: (a := view.allocation()) and "w1" in a.slots, 60, "w1 back in the allocation")
+        old = view.learner().per_worker.get("w1", {}).get("incarnation")
+        view.wait(lambda: (st := view.learner()) and (d := st.per_worker.get("w1", {})).get("incarnation") != old
+                  and d.get("incarnation_rows", 0) > 0, 60, "transitions from the new w1")
+        wait_for_file(tmp_path / "transport.json")
+        for p in ws.values():
+            p.wait(30)
+    finally:
+        view.close()
+        stop(*ws.values(), referee, learner)
+    transport = json.loads((tmp_path / "transport.json").read_text())
+    reports = [json.loads(p.read_text()) for p in (tmp_path / "workers").glob("*.json")]
+    streams = transport["rows_per_stream"]
+    assert len([s for s in streams if s.startswith("w1/")]) == 2  # two incarnations of w1
+    assert transport["lost"] == 0 and transport["duplicates"] == 0 and transport["rejected"] == {}
+    for r in reports:  # every surviving incarnation: sent == received
+        assert streams[f"{r['worker']}/{r['incarnation']}"] == r["sent_rows"]
+    assert sum(streams.values()) == transport["env_steps"] >= 5000
+    assert processes_of(run) == []
+
+
+def test_referee_killed_and_restarted(tmp_path: Path) -> None:
+    run, endpoint = unique_run("kill-referee"), bus.loopback_endpoint(bus.free_tcp_port())
+    learner, referee, ws = start_run(tmp_path, run, endpoint, steps=4500)
+    view = RunView(run, endpoint)
+    try:
+        view.wait(lambda: (a := view.allocation()) and a.round >= 2, what="round 2")
+        referee.send_signal(signal.SIGKILL)
+        referee.wait()
+        kept = view.allocation()
+        before = view.steps()
+        # Workers keep the last allocation and the run goes on without a referee.
+        view.wait(lambda: view.steps() > before + 600, 60, "progress without a referee")
+        assert view.allocation().round == kept.round
+        referee = spawn("referee", "--run", run, "--connect", endpoint, "--run-dir", str(tmp_path),
+                        log=tmp_path / "referee-again.log")
+        view.wait(lambda: (a := view.allocation()) and a.round > kept.round, 60, "a round after the restart")
+        wait_for_file(tmp_path / "summary.json")
+    finally:
+        view.close()
+        stop(*ws.values(), referee, learner)
+    assert "recovered referee state" in (tmp_path / "referee-again.log").read_text()
+    rounds = [r["round"] for r in read_jsonl(tmp_path / "allocation.jsonl") if r["reason"] == "round"]
+    assert rounds == sorted(rounds) and len(set(rounds)) == len(rounds)  # P and rounds went on, none repeated
+    assert processes_of(run) == []
+
+
+def test_learner_killed_and_resumed(tmp_path: Path) -> None:
+    run, endpoint = unique_run("kill-learner"), bus.loopback_endpoint(bus.free_tcp_port())
+    learner, referee, ws = start_run(tmp_path, run, endpoint, steps=4000,
+                                     extra=["--checkpoint-every", "300", "--save-replay"])
+    view = RunView(run, endpoint)
+    try:
+        view.wait(lambda: (st := view.learner()) and st.updates > 900, what="900 updates")
+        learner.send_signal(signal.SIGKILL)
+        learner.wait()
+        time.sleep(1.0)
+        # Workers pause rather than spin: little CPU while the learner is away.
+        cpu0 = {w: cpu_seconds(p.pid) for w, p in ws.items()}
+        time.sleep(3.0)
+        for w, p in ws.items():
+            assert cpu_seconds(p.pid) - cpu0[w] < 0.9, f"{w} spins while the learner is gone"
+        checkpoint = torch.load(tmp_path / "checkpoints" / "learner.pt", weights_only=True)
+        saved_updates = checkpoint["agent"]["updates"]
+        assert saved_updates > 0 and len(checkpoint["replay"]["obs"]) > 0
+        learner = spawn("learner", "--resume", str(tmp_path), "--listen", endpoint, log=tmp_path / "learner-again.log")
+        wait_for_file(tmp_path / "transport.json")
+        for p in ws.values():
+            p.wait(30)
+    finally:
+        view.close()
+        stop(*ws.values(), referee, learner)
+    rows = read_jsonl(tmp_path / "learner.jsonl")
+    resumed = [r for r in rows if r["updates"] >= saved_updates]
+    assert resumed and rows[-1]["env_steps"] >= 4000  # the run went on to the same budget
+    transport = json.loads((tmp_path / "transport.json").read_text())
+    assert transport["duplicates"] == 0 and transport["rejected"] == {}
+    assert "resumed at" in (tmp_path / "learner-again.log").read_text()
+    assert processes_of(run) == []
+
+
+def test_ctrl_c_on_mam_run_leaves_nothing_and_a_usable_checkpoint(tmp_path: Path) -> None:
+    run, run_dir = unique_run("ctrl-c"), tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", "--env", "AppleCollect-v0", "--algo",
+                             "ma-ddpg", "--steps", "1000000", "--start-steps", "300", *SMALL, "--run", run,
+                             "--run-dir", str(run_dir)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 120
+        while not any(r.get("updates", 0) > 200 for r in read_jsonl(run_dir / "learner.jsonl")):
+            assert time.monotonic() < deadline and proc.poll() is None, "run did not start training"
+            time.sleep(0.3)
+        proc.send_signal(signal.SIGINT)
+        proc.wait(60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert processes_of(run) == []
+    cfg = json.loads((run_dir / "config.json").read_text())
+    state = torch.load(run_dir / "checkpoints" / "learner.pt", weights_only=True)
+    agent = MultiActorAgent(AlgoConfig.from_dict(cfg["algo"]), EnvSpec.from_env_id("AppleCollect-v0"))
+    agent.load_state_dict(state["agent"])
+    assert agent.updates > 200
