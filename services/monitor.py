@@ -22,9 +22,17 @@ from services.options import RunConfig
 log = logging.getLogger("mam.monitor")
 
 
+def _plain(value: Any) -> Any:
+    if isinstance(value, tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    return value
+
+
 def _body(obj: Any) -> dict[str, Any]:
-    """A validated message as the plain dict MonitorState takes."""
-    return {name: getattr(obj, name) for name in obj.__dataclass_fields__}
+    """A validated message as the plain dict (lists, not tuples) MonitorState takes."""
+    return {name: _plain(getattr(obj, name)) for name in obj.__dataclass_fields__}
 
 
 def watch(run: str, conf: Any, refresh_per_s: float = 4.0, until_done: bool = True,
@@ -38,11 +46,15 @@ def watch(run: str, conf: Any, refresh_per_s: float = 4.0, until_done: bool = Tr
             ("config", keys.config(run)), ("allocation", keys.allocation(run)), ("eval", keys.eval(run)),
             ("stats", keys.learner_stats(run)), ("done", keys.done(run)))}
         started = time.monotonic()
+        last_payload: dict[str, bytes] = {}
         try:
             with Live(render(state), console=console, refresh_per_second=refresh_per_s) as live:
                 while duration is None or time.monotonic() - started < duration:
                     for name, sub in subs.items():
                         for item in sub.fresh().values():
+                            if last_payload.get(item.key) == item.payload:
+                                continue  # a heartbeat re-publication: nothing new
+                            last_payload[item.key] = item.payload
                             try:
                                 apply(state, name, item.payload)
                             except MessageError as e:

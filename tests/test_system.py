@@ -9,7 +9,10 @@ import numpy as np
 import pytest
 
 from mam_core.obsolescence import allocation_probabilities
+from rich.console import Console
+
 from services import bus, keys
+from services.monitor import watch
 from services.codec import Allocation, Weights
 from tests.e2e import assert_exactly_once, load, mam, processes_of, spawn, stop, unique_run
 
@@ -125,6 +128,12 @@ def test_late_worker_gets_weights_and_allocation_within_a_second(tmp_path: Path)
             weights.close()
             allocation.close()
         assert elapsed < 1.0
+        # `mam watch` from another process's point of view: the live view shows P_k, I_k and workers.
+        console = Console(record=True, width=160, force_terminal=False)
+        state = watch(run, conf, refresh_per_s=4, console=console, duration=3.0, until_done=False)
+        assert state.probabilities and abs(sum(state.probabilities) - 1) < 1e-6
+        text = console.export_text()
+        assert "w0" in text and "alive" in text and "round" in text
     finally:
         stop(worker, referee, learner)
     assert processes_of(run) == []
