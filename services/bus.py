@@ -400,6 +400,12 @@ class Latest:
         with self._cond:
             return self._items.get(key)
 
+    def forget(self, key: str) -> None:
+        """Drop the value held for ``key`` (it was invalid)."""
+        with self._cond:
+            self._items.pop(key, None)
+            self._fresh.pop(key, None)
+
     def snapshot(self) -> dict[str, Received]:
         with self._cond:
             return dict(self._items)
@@ -591,6 +597,22 @@ class SequenceTracker:
         """``{sender: {received, lost, duplicates, last_seq, incarnation}}`` (a copy)."""
         with self._lock:
             return {k: dict(v) for k, v in self._senders.items()}
+
+
+def run_is_done(done: "Latest", run: str, rejects: "RejectLog") -> bool:
+    """True once a valid end-of-run notice arrived; anything else on the key is rejected."""
+    item = done.get(keys.done(run))
+    if item is None:
+        return False
+    from services.codec import Done
+
+    try:
+        Done.from_bytes(item.payload)
+        return True
+    except MessageError as e:
+        rejects.reject(keys.parse_last(item.key) if "/" in item.key else "?", e)
+        done.forget(item.key)
+        return False
 
 
 class RejectLog:

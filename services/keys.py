@@ -80,6 +80,11 @@ def learner_stats(run: str) -> str:
     return f"{_base(run)}/stats/learner"
 
 
+def role_stats(run: str, role: str, id: str) -> str:  # noqa: A002
+    """Counters of a worker or the referee (rejections), next to the learner's."""
+    return f"{_base(run)}/stats/{check_name(role, 'role')}-{check_name(id, 'id')}"
+
+
 def stats_all(run: str) -> str:
     return f"{_base(run)}/stats/*"
 

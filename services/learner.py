@@ -90,8 +90,11 @@ class Learner:
         self.buffer = ReplayBuffer(capacity, self.spec.obs_dim, self.spec.act_dim, self.device, self.algo.seed)
         self.transition_spec = TransitionSpec(self.spec.obs_dim, self.spec.act_dim, self.algo.actors,
                                               max_rows=4096, max_action=max(self.spec.max_action))
+        rows = self.transition_spec.max_rows
+        self.max_message = rows * (2 * self.spec.obs_dim + self.spec.act_dim + 2) * 4 + (1 << 16)
         self.tracker = bus.SequenceTracker()
         self.rejects = bus.RejectLog(log, "transitions")
+        self.other_rejects = bus.RejectLog(log, "message")  # allocation topic
         self.per_worker: dict[str, dict[str, Any]] = {}
         self.stream_rows: dict[str, int] = {}  # rows per worker/incarnation (proof of exactly-once)
         self.metrics: dict[str, float] = {}
@@ -230,7 +233,7 @@ class Learner:
         for item in items:
             sender = keys.parse_last(item.key)
             try:
-                batch = TransitionBatch.from_bytes(item.payload, self.transition_spec)
+                batch = TransitionBatch.from_bytes(item.payload, self.transition_spec, max_bytes=self.max_message)
                 if batch.worker != sender:
                     raise MessageError("sender_mismatch", f"key says {sender}, message says {batch.worker}")
                 if batch.version > self.agent.versions[batch.actor]:
@@ -270,7 +273,7 @@ class Learner:
         try:
             alloc = Allocation.from_bytes(item.payload, self.algo.actors)
         except MessageError as e:
-            self.rejects.reject(keys.parse_last(item.key), e)
+            self.other_rejects.reject("allocation", e)
             return
         if alloc.round > 0:  # env_steps: where the current P was decided
             a, c = self.algo.compete_every, self.algo.eliminate_at
@@ -312,7 +315,7 @@ class Learner:
         return LearnerStats(
             env_steps=self.env_steps, updates=self.agent.updates, accept_until=self.accept_until(),
             utd=self.agent.updates / consumed if consumed else 0.0, losses=losses, q_means=tuple(q_means),
-            versions=tuple(self.agent.versions), per_worker=per_worker, rejected=self.rejects.counts(),
+            versions=tuple(self.agent.versions), per_worker=per_worker, rejected=self.rejected(),
             done=done, live=tuple(self.agent.live_actors), workers=self.active_workers(now),
             steps=self.cfg.steps, incarnation=self.incarnation)
 
@@ -320,6 +323,12 @@ class Learner:
         """Workers sharing the credit: live tokens, or recent senders if tokens are not seen."""
         recent = sum(1 for w in self.per_worker.values() if now - w["last_seen"] < 5.0)
         return max(len(self.workers.live()), recent)
+
+    def rejected(self) -> dict[str, int]:
+        """Rejection counts by reason: transitions by reason, the allocation topic as allocation:<reason>."""
+        out = dict(self.rejects.counts())
+        out.update({f"allocation:{r}": n for r, n in self.other_rejects.counts().items()})
+        return out
 
     def publish_config(self) -> None:
         self.config_pub.put(encode("config", {"config": self.cfg.to_dict()}, sender=self.id, seq=self._next_seq()))
@@ -364,7 +373,7 @@ class Learner:
             time.sleep(0.1)
         write_json(self.run_dir / "transport.json", {
             "env_steps": self.env_steps, "updates": self.agent.updates, "lost": self.tracker.lost,
-            "duplicates": self.tracker.duplicates, "rejected": self.rejects.counts(),
+            "duplicates": self.tracker.duplicates, "rejected": self.rejected(),
             "per_worker": {w: {k: v for k, v in d.items() if k in ("received", "incarnation", "last_seq")}
                            for w, d in self.per_worker.items()},
             "rows_per_stream": dict(self.stream_rows), "streams": self.tracker.per_sender()})

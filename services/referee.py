@@ -30,10 +30,10 @@ from mam_core.evaluation import evaluate_policy
 from mam_core.obsolescence import Obsolescence, counts
 from mam_core.reference import obsolescence_for
 from services import bus, keys, options
-from services.codec import Allocation, Eval, LearnerStats, MessageError, Weights
+from services.codec import Allocation, Eval, LearnerStats, MessageError, Weights, encode
 from services.learner import JsonlWriter
 from services.options import RunConfig, write_json
-from services.worker import fetch_config
+from services.worker import REPORT_EVERY_S, fetch_config, plausible_version
 
 log = logging.getLogger("mam.referee")
 
@@ -99,6 +99,8 @@ class Referee:
         self.done = bus.Latest.subscribe(s, keys.done(run))
         self.workers = bus.watch_alive(s, run, "worker")
         self.token = bus.declare_alive(s, run, "referee", self.id)
+        self.report_pub = bus.declare_reliable_publisher(s, keys.role_stats(run, "referee", self.id))
+        self.last_report = 0.0
         self.alloc_log = JsonlWriter(self.run_dir / "allocation.jsonl")
         self.eval_log = JsonlWriter(self.run_dir / "eval.jsonl")
         try:
@@ -114,7 +116,8 @@ class Referee:
         self.publish_allocation("initial" if not self.slots else "recovered", returns=None)
         while not self.stop_requested:
             self.refresh()
-            if self.done.get(keys.done(self.cfg.run)) is not None:
+            self.publish_report()
+            if bus.run_is_done(self.done, self.cfg.run, self.rejects):
                 self.final_evaluation()
                 return
             if set(self.workers.live()) != set(self.slots):
@@ -138,6 +141,9 @@ class Referee:
                 w = Weights.from_bytes(item.payload, self.shapes, self.algo.actors)
             except MessageError as e:
                 self.rejects.reject(keys.parse_last(key), e)
+                continue
+            if not plausible_version(w, self.stats):
+                self.rejects.reject(keys.parse_last(key), MessageError("future_version", f"v{w.version}"))
                 continue
             if w.version >= self.versions[w.actor]:
                 self.actors.net.load_member(w.actor, w.params)
@@ -224,6 +230,14 @@ class Referee:
                               "survivor": self.schedule.survivor, "reason": reason})
         log.info("allocation (%s) round %d: P=%s I=%s", reason, self.schedule.round,
                  np.round(self.schedule.probabilities, 3).tolist(), i_k)
+
+    def publish_report(self) -> None:
+        """The referee's counters on mam/<run>/stats/referee-<id> (rejections are visible there)."""
+        now = time.monotonic()
+        if now - self.last_report >= REPORT_EVERY_S:
+            body = {"role": "referee", "id": self.id, "round": self.schedule.round, "rejected": self.rejects.counts()}
+            self.report_pub.put(encode("role_stats", body, sender=self.id, seq=self._next_seq()))
+            self.last_report = now
 
     def final_evaluation(self) -> None:
         """After the learner's `done`: evaluate the final weights and write summary.json."""

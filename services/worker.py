@@ -28,7 +28,7 @@ import mam_core.envs  # noqa: F401  (registers AppleCollect-v0)
 from mam_core.agent import EnvSpec
 from mam_core.ensemble import ActorEnsemble
 from services import bus, keys, options
-from services.codec import Allocation, LearnerStats, MessageError, TransitionBatch, Weights, decode
+from services.codec import Allocation, LearnerStats, MessageError, TransitionBatch, Weights, decode, encode
 from services.options import RunConfig, write_json
 
 log = logging.getLogger("mam.worker")
@@ -36,6 +36,7 @@ log = logging.getLogger("mam.worker")
 CONFIG_WAIT_S = 600.0  # how long a worker waits for a learner to appear
 MAX_BATCH_AGE_S = 0.05  # a partial batch is sent after this long
 STATUS_EVERY_S = 10.0
+REPORT_EVERY_S = 1.0
 
 
 def fetch_config(session: Any, run: str, rejects: bus.RejectLog, timeout: float = CONFIG_WAIT_S) -> RunConfig:
@@ -58,6 +59,16 @@ def fetch_config(session: Any, run: str, rejects: bus.RejectLog, timeout: float 
         raise TimeoutError(f"no learner published a config for run {run!r} within {timeout:.0f} s")
     finally:
         latest.close()
+
+
+MAX_VERSION_LEAD = 100_000  # weights this far ahead of the learner's reported version are forged
+
+
+def plausible_version(w: Weights, stats: LearnerStats | None) -> bool:
+    """Weights may lead the last stats a little (published in between), never by a lot."""
+    if stats is None or w.actor >= len(stats.versions):
+        return w.version <= MAX_VERSION_LEAD
+    return w.version <= stats.versions[w.actor] + MAX_VERSION_LEAD
 
 
 class Worker:
@@ -110,6 +121,8 @@ class Worker:
     def serve(self) -> None:
         run, s = self.cfg.run, self.session
         self.pub = bus.declare_reliable_publisher(s, keys.transitions(run, self.id))
+        self.report_pub = bus.declare_reliable_publisher(s, keys.role_stats(run, "worker", self.id))
+        self.last_report = 0.0
         self.weights = bus.Latest.subscribe(s, keys.weights_all(run))
         self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
         self.stats_sub = bus.Latest.subscribe(s, keys.learner_stats(run))
@@ -120,6 +133,7 @@ class Worker:
             self._loop()
         finally:
             self.flush()
+            self.publish_report(force=True)
             self.write_report()
             self.token.undeclare()
             for sub in (self.weights, self.allocation, self.stats_sub, self.done):
@@ -134,7 +148,8 @@ class Worker:
                 log.info("sent %d rows, actor %d, weights %s, learner at %s/%s", self.sent_rows, self.actor,
                          self.versions, st.env_steps if st else "?", st.accept_until if st else "?")
                 last_status = time.monotonic()
-            if self.done.get(keys.done(self.cfg.run)) is not None:
+            self.publish_report()
+            if bus.run_is_done(self.done, self.cfg.run, self.rejects):
                 log.info("run is done after %d transitions from this worker", self.sent_rows)
                 return
             self.refresh()
@@ -153,6 +168,15 @@ class Worker:
                 continue
             self.step(random_phase)
 
+    def publish_report(self, force: bool = False) -> None:
+        """This worker's counters on mam/<run>/stats/worker-<id> (rejections are visible there)."""
+        now = time.monotonic()
+        if force or now - self.last_report >= REPORT_EVERY_S:
+            body = {"role": "worker", "id": self.id, "incarnation": self.incarnation, "sent_rows": self.sent_rows,
+                    "batches": self.batch_seq, "actor": self.actor, "rejected": self.rejects.counts()}
+            self.report_pub.put(encode("role_stats", body, sender=self.id, seq=self.batch_seq))
+            self.last_report = now
+
     def write_report(self) -> None:
         """What this incarnation sent (compared with the learner's transport.json in tests)."""
         if self.run_dir is None:
@@ -167,6 +191,9 @@ class Worker:
                 w = Weights.from_bytes(item.payload, self.shapes, self.algo.actors)
             except MessageError as e:
                 self.rejects.reject(keys.parse_last(key), e)
+                continue
+            if not plausible_version(w, self.stats):
+                self.rejects.reject(keys.parse_last(key), MessageError("future_version", f"v{w.version}"))
                 continue
             if w.version > self.versions[w.actor] or self.versions[w.actor] < 0:
                 self.actors.net.load_member(w.actor, w.params)
