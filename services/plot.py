@@ -99,15 +99,22 @@ def _elimination_step(config: dict[str, Any], allocation: list[dict[str, Any]], 
     for row in allocation:
         if row.get("reason") == "elimination" and isinstance(row.get("env_steps"), (int, float)):
             return float(row["env_steps"])
-    algo = config.get("algo_config") or {}
+    algo = _algo_config(config)
     c = algo.get("eliminate_at")
     if algo.get("no_ot") or not isinstance(c, (int, float)) or c <= 0 or c > last_step:
         return None
     return float(c)
 
 
+def _algo_config(config: dict[str, Any]) -> dict[str, Any]:
+    """config.json keeps the algorithm's settings under "algo" (older files: "algo_config")."""
+    algo = config.get("algo")
+    return algo if isinstance(algo, dict) else (config.get("algo_config") or {})
+
+
 def _title(config: dict[str, Any]) -> str:
-    parts = [str(config[k]) for k in ("run", "algo", "env_id") if config.get(k)]
+    algo = _algo_config(config).get("algo") or (config.get("algo") if isinstance(config.get("algo"), str) else None)
+    parts = [str(p) for p in (config.get("run"), algo, config.get("env_id")) if p]
     return " · ".join(parts)
 
 
@@ -313,7 +320,7 @@ def plot_run(run_dir: Path) -> list[Path]:
     survivor = _survivor(summary, allocation)
     elimination = _elimination_step(config, allocation, last_step)
     title = _title(config)
-    utd = _num((config.get("algo_config") or {}).get("utd"))
+    utd = _num(_algo_config(config).get("utd"))
     target_utd = utd if math.isfinite(utd) else None
 
     out = run_dir / PLOTS_DIR
