@@ -74,7 +74,8 @@ def _role(name: str):
         module = importlib.import_module(f"services.{name}")
         module.app(ctx.args, prog_name=f"mam {name}", standalone_mode=True)
 
-    command.__doc__ = f"Same as `mam-{name}` (pass its flags after the name)."
+    command.__doc__ = ("A Zenoh router (star hub) for multi-host runs." if name == "router"
+                       else f"Same as `mam-{name}` (pass its flags after the name).")
     return command
 
 

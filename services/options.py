@@ -141,6 +141,7 @@ def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig
     env_id = merged.pop("env_id", None)
     if not env_id:
         raise typer.BadParameter("--env is required (in a flag or the --config file)")
+    check_env_id(env_id)
     algo_name = merged.pop("algo", None) or "ma-td3"
     if algo_name not in ALGOS:
         raise typer.BadParameter(f"--algo must be one of {', '.join(ALGOS)}, not {algo_name!r}")
@@ -160,6 +161,18 @@ def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
     return RunConfig(run=run, env_id=env_id, steps=int(steps), algo=algo, **run_fields)
+
+
+def check_env_id(env_id: str) -> None:
+    """A clear error for an unknown env id, before any process starts."""
+    import gymnasium as gym
+
+    import mam_core.envs  # noqa: F401
+
+    try:
+        gym.spec(env_id)
+    except gym.error.Error as e:
+        raise typer.BadParameter(f"--env {env_id!r}: {e}") from None
 
 
 def write_json(path: Path, data: Any) -> None:
