@@ -121,7 +121,7 @@ def load_toml(path: Path | None) -> dict[str, Any]:
         raise typer.BadParameter(f"{path}: {e}") from e
     flat: dict[str, Any] = {}
     for key, value in data.items():
-        if isinstance(value, dict):  # allow [algo] / [run] sections
+        if isinstance(value, dict):  # sections (e.g. [obsolescence]) only group options
             flat.update({k.replace("-", "_"): v for k, v in value.items()})
         else:
             flat[key.replace("-", "_")] = value
