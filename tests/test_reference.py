@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 import pytest
+import torch
 
 from mam_core.config import resolve
 from mam_core.obsolescence import allocation_probabilities
@@ -47,6 +48,8 @@ def test_reference_driver_follows_algorithm_1_schedule():
     ("ma-td3", dict(workers=2, compete_every=2000, eliminate_at=10_000)),
 ])
 def test_reference_driver_learns_inverted_pendulum(algo, extra):
+    """Seen here: TD3 solves it at 12k steps, MA-TD3 at 14k (utd 2, one torch thread, seed 0)."""
+    torch.set_num_threads(1)  # float summation order, hence the trajectory, depends on it
     cfg = resolve(algo, start_steps=1000, utd=2.0, eval_every=2000, eval_episodes=5, seed=0, **extra)
     result = run_reference("InvertedPendulum-v5", cfg, 20_000)
     best = max(max(m for m in row["mean"] if m is not None) for row in result.evaluations)
