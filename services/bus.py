@@ -63,6 +63,14 @@ MODES = ("peer", "client", "router")
 # --------------------------------------------------------------------------- config & sessions
 
 
+def init_zenoh_log() -> None:
+    """Zenoh's own log (TLS and connection errors) on stderr: RUST_LOG if set, else warnings."""
+    try:
+        zenoh.init_log_from_env_or("warn")
+    except Exception:  # already initialised in this process
+        pass
+
+
 def free_tcp_port(host: str = "127.0.0.1") -> int:
     """A TCP port that was free a moment ago (bind to :0, read it back, release it).
 

@@ -53,7 +53,7 @@ def watch(
     if not run_name:
         raise typer.BadParameter("--run NAME is required (printed by `mam run`, in RUN_DIR/config.json)")
     options.check_run_name(run_name)
-    conf = bus.make_config(connect=connect or ["tcp/127.0.0.1:7447"], config_file=zenoh_config)
+    conf = bus.make_config(connect=connect or ([] if zenoh_config else ["tcp/127.0.0.1:7447"]), config_file=zenoh_config)
     watch_run(run_name, conf, until_done=not keep)
 
 

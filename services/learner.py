@@ -422,6 +422,7 @@ def learner_command(
     """Run the learner: replay buffer, K actors and n·K critics, weights and stats publisher."""
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    bus.init_zenoh_log()
     if run_config is not None:
         cfg = RunConfig.from_dict(json.loads(run_config.read_text()))
     elif resume is not None:
@@ -437,7 +438,7 @@ def learner_command(
         cfg = RunConfig.from_dict({**cfg.to_dict(), "steps": steps})
     if not listen and not connect and cfg.endpoint:
         listen = [cfg.endpoint]  # a resumed or launched learner comes back where its clients look
-    listen = listen or ([] if connect else ["tcp/0.0.0.0:7447"])
+    listen = listen or ([] if connect or zenoh_config else ["tcp/0.0.0.0:7447"])
     conf = bus.make_config(connect=connect, listen=listen, config_file=zenoh_config)
     directory = resume or run_dir or Path("runs") / cfg.run
     main(cfg, conf, directory, resume=resume is not None)

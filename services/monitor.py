@@ -100,7 +100,7 @@ def monitor_command(
     if not run:
         raise typer.BadParameter("--run NAME is required")
     options.check_run_name(run)
-    conf = bus.make_config(connect=connect or ["tcp/127.0.0.1:7447"], config_file=zenoh_config)
+    conf = bus.make_config(connect=connect or ([] if zenoh_config else ["tcp/127.0.0.1:7447"]), config_file=zenoh_config)
     watch(run, conf, until_done=not keep)
 
 

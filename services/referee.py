@@ -287,10 +287,11 @@ def referee_command(
     """Run the referee of a run: evaluation rounds, P_k, slot allocation, elimination."""
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    bus.init_zenoh_log()
     if not run:
         raise typer.BadParameter("--run NAME is required")
     options.check_run_name(run)
-    conf = bus.make_config(connect=connect or ["tcp/127.0.0.1:7447"], listen=listen, config_file=zenoh_config)
+    conf = bus.make_config(connect=connect or ([] if zenoh_config else ["tcp/127.0.0.1:7447"]), listen=listen, config_file=zenoh_config)
     main(run, conf, run_dir or Path("runs") / run)
 
 

@@ -3,6 +3,10 @@
 A zenoh-python session in `router` mode routes data, queries and liveliness tokens between its
 clients (learner, referee, workers, monitors), so hosts form a star around it. It outlives runs:
 many runs (distinct `--run` names) can share one router.
+
+Zenoh's own log goes to stdout at level `warn` (refused TLS handshakes, closed transports);
+`RUST_LOG` overrides it, e.g. `RUST_LOG=warn,zenoh::net::routing::interceptor=trace`
+shows every access-control decision (deploy/zenoh/router-tls.json5, docs/DEPLOY.md).
 """
 
 from __future__ import annotations
@@ -12,6 +16,7 @@ import signal
 import threading
 
 import typer
+import zenoh
 
 from services import bus, options
 
@@ -32,6 +37,7 @@ def router_command(
 ) -> None:
     """Run a Zenoh router (default: listen on tcp/0.0.0.0:7447) until SIGTERM / Ctrl-C."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    zenoh.init_log_from_env_or("warn")
     listen = listen or ([] if zenoh_config else ["tcp/0.0.0.0:7447"])
     conf = bus.make_config(connect=connect, listen=listen, config_file=zenoh_config, mode="router")
     stop = threading.Event()

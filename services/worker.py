@@ -319,12 +319,13 @@ def worker_command(
     """Run one environment slot of a run (needs only --run and --connect)."""
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    bus.init_zenoh_log()
     if not run:
         raise typer.BadParameter("--run NAME is required (the learner prints it and writes it to config.json)")
     options.check_run_name(run)
     worker_id = id or f"{socket.gethostname()}-{os.getpid()}"
     keys.check_name(worker_id, "worker id")
-    conf = bus.make_config(connect=connect or ["tcp/127.0.0.1:7447"], listen=listen, config_file=zenoh_config)
+    conf = bus.make_config(connect=connect or ([] if zenoh_config else ["tcp/127.0.0.1:7447"]), listen=listen, config_file=zenoh_config)
     main(run, conf, worker_id, slot, run_dir)
 
 
