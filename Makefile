@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: venv install run test test-slow test-all bench clean
+.PHONY: venv install run test test-slow test-learning test-all bench clean
 
 venv: $(STAMP)
 
@@ -26,7 +26,10 @@ test: $(STAMP)
 	$(PY) -m pytest -q
 
 test-slow: $(STAMP)
-	$(PY) -m pytest -q -m slow
+	$(PY) -m pytest -q -m "slow and not learning"
+
+test-learning: $(STAMP)
+	$(PY) -m pytest -q -m learning
 
 test-all: $(STAMP)
 	$(PY) -m pytest -q -m "slow or not slow"

@@ -7,11 +7,59 @@ over the whole ensemble is one `baddbmm` per layer instead of a Python loop over
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
 from torch import nn
+
+
+Members = slice | torch.Tensor | None
+
+
+FEATURE_MAJOR_MIN_ROWS = 32
+
+
+def run_layers(x: torch.Tensor, layers: Sequence[tuple[torch.Tensor, torch.Tensor]]) -> torch.Tensor:
+    """x [E, B, in] through Linear-ReLU-...-Linear with stacked (w [E, in, out], b [E, 1, out]).
+
+    Two layouts, the same numbers (docs/PERFORMANCE.md has the measurements). Training
+    batches (B >= FEATURE_MAJOR_MIN_ROWS) keep the activations feature-major,
+    hᵀ = Wᵀ·xᵀ + bᵀ ([E, out, B]), so every batched GEMM of the forward pass and of the
+    input gradients has the batch as its wide output side. Row-major, the narrow heads
+    (Q of width 1, actions of width 6 to 17) make batched GEMMs of output width 1 to 17,
+    which the CPU kernels run up to ~6x slower. A few rows stay row-major.
+    """
+    last = len(layers) - 1
+    if x.shape[-2] >= FEATURE_MAJOR_MIN_ROWS:
+        h = x.mT
+        for i, (w, b) in enumerate(layers):
+            h = torch.baddbmm(b.mT, w.mT, h)
+            if i < last:
+                h = torch.relu_(h)  # in place: baddbmm keeps its inputs for backward, not its output
+        return h.mT
+    for i, (w, b) in enumerate(layers):
+        x = torch.baddbmm(b, x, w)
+        if i < last:
+            x = torch.relu_(x)
+    return x
+
+
+def run_member(x: torch.Tensor, weights: Sequence[torch.Tensor], biases: Sequence[torch.Tensor],
+               k: int) -> torch.Tensor:
+    """One member k on x [B, in] or [1, B, in] -> [1, B, out] with plain 2-D GEMMs: a worker's or the referee's
+    policy, a K=1 actor. CPU BLAS runs these several times faster than a batched GEMM of one."""
+    if x.dim() == 3:
+        if x.shape[0] != 1:
+            raise ValueError(f"one member selected, but inputs for {x.shape[0]} members given")
+        x = x[0]
+    h = x
+    last = len(weights) - 1
+    for i, (w, b) in enumerate(zip(weights, biases)):
+        h = torch.addmm(b[k], h, w[k])
+        if i < last:
+            h = torch.relu_(h)  # in place: addmm keeps its inputs for backward, not its output
+    return h.unsqueeze(0)
 
 
 class EnsembleMLP(nn.Module):
@@ -35,19 +83,37 @@ class EnsembleMLP(nn.Module):
             self.weights.append(nn.Parameter(w))
             self.biases.append(nn.Parameter(b))
 
-    def forward(self, x: torch.Tensor, members: torch.Tensor | None = None) -> torch.Tensor:
-        """x: [E, B, in] (one input per member) -> [E, B, out].
+    def layers(self, members: Members = None) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """(weight, bias) of every layer, restricted to `members`: a slice is a view (no copy)."""
+        if members is None:
+            return list(zip(self.weights, self.biases))
+        if isinstance(members, slice):
+            return [(w[members], b[members]) for w, b in zip(self.weights, self.biases)]
+        return [(w.index_select(0, members), b.index_select(0, members)) for w, b in zip(self.weights, self.biases)]
 
-        `members` (index tensor) runs only those members; x's leading axis must match it.
+    def forward(self, x: torch.Tensor, members: Members = None) -> torch.Tensor:
+        """x: [E, B, in] (one input per member) or [B, in] (shared by all) -> [E, B, out].
+
+        `members` (slice or index tensor) runs only those members; x's leading axis must match.
         """
-        last = len(self.weights) - 1
-        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
-            if members is not None:
-                w, b = w.index_select(0, members), b.index_select(0, members)
-            x = torch.baddbmm(b, x, w)
-            if i < last:
-                x = torch.relu(x)
-        return x
+        k = self.single_member(members)
+        if k is not None:
+            return run_member(x, self.weights, self.biases, k)
+        layers = self.layers(members)
+        if x.dim() == 2:
+            x = x.unsqueeze(0).expand(layers[0][0].shape[0], -1, -1)
+        return run_layers(x, layers)
+
+    def single_member(self, members: Members) -> int | None:
+        """The member's index when `members` names exactly one (without a device sync), else None."""
+        if self.members == 1 and members is None:
+            return 0
+        if isinstance(members, slice):
+            picked = range(self.members)[members]
+            return picked[0] if len(picked) == 1 else None
+        if isinstance(members, torch.Tensor) and members.numel() == 1 and members.device.type == "cpu":
+            return int(members)
+        return None
 
     def member_state(self, k: int) -> dict[str, np.ndarray]:
         """Member k's parameters as float32 numpy arrays (`w0, b0, w1, ...`), for the wire."""
@@ -82,12 +148,34 @@ class ActorEnsemble(nn.Module):
         max_action = torch.as_tensor(np.broadcast_to(max_action, (act_dim,)).copy(), dtype=torch.float32)
         self.register_buffer("max_action", max_action)
 
-    def forward(self, obs: torch.Tensor, members: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, obs: torch.Tensor, members: Members = None) -> torch.Tensor:
         """obs: [B, obs_dim] shared by all members, or [E, B, obs_dim] -> actions [E, B, act_dim]."""
-        e = self.net.members if members is None else members.numel()
-        if obs.dim() == 2:
-            obs = obs.unsqueeze(0).expand(e, -1, -1)
         return self.max_action * torch.tanh(self.net(obs, members))
+
+    def numpy_policy(self, k: int) -> Callable[[np.ndarray], np.ndarray]:
+        """Actor k as a numpy function, obs [obs_dim] or [B, obs_dim] -> action(s), for the
+        per-step inference of a worker or an evaluation loop.
+
+        For one row, torch's per-op dispatch dominates a forward pass (~90 µs next to a
+        MuJoCo step, against ~12 µs here, docs/PERFORMANCE.md). The function reads numpy
+        views of this CPU module's parameters, so `load_member` updates are seen at once.
+        Equal to `forward` up to float32 rounding.
+        """
+        if self.max_action.device.type != "cpu":
+            raise ValueError("numpy_policy needs the ensemble on the CPU")
+        layers = [(w[k].detach().numpy(), b[k, 0].detach().numpy()) for w, b in zip(self.net.weights, self.net.biases)]
+        max_action = self.max_action.numpy()
+        last = len(layers) - 1
+
+        def policy(obs: np.ndarray) -> np.ndarray:
+            h = np.asarray(obs, np.float32)
+            for i, (w, b) in enumerate(layers):
+                h = h @ w + b
+                if i < last:
+                    np.maximum(h, 0.0, out=h)
+            return max_action * np.tanh(h)
+
+        return policy
 
 
 class CriticEnsemble(nn.Module):
@@ -100,11 +188,17 @@ class CriticEnsemble(nn.Module):
         self.per_actor = critics_per_actor
         self.net = EnsembleMLP(n_actors * critics_per_actor, obs_dim + act_dim, hidden, 1, generator)
 
-    def forward(self, obs: torch.Tensor, actions: torch.Tensor,
-                members: torch.Tensor | None = None) -> torch.Tensor:
-        """obs [B, obs_dim] shared; actions [E, B, act_dim], one per member -> Q [E, B]."""
-        e = actions.shape[0]
-        x = torch.cat((obs.unsqueeze(0).expand(e, -1, -1), actions), dim=-1)
+    def forward(self, obs: torch.Tensor, actions: torch.Tensor, members: Members = None) -> torch.Tensor:
+        """obs [B, obs_dim] shared; actions [E, B, act_dim] one per member, or [B, act_dim]
+        shared by all members (the critic regression step) -> Q [E, B].
+
+        One concatenated first layer: measured faster than splitting its weights into an obs
+        part (one GEMM shared by all members) and an action part (docs/PERFORMANCE.md).
+        """
+        if actions.dim() == 2:
+            x = torch.cat((obs, actions), dim=-1)
+        else:
+            x = torch.cat((obs.unsqueeze(0).expand(actions.shape[0], -1, -1), actions), dim=-1)
         return self.net(x, members).squeeze(-1)
 
     def per_actor_actions(self, actions: torch.Tensor) -> torch.Tensor:

@@ -2,6 +2,11 @@
 
 Each row carries the id of the actor that produced it and that actor's policy version, so
 off-policy lag and the share of experience per actor can be measured.
+
+On a CUDA learner the rows are also kept in GPU memory (`resident`, the default there): a
+mini-batch is then gathered on the GPU with one index_select per field, instead of being
+gathered on the host and copied over every update. The numpy arrays stay the source of
+truth (checkpoints, statistics); sampling draws the same indices either way.
 """
 
 from __future__ import annotations
@@ -13,12 +18,16 @@ import torch
 
 
 class ReplayBuffer:
+    FIELDS = ("obs", "action", "reward", "next_obs", "not_done")
+
     def __init__(self, capacity: int, obs_dim: int, act_dim: int, device: str | torch.device = "cpu",
-                 seed: int = 0) -> None:
+                 seed: int = 0, resident: bool | None = None) -> None:
         if capacity < 1:
             raise ValueError("capacity must be >= 1")
         self.capacity = capacity
         self.device = torch.device(device)
+        # A copy of the sampled fields on `device` (default: on CUDA only).
+        self.resident = self.device.type == "cuda" if resident is None else resident
         self.obs = np.zeros((capacity, obs_dim), np.float32)
         self.action = np.zeros((capacity, act_dim), np.float32)
         self.reward = np.zeros(capacity, np.float32)
@@ -30,6 +39,10 @@ class ReplayBuffer:
         self.pos = 0
         self.size = 0
         self.inserted = 0  # rows ever inserted (the learner's transition count)
+        self._mirror: dict[str, torch.Tensor] = {}
+        if self.resident:
+            self._mirror = {name: torch.zeros(getattr(self, name).shape, dtype=torch.float32, device=self.device)
+                            for name in self.FIELDS}
 
     def __len__(self) -> int:
         return self.size
@@ -63,6 +76,7 @@ class ReplayBuffer:
             self.not_done[dst] = 1.0 - np.asarray(terminated[src], np.float32)
             self.actor[dst] = actor[src] if isinstance(actor, np.ndarray) else actor
             self.version[dst] = version[src] if isinstance(version, np.ndarray) else version
+            self._mirror_rows(dst)
         self.pos = (self.pos + n) % self.capacity
         self.size = min(self.size + n, self.capacity)
         self.inserted += n
@@ -72,14 +86,24 @@ class ReplayBuffer:
             raise ValueError("cannot sample from an empty replay buffer")
         return self.rng.integers(0, self.size, size=batch_size)
 
+    def _mirror_rows(self, rows: slice) -> None:
+        if not self._mirror or rows.stop == rows.start:
+            return
+        for name, dst in self._mirror.items():
+            dst[rows].copy_(torch.from_numpy(getattr(self, name)[rows]))
+
     def sample(self, batch_size: int) -> dict[str, torch.Tensor]:
         """Uniform mini-batch as float32 tensors on the buffer's device."""
         idx = self.sample_indices(batch_size)
+        if self._mirror:
+            # Indices to the device (2 KB), then the gather happens there.
+            i = torch.from_numpy(idx).to(self.device, non_blocking=self.device.type == "cuda")
+            return {name: t.index_select(0, i) for name, t in self._mirror.items()}
         pin = self.device.type == "cuda"
         out = {}
-        for name in ("obs", "action", "reward", "next_obs", "not_done"):
+        for name in self.FIELDS:
             t = torch.from_numpy(getattr(self, name)[idx])
-            if pin:
+            if pin:  # page-locked staging: the copy to the GPU runs asynchronously
                 t = t.pin_memory().to(self.device, non_blocking=True)
             out[name] = t
         return out
@@ -111,3 +135,4 @@ class ReplayBuffer:
             getattr(self, name)[:n] = state[name].numpy()
         self.pos, self.size, self.inserted = int(state["pos"]), n, int(state["inserted"])
         self.rng.bit_generator.state = state["rng"]
+        self._mirror_rows(slice(0, n))

@@ -67,6 +67,30 @@ def plot(run_dir: Path = typer.Argument(..., help="a run directory written by `m
     plot_command(run_dir)
 
 
+@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True, "help_option_names": []})
+def bench(ctx: typer.Context) -> None:
+    """Performance ratios: learner vs single TD3, end to end, transport, scaling (see --help)."""
+    from services.bench import app as bench_app
+
+    bench_app(ctx.args, prog_name="mam bench", standalone_mode=True)
+
+
+@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True, "help_option_names": []})
+def experiment(ctx: typer.Context) -> None:
+    """A grid of algorithms x seeds x envs through the distributed system, resumable (see --help)."""
+    import services.experiment as mod
+
+    mod.app(ctx.args, prog_name="mam experiment", standalone_mode=True)
+
+
+@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True, "help_option_names": []})
+def report(ctx: typer.Context) -> None:
+    """Tables (last-10 mean, max average return, IQM with bootstrap CIs) and figures of an experiment."""
+    import services.report as mod
+
+    mod.app(ctx.args, prog_name="mam report", standalone_mode=True)
+
+
 def _role(name: str):
     def command(ctx: typer.Context) -> None:
         import importlib

@@ -43,6 +43,7 @@ def test_reference_driver_follows_algorithm_1_schedule():
 
 
 @pytest.mark.slow
+@pytest.mark.learning
 @pytest.mark.parametrize("algo, extra", [
     ("td3", {}),
     ("ma-td3", dict(workers=2, compete_every=2000, eliminate_at=10_000)),

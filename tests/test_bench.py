@@ -1,0 +1,138 @@
+"""`mam bench` smoke tests: every piece runs at tiny sizes and reports finite, positive figures.
+
+No timing is asserted (a shared CI box makes timings meaningless); only that the bench
+runs end to end, as `python -m services.bench`, and prints its JSON object on the last line.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from services.bench import PIECES, BenchSizes, meets, print_report, target_for
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def start_bench(*args: str) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONWARNINGS="ignore", COLUMNS="120")
+    return subprocess.Popen([sys.executable, "-m", "services.bench", "--tiny", "--json", *args], cwd=ROOT, env=env,
+                            text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+def bench_json(proc: subprocess.Popen, timeout: float = 120) -> dict:
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, out[-3000:] + err[-3000:]
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def assert_positive(result: dict, keys: list[str]) -> None:
+    for key in keys:
+        assert key in result, key
+        value = result[key]
+        assert isinstance(value, (int, float)) and math.isfinite(value) and value > 0, (key, value)
+
+
+def test_learner_transport_and_weights_pieces() -> None:
+    result = bench_json(start_bench("--only", "learner,transport,weights"))
+    assert result["device"] == "cpu" and result["torch_threads"] == 1
+    assert {"torch", "zenoh", "mujoco", "gymnasium", "python"} <= set(result["versions"])
+    assert_positive(result, [
+        "learner_k2_vs_td3", "learner_halfcheetah_k1_vs_td3", "learner_halfcheetah_td3_updates_per_s",
+        "learner_halfcheetah_k2_updates_per_s", "learner_halfcheetah_k2_vs_td3_cpu_time",
+        "transport_transitions_per_s", "transport_bytes_per_transition",
+        "weights_latency_p99_ms", "weights_latency_p50_ms", "weights_humanoid_p99_ms", "weights_halfcheetah_bytes"])
+    assert result["transport_lost"] == 0 and result["transport_received"] == result["transport_expected"]
+    # 17 + 17 obs floats, 6 action floats, a reward and a flag: at least 165 bytes per row on the wire.
+    assert result["transport_bytes_per_transition"] >= (17 + 17 + 6 + 1) * 4
+
+
+def test_end_to_end_and_collection_pieces() -> None:
+    result = bench_json(start_bench("--only", "e2e,collection"))
+    assert_positive(result, ["e2e_vs_single_process", "e2e_single_process_s", "e2e_mam_run_to_done_s",
+                             "e2e_mam_run_wall_s", "collection_steps_per_s_m4"])
+    assert result["e2e_mam_run_startup_s"] <= result["e2e_mam_run_to_done_s"] <= result["e2e_mam_run_wall_s"]
+
+
+def test_targets_and_report_rendering() -> None:
+    assert target_for("learner_k2_vs_td3", "cpu") == ("ge", 0.8)
+    assert target_for("learner_k2_vs_td3", "cuda:0") == ("ge", 0.95)
+    assert meets("e2e_vs_single_process", 0.5) is True and meets("e2e_vs_single_process", 0.9) is False
+    assert meets("collection_steps_per_s_m4", 1.0) is None and meets("weights_latency_p99_ms", math.nan) is None
+    from rich.console import Console
+
+    console = Console(record=True, width=120)
+    print_report({"device": "cpu", "torch_threads": 1, "learner_k2_vs_td3": 0.61, "transport_lost": 0,
+                  "profile_worker_us": {"env.step": 80.0}, "versions": {"torch": "x"}}, console)
+    text = console.export_text()
+    assert "0.61" in text and "not met" in text and "env.step" in text
+
+
+def test_sizes_and_pieces() -> None:
+    quick, full, tiny = BenchSizes.quick(), BenchSizes.full(), BenchSizes.tiny()
+    assert full.learner_rounds * full.learner_updates > quick.learner_rounds * quick.learner_updates
+    assert 4 in quick.collection_workers and 4 in full.collection_workers and 4 in tiny.collection_workers
+    assert quick.weights_hidden == tiny.weights_hidden == (256, 256)
+    assert set(PIECES) == {"learner", "e2e", "transport", "weights", "collection"}
+    with pytest.raises(ValueError):
+        from services.bench import run_bench
+
+        run_bench(tiny, ("nope",))
+
+
+def test_numpy_policy_matches_the_torch_forward() -> None:
+    import numpy as np
+    import torch
+
+    from mam_core.ensemble import ActorEnsemble
+
+    actors = ActorEnsemble(2, 5, 3, (16, 16), np.array([0.4, 1.0, 2.0], np.float32)).requires_grad_(False)
+    policy = actors.numpy_policy(1)
+    obs = np.random.default_rng(0).normal(size=(4, 5)).astype(np.float32)
+    expected = actors(torch.from_numpy(obs), members=torch.tensor([1]))[0].numpy()
+    np.testing.assert_allclose(policy(obs), expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(policy(obs[0]), expected[0], rtol=1e-5, atol=1e-6)
+    actors.net.load_member(1, actors.net.member_state(0))  # in-place loads are seen by the policy
+    np.testing.assert_allclose(policy(obs), actors.numpy_policy(0)(obs), rtol=1e-6)
+
+
+@pytest.mark.parametrize("rows", [1, 8, 64])
+def test_fast_layouts_compute_the_plain_mlp(rows: int) -> None:
+    """Feature-major (many rows), row-major (few rows) and one-member 2-D paths, forward and
+    gradients, against the member-by-member MLP written out."""
+    import torch
+
+    from mam_core.ensemble import CriticEnsemble
+
+    g = torch.Generator().manual_seed(0)
+    critic = CriticEnsemble(2, 2, 5, 3, (16, 16), g).double()
+    obs, actions = torch.randn(rows, 5, dtype=torch.float64), torch.randn(4, rows, 3, dtype=torch.float64)
+
+    def plain(member: int, a: torch.Tensor) -> torch.Tensor:
+        x = torch.cat((obs, a), dim=-1)
+        for i, (w, b) in enumerate(zip(critic.net.weights, critic.net.biases)):
+            x = x @ w[member] + b[member, 0]
+            x = torch.relu(x) if i < 2 else x
+        return x[:, 0]
+
+    q = critic(obs, actions)
+    expected = torch.stack([plain(e, actions[e]) for e in range(4)])
+    torch.testing.assert_close(q, expected)
+    grads = torch.autograd.grad(q.sum(), list(critic.parameters()))
+    expected_grads = torch.autograd.grad(expected.sum(), list(critic.parameters()))
+    for got, want in zip(grads, expected_grads):
+        torch.testing.assert_close(got, want)
+    q1 = critic(obs, actions[1], members=slice(1, 2))  # one member: plain 2-D GEMMs
+    torch.testing.assert_close(q1[0], plain(1, actions[1]))
+    shared = critic(obs, actions[0])  # one action shared by every member
+    torch.testing.assert_close(shared, torch.stack([plain(e, actions[0]) for e in range(4)]))

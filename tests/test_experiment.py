@@ -1,0 +1,500 @@
+"""`mam experiment` (grid, plan, resume) and `mam report` (IQM, bootstrap, P(improvement), tables)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from rich.console import Console
+
+from services.experiment import (GridError, check_resume, config_mismatch, load_grid_file, make_grid,
+                                 parse_seeds, plan, run_grid, run_state, seeds_text, variants)
+from services.options import RunConfig, write_json
+from services.report import (best_live_score, bucket_points, build_report, iqm, iqm_ci, last_n_mean, mean_ci,
+                             probability_of_improvement, probability_of_improvement_ci, stratified_bootstrap,
+                             wilson_interval, write_report)
+
+ROOT = Path(__file__).resolve().parents[1]
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def quiet() -> Console:
+    return Console(file=open(os.devnull, "w"), width=120)
+
+
+# --- IQM -----------------------------------------------------------------------------------
+
+
+def test_iqm_hand_computed():
+    # n = 8: drop the 2 lowest and 2 highest, mean of 3, 4, 5, 6
+    assert iqm([200, 3, 1, 6, 100, 4, 2, 5]) == pytest.approx(4.5)
+    # n = 10: the middle half is 5 observations: 4..7 in full, 3 and 8 with weight 1/2
+    assert iqm([1, 2, 3, 4, 5, 6, 7, 8, 9, 1000]) == pytest.approx((0.5 * 3 + 4 + 5 + 6 + 7 + 0.5 * 8) / 5)
+    # n = 3: weights 1/4, 1, 1/4 over 1.5
+    assert iqm([600, 0, 6]) == pytest.approx((0.25 * 0 + 6 + 0.25 * 600) / 1.5)
+    assert iqm([7.0]) == 7.0
+    assert iqm([2.0, 4.0]) == pytest.approx(3.0)
+    # insensitive to outliers, equal to the mean for symmetric data
+    assert iqm([-1e9, 1, 2, 3, 4, 5, 6, 1e9]) == pytest.approx(3.5)
+    # vectorised along an axis
+    np.testing.assert_allclose(iqm(np.array([[200, 3, 1, 6, 100, 4, 2, 5], [1, 1, 1, 1, 2, 2, 2, 2]]), axis=1),
+                               [4.5, 1.5])
+    with pytest.raises(ValueError):
+        iqm([])
+
+
+def test_iqm_is_the_25_percent_trimmed_mean_for_multiples_of_four():
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=40)
+    s = np.sort(x)
+    assert iqm(x) == pytest.approx(s[10:30].mean())
+
+
+# --- bootstrap -----------------------------------------------------------------------------
+
+
+def test_bootstrap_is_seeded_and_contains_the_true_value():
+    rng = np.random.default_rng(0)
+    strata = [rng.normal(5.0, 2.0, size=30) for _ in range(3)]  # symmetric: the true IQM is 5
+    a = iqm_ci(strata, n_boot=2000, seed=1)
+    b = iqm_ci(strata, n_boot=2000, seed=1)
+    c = iqm_ci(strata, n_boot=2000, seed=2)
+    assert a == b and a != c
+    assert a.lo < a.value < a.hi and a.contains(5.0)
+    assert a.value == pytest.approx(iqm(np.concatenate(strata)))
+    m = mean_ci(strata[0], seed=0)
+    assert m.value == pytest.approx(strata[0].mean()) and m.contains(5.0)
+
+
+def test_bootstrap_ci_coverage_near_95_percent():
+    rng = np.random.default_rng(7)
+    hits = 0
+    trials = 200
+    for t in range(trials):
+        strata = [rng.normal(mu, 1.0, size=20) for mu in (0.0, 0.0, 0.0)]
+        hits += iqm_ci(strata, n_boot=400, seed=t).contains(0.0)
+    assert 0.85 <= hits / trials <= 1.0
+
+
+def test_stratified_bootstrap_resamples_within_each_stratum():
+    # Every replicate keeps 5 draws from each env: the pooled mean is always 5 when one env is all
+    # 0 and the other all 10 (a pooled, unstratified bootstrap would vary).
+    strata = [np.zeros(5), np.full(5, 10.0)]
+    reps = stratified_bootstrap([strata], lambda s: np.concatenate(s, axis=-1).mean(axis=-1), n_boot=500, seed=0)
+    assert reps.shape == (500,)
+    np.testing.assert_allclose(reps, 5.0)
+    # and resampling does vary within a stratum
+    reps = stratified_bootstrap([[np.arange(10.0)]], lambda s: s[0].mean(axis=-1), n_boot=500, seed=0)
+    assert reps.std() > 0.3
+
+
+# --- probability of improvement ------------------------------------------------------------
+
+
+def test_probability_of_improvement_hand_made_scores():
+    assert probability_of_improvement([[5, 6, 7]], [[1, 2, 3, 4]]) == 1.0
+    assert probability_of_improvement([[1, 2, 3, 4]], [[5, 6, 7]]) == 0.0
+    assert probability_of_improvement([[1, 2, 3]], [[1, 2, 3]]) == 0.5
+    assert probability_of_improvement([[3.0, 4.0]], [[1.0, 3.5]]) == pytest.approx(0.75)
+    assert probability_of_improvement([[1, 2, 3]], [[2, 2]]) == pytest.approx(0.5)  # ties count 1/2
+    # averaged over envs: 1.0 on one, 0.0 on the other
+    assert probability_of_improvement([[5.0, 6.0], [0.0]], [[1.0], [9.0, 8.0]]) == pytest.approx(0.5)
+
+
+def test_probability_of_improvement_ci():
+    p = probability_of_improvement_ci([[5, 6, 7]], [[1, 2, 3, 4]], n_boot=500, seed=0)
+    assert (p.value, p.lo, p.hi) == (1.0, 1.0, 1.0)
+    p = probability_of_improvement_ci([[1.0, 2.0, 3.0]], [[1.0, 2.0, 3.0]], n_boot=1000, seed=0)
+    assert p.value == 0.5 and p.lo < 0.5 < p.hi
+    rng = np.random.default_rng(1)
+    p = probability_of_improvement_ci([rng.normal(1, 1, 50), rng.normal(1, 1, 50)],
+                                      [rng.normal(0, 1, 50), rng.normal(0, 1, 50)], n_boot=1000, seed=0)
+    true = 0.7602  # P(N(1,1) > N(0,1)) = Phi(1/sqrt(2))
+    assert p.contains(true)
+
+
+def test_wilson_interval():
+    w = wilson_interval(0, 10)
+    assert w.value == 0.0 and w.lo == 0.0 and w.hi == pytest.approx(0.2775, abs=1e-3)
+    w = wilson_interval(10, 10)
+    assert w.value == 1.0 and w.hi == 1.0 and w.lo == pytest.approx(0.7225, abs=1e-3)
+    w = wilson_interval(5, 10)
+    assert w.lo == pytest.approx(0.2366, abs=1e-3) and w.hi == pytest.approx(0.7634, abs=1e-3)
+
+
+# --- scores of run directories -------------------------------------------------------------
+
+
+def test_best_live_score_and_buckets():
+    assert best_live_score({"mean": [3.0, 7.0, None]}) == 7.0
+    assert best_live_score({"mean": [None, 5.0]}) == 5.0
+    assert best_live_score({"mean": [None, None]}) is None
+    assert best_live_score({"returns": [[1.0, 3.0], []]}) == 2.0
+    # floor to the grid; the last evaluation of a cell wins (a late round and the final evaluation)
+    cells = bucket_points([(50, 1.0), (100, 2.0), (130, 3.0), (1003, 4.0), (1000, 9.0), (1005, 5.0)], 100)
+    assert cells == {0: 1.0, 100: 3.0, 1000: 5.0}
+    pts = [(s, float(s // 100)) for s in range(100, 2001, 100)]
+    assert last_n_mean(pts, 100) == pytest.approx(np.mean(range(11, 21)))
+    assert last_n_mean(pts[:3], 100) == pytest.approx(2.0)
+    assert np.isnan(last_n_mean([], 100))
+
+
+SPACING, STEPS = 100, 2000
+
+
+def write_run(run_dir: Path, algo: str, seed: int, k: int, score, finished: bool = True,
+              final: float | None = None) -> None:
+    """A run directory as the system writes it: config.json, eval.jsonl, allocation.jsonl, summary.json.
+
+    `score(step)` is the best actor's return; with k > 1 the other actors score 10 less before the
+    elimination at C = 1000 (and are not evaluated after it). Multi-actor runs also evaluate at
+    every round A = 50 before C (off the grid), and evaluations land 3 steps late.
+    """
+    run_dir.mkdir(parents=True)
+    cfg = {"run": f"r{seed}", "env_id": "Toy-v0", "steps": STEPS,
+           "algo": {"algo": algo, "actors": k, "workers": 3 if k > 1 else 1, "eval_every": SPACING,
+                    "eliminate_at": 1000, "compete_every": 50, "eta": 0.1 if k > 1 else 0.0, "no_ot": False,
+                    "no_wt": False, "seed": seed, "utd": 1.0}}
+    (run_dir / "config.json").write_text(json.dumps(cfg))
+    rows, allocs = [], []
+    steps = list(range(SPACING, STEPS + 1, SPACING))
+    if k > 1:  # rounds every A = 50 before the elimination at C = 1000
+        steps = sorted(set(steps) | set(range(50, 1000, 50)))
+    for i, step in enumerate(steps):
+        best = score(step)
+        if k > 1 and step < 1000:
+            mean = [best - 10.0] * (k - 1) + [best]
+            allocs.append({"env_steps": step + 3, "counts": [1] * (k - 1) + [2], "probabilities":
+                           [0.2] * (k - 1) + [1 - 0.2 * (k - 1)], "reason": "round"})
+        elif k > 1:
+            mean = [None] * (k - 1) + [best]
+        else:
+            mean = [best]
+        rows.append({"round": i + 1, "env_steps": step + 3, "mean": mean, "returns": [[m] if m is not None else []
+                                                                                      for m in mean]})
+    if finished:
+        rows.append({"round": 999, "env_steps": STEPS + 3, "mean": rows[-1]["mean"], "returns": []})
+    with open(run_dir / "eval.jsonl", "w") as f:
+        for r in rows:
+            f.write(json.dumps(r) + "\n")
+    with open(run_dir / "allocation.jsonl", "w") as f:
+        for r in allocs:
+            f.write(json.dumps(r) + "\n")
+    if finished:
+        finals = rows[-1]["mean"] if final is None else [None] * (k - 1) + [final]
+        (run_dir / "summary.json").write_text(json.dumps({
+            "final_returns": finals, "survivor": k - 1, "env_steps": STEPS + 3, "updates": STEPS - 100,
+            "wall_time_s": 10.0 + seed, "launcher_wall_time_s": 20.0 + seed}))
+
+
+def make_experiment(exp: Path) -> None:
+    # ma-td3: score = step/100 + seed (seeds 0, 1, 2); td3: score = step/200 (seeds 0, 1)
+    for seed in (0, 1, 2):
+        write_run(exp / "Toy-v0" / "ma-td3" / f"seed{seed}", "ma-td3", seed, 2, lambda s, seed=seed: s / 100 + seed)
+    for seed in (0, 1):
+        write_run(exp / "Toy-v0" / "td3" / f"seed{seed}", "td3", seed, 1, lambda s: s / 200)
+    write_run(exp / "Toy-v0" / "td3" / "seed2", "td3", 2, 1, lambda s: 1e6, finished=False)  # interrupted
+    planned = [f"Toy-v0/{v}/seed{s}" for s in (0, 1, 2) for v in ("ma-td3", "td3")]
+    write_json(exp / "experiment.json", {"name": "toy", "runs": [{"path": p} for p in planned]})
+
+
+def test_report_statistics_on_synthetic_run_dirs(tmp_path):
+    exp = tmp_path / "exp"
+    make_experiment(exp)
+    report = build_report(exp, n_boot=500)
+    assert report.missing == ["Toy-v0/td3/seed2"]
+    (ma, td3) = report.envs["Toy-v0"]
+    assert (ma.variant, td3.variant) == ("ma-td3", "td3") and (ma.n, td3.n) == (3, 2)
+    assert ma.spacing == SPACING
+    # last 10 grid points are 1100..2000: mean step/100 = 15.5, plus the seed
+    np.testing.assert_allclose(ma.last10, [15.5, 16.5, 17.5])
+    np.testing.assert_allclose(td3.last10, [7.75, 7.75])
+    assert ma.last10_mean.value == pytest.approx(16.5) and ma.last10_std == pytest.approx(np.std([15.5, 16.5, 17.5]))
+    assert ma.iqm.value == pytest.approx(iqm([15.5, 16.5, 17.5]))
+    # max average return: mean over seeds peaks at the last point, 20 + mean(0, 1, 2) = 21
+    assert ma.max_avg.value == pytest.approx(21.0) and ma.max_avg.step == STEPS
+    assert ma.max_avg.std == pytest.approx(np.std([20.0, 21.0, 22.0]))
+    assert td3.max_avg.value == pytest.approx(10.0) and td3.max_avg.std == pytest.approx(0.0)
+    # the best live actor's score, never the others' (10 lower); the round at 550 is the last
+    # evaluation of the grid cell [500, 600)
+    assert ma.curves[0, list(ma.grid).index(500)] == pytest.approx(5.5)
+    assert ma.updates == STEPS - 100 and ma.wall_time_s == pytest.approx(11.0)
+    assert ma.success is None  # only for AppleCollect
+    (c,) = report.comparisons
+    assert (c.x, c.y, c.env, c.n_x, c.n_y) == ("ma-td3", "td3", "Toy-v0", 3, 2)
+    assert c.p.value == 1.0 and c.p.lo == 1.0
+
+
+def test_report_files_and_apple_collect_success_share(tmp_path):
+    exp = tmp_path / "exp"
+    env = "AppleCollect-v0"
+    finals = {0: 49.96, 1: 9.97, 2: 49.96}
+    for seed, final in finals.items():
+        write_run(exp / env / "ma-ddpg" / f"seed{seed}", "ma-ddpg", seed, 3, lambda s: s / 100, final=final)
+        write_run(exp / env / "ddpg" / f"seed{seed}", "ddpg", seed, 1, lambda s: -1.0, final=-1.0)
+    for cfg in exp.rglob("config.json"):
+        data = json.loads(cfg.read_text())
+        data["env_id"] = env
+        cfg.write_text(json.dumps(data))
+    report, md, pngs = write_report(exp, n_boot=300)
+    ma, ddpg = report.envs[env]
+    assert (ma.successes, ma.n, ddpg.successes) == (2, 3, 0)
+    assert ma.success.value == pytest.approx(2 / 3)
+    text = md.read_text()
+    assert md == exp / "report.md"
+    assert "| ma-ddpg |" in text and "| ddpg |" in text and "2/3 (67%)" in text and "P(ma-ddpg > ddpg)" in text
+    names = {p.name for p in pngs}
+    assert names == {"curves_AppleCollect-v0.png", "allocation_AppleCollect-v0.png", "iqm.png"}
+    for p in pngs:
+        assert p.read_bytes()[:8] == PNG_MAGIC and f"figures/{p.name}" in text
+
+
+def test_report_aggregates_over_envs(tmp_path):
+    exp = tmp_path / "exp"
+    for env_i, env in enumerate(("A-v0", "B-v0")):
+        for seed in range(3):
+            for algo, k, offset in (("ma-td3", 2, 1.0), ("td3", 1, 0.0)):
+                d = exp / env / algo / f"seed{seed}"
+                write_run(d, algo, seed, k, lambda s, o=offset, e=env_i, sd=seed: (o + 0.1 * sd) * (1 + 100 * e))
+                data = json.loads((d / "config.json").read_text())
+                data["env_id"] = env
+                (d / "config.json").write_text(json.dumps(data))
+    report = build_report(exp, n_boot=300)
+    assert set(report.envs) == {"A-v0", "B-v0"}
+    agg = dict((name, i) for name, _, i in report.aggregate)
+    assert agg["ma-td3"].value > agg["td3"].value
+    overall = [c for c in report.comparisons if c.env == "all 2 envs"]
+    assert len(overall) == 1 and overall[0].p.value == 1.0
+
+
+# --- grid and plan -------------------------------------------------------------------------
+
+
+def test_parse_seeds():
+    assert parse_seeds(3) == (0, 1, 2)
+    assert parse_seeds("3") == (0, 1, 2)
+    assert parse_seeds("5-7") == (5, 6, 7)
+    assert parse_seeds("0-2,9") == (0, 1, 2, 9)
+    assert parse_seeds([4, 2]) == (4, 2)
+    for bad in ("0,0", "x", 0, "3-1", True):
+        with pytest.raises(GridError):
+            parse_seeds(bad)
+    assert seeds_text([0, 1, 2, 3, 7, 9, 10]) == "0-3,7,9-10"
+
+
+def test_plan_expands_the_grid():
+    grid = make_grid(envs="Hopper-v5,Ant-v5", algos="ma-td3,td3", seeds="2", steps=5000, ablations="no-ot,no-wt",
+                     etas="0.05,0.1", flags={"actors": 4, "hidden": "32,32", "batch_size": 64},
+                     file={"algo": {"td3": {"start-steps": 100}, "ma-td3": {"actors": 3, "eliminate-at": 2000}}})
+    specs = plan(grid)
+    kept, aliases = variants(grid)
+    assert [v for v, _, _ in kept] == ["ma-td3", "ma-td3-no-ot", "ma-td3-no-wt", "ma-td3-eta0.05", "td3"]
+    assert aliases == {"ma-td3-eta0.1": "ma-td3"}  # η = 0.1 is MA-TD3's default: run once
+    assert len(specs) == 5 * 2 * 2
+    # seed by seed, then env, then variant
+    assert [(s.seed, s.env, s.variant) for s in specs[:6]] == [
+        (0, "Hopper-v5", "ma-td3"), (0, "Hopper-v5", "ma-td3-no-ot"), (0, "Hopper-v5", "ma-td3-no-wt"),
+        (0, "Hopper-v5", "ma-td3-eta0.05"), (0, "Hopper-v5", "td3"), (0, "Ant-v5", "ma-td3")]
+    assert specs[-1].path == Path("Ant-v5/td3/seed1")
+    assert {s.steps for s in specs} == {5000}  # one budget for every algorithm
+    cfg = {(s.env, s.variant, s.seed): s.run_config("t").algo for s in specs}
+    ma, td3 = cfg[("Hopper-v5", "ma-td3", 0)], cfg[("Hopper-v5", "td3", 1)]
+    assert (ma.actors, ma.eliminate_at, ma.hidden, ma.batch_size, ma.eta, ma.seed) == (4, 2000, (32, 32), 64, 0.1, 0)
+    # multi-actor flags from the command line do not reach TD3; the common ones and its own do
+    assert (td3.actors, td3.workers, td3.hidden, td3.batch_size, td3.start_steps, td3.seed) == (1, 1, (32, 32), 64,
+                                                                                             100, 1)
+    assert cfg[("Ant-v5", "ma-td3-no-ot", 1)].no_ot and not cfg[("Ant-v5", "ma-td3", 1)].no_ot
+    assert cfg[("Ant-v5", "ma-td3-no-wt", 1)].effective_eta == 0.0
+    assert cfg[("Ant-v5", "ma-td3-eta0.05", 1)].eta == 0.05
+
+
+def test_ddpg_ablations_that_change_nothing_are_not_run_twice():
+    grid = make_grid(envs="AppleCollect-v0", algos="ma-ddpg,ddpg", seeds=1, steps=1000, ablations="no-wt,no-ot",
+                     etas="0,0.1")
+    kept, aliases = variants(grid)
+    # MA-DDPG has η = 0: without weighting it is the same algorithm
+    assert [v for v, _, _ in kept] == ["ma-ddpg", "ma-ddpg-no-ot", "ma-ddpg-eta0.1", "ddpg"]
+    assert aliases == {"ma-ddpg-no-wt": "ma-ddpg", "ma-ddpg-eta0": "ma-ddpg"}
+
+
+def test_grid_errors():
+    ok = dict(envs="Hopper-v5", algos="td3", steps=100)
+    for bad in (dict(algos="sac"), dict(envs=""), dict(steps=0), dict(steps=None), dict(ablations="no-xy"),
+                dict(etas="1.5"), dict(seeds="a"), dict(flags={"bogus": 1}), dict(flags={"seed": 3}),
+                dict(algos="td3,td3")):
+        with pytest.raises(GridError):
+            make_grid(**{**ok, **bad})
+    with pytest.raises(GridError, match="variant"):
+        plan(make_grid(**ok, flags={"batch_size": 0}))
+
+
+def test_grid_files_in_deploy():
+    fig1 = make_grid(load_grid_file(ROOT / "deploy/experiments/applecollect-fig1.toml"))
+    specs = plan(fig1)
+    assert len(specs) == 20 and {s.variant for s in specs} == {"ma-ddpg", "ddpg"}
+    ma = next(s for s in specs if s.variant == "ma-ddpg").run_config("t").algo
+    dd = next(s for s in specs if s.variant == "ddpg").run_config("t").algo
+    assert (ma.actors, ma.workers, ma.eliminate_at, ma.compete_every) == (3, 5, 15000, 1000)
+    assert (dd.actors, dd.workers) == (1, 1) and ma.eval_episodes == dd.eval_episodes == 20
+    small = make_grid(load_grid_file(ROOT / "deploy/experiments/halfcheetah-small.toml"))
+    specs = plan(small)
+    assert len(specs) == 4 * 5 and {s.steps for s in specs} == {300_000}
+    assert {s.variant for s in specs} == {"ma-td3", "td3", "ma-td3-no-ot", "ma-td3-no-wt"}
+    full = make_grid(load_grid_file(ROOT / "deploy/experiments/paper-full.toml"))
+    specs = plan(full)
+    assert len(specs) == 8 * 4 * 10 and {s.steps for s in specs} == {1_000_000}
+    # the command line wins over the file
+    reduced = make_grid(load_grid_file(ROOT / "deploy/experiments/applecollect-fig1.toml"), seeds="3",
+                        steps=20000, flags={"eliminate_at": 9000})
+    specs = plan(reduced)
+    assert len(specs) == 6 and specs[0].run_config("t").algo.eliminate_at == 9000
+
+
+def test_grid_file_rejects_unknown_keys(tmp_path):
+    f = tmp_path / "g.toml"
+    f.write_text('envs = ["Hopper-v5"]\nalgos = ["td3"]\nsteps = 10\nactors = 3\n')
+    with pytest.raises(GridError, match="unknown key"):
+        load_grid_file(f)
+    f.write_text('envs = ["Hopper-v5"]\nalgos = ["td3"]\nsteps = 10\n[algo.td3]\nnope = 1\n')
+    with pytest.raises(GridError, match="nope"):
+        make_grid(load_grid_file(f))
+
+
+# --- running and resuming (a fake launcher) ------------------------------------------------
+
+
+class FakeRunner:
+    """Stands in for services.launcher.run_local: writes config.json and summary.json."""
+
+    def __init__(self, fail: int = 0, interrupt: bool = False) -> None:
+        self.calls: list[Path] = []
+        self.fail = fail
+        self.interrupt = interrupt
+
+    def __call__(self, cfg: RunConfig, run_dir: Path, console: Console, plot: bool) -> dict[str, Any]:
+        self.calls.append(run_dir)
+        assert not any(p.name == "junk" for p in run_dir.iterdir())  # a partial run was cleared
+        if self.interrupt:
+            raise KeyboardInterrupt
+        write_json(run_dir / "config.json", cfg.to_dict())
+        (run_dir / "logs").mkdir()
+        (run_dir / "logs" / "learner.log").write_text("boom" if self.fail else "ok")
+        if self.fail:
+            self.fail -= 1
+            return {}
+        summary = {"final_returns": [1.0], "survivor": 0, "env_steps": cfg.steps, "updates": 1, "wall_time_s": 1}
+        write_json(run_dir / "summary.json", summary)
+        return summary
+
+
+def small_grid():
+    return make_grid(envs="AppleCollect-v0", algos="ma-ddpg,ddpg", seeds="2", steps=300,
+                     flags={"hidden": "8,8", "batch_size": 8})
+
+
+def test_resume_skips_finished_runs_and_redoes_partial_ones(tmp_path):
+    specs = plan(small_grid())
+    exp = tmp_path / "exp"
+    assert [run_state(s, exp) for s in specs] == ["todo"] * 4
+    done, partial = specs[0], specs[1]
+    FakeRunner()(done.run_config("x"), _mkdir(exp / done.path), quiet(), False)
+    _mkdir(exp / partial.path)
+    (exp / partial.path / "junk").write_text("left by an interrupted run")
+    assert run_state(done, exp) == "done" and run_state(partial, exp) == "partial"
+    check_resume(specs, exp)
+
+    runner = FakeRunner()
+    result = run_grid(specs, exp, quiet(), runner=runner)
+    assert result.skipped == [done] and result.finished == specs[1:] and not result.failed
+    assert runner.calls == [exp / s.path for s in specs[1:]]
+    assert all(run_state(s, exp) == "done" for s in specs)
+    assert (exp / partial.path / "launcher.log").is_file()
+
+    again = FakeRunner()
+    result = run_grid(specs, exp, quiet(), runner=again)
+    assert again.calls == [] and result.skipped == specs and result.finished == []
+
+
+def test_resume_refuses_finished_runs_of_another_grid(tmp_path):
+    specs = plan(small_grid())
+    exp = tmp_path / "exp"
+    FakeRunner()(specs[0].run_config("x"), _mkdir(exp / specs[0].path), quiet(), False)
+    other = plan(make_grid(envs="AppleCollect-v0", algos="ma-ddpg,ddpg", seeds="2", steps=600,
+                           flags={"hidden": "8,8", "batch_size": 8}))
+    assert config_mismatch(other[0], exp / other[0].path) == ["steps: run 300, grid 600"]
+    with pytest.raises(GridError, match="different grid"):
+        check_resume(other, exp)
+
+
+def test_failed_runs_are_retried_and_their_logs_kept(tmp_path):
+    specs = plan(small_grid())[:2]
+    exp = tmp_path / "exp"
+    runner = FakeRunner(fail=1)
+    result = run_grid(specs, exp, quiet(), runner=runner, retries=1)
+    assert result.finished == specs and not result.failed and len(runner.calls) == 3
+    kept = list((exp / "failures").iterdir())
+    assert len(kept) == 1 and (kept[0] / "logs" / "learner.log").read_text() == "boom"
+
+    exp2 = tmp_path / "exp2"
+    result = run_grid(specs, exp2, quiet(), runner=FakeRunner(fail=10), retries=1, fail_fast=True)
+    assert result.failed == specs[:1] and result.finished == []
+    assert run_state(specs[0], exp2) == "partial"  # redone on the next call
+
+
+def test_interrupt_stops_the_grid(tmp_path):
+    specs = plan(small_grid())
+    runner = FakeRunner(interrupt=True)
+    result = run_grid(specs, tmp_path / "exp", quiet(), runner=runner)
+    assert result.interrupted and len(runner.calls) == 1 and not result.finished
+
+
+def _mkdir(path: Path) -> Path:
+    path.mkdir(parents=True)
+    return path
+
+
+# --- one small real grid -------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_small_real_grid_then_report_then_resume(tmp_path):
+    exp = tmp_path / "exp"
+    env = dict(os.environ, COLUMNS="160", PYTHONWARNINGS="ignore")
+    args = [sys.executable, "-m", "services.experiment", "--exp-dir", str(exp), "--envs", "AppleCollect-v0",
+            "--algos", "ma-ddpg,ddpg", "--seeds", "2", "--steps", "1500", "--hidden", "32,32", "--batch-size", "32",
+            "--start-steps", "300", "--compete-every", "300", "--eliminate-at", "900", "--eval-every", "300",
+            "--eval-episodes", "2", "--no-plot", "--no-report"]
+    first = subprocess.run(args, cwd=ROOT, env=env, text=True, capture_output=True, timeout=600)
+    assert first.returncode == 0, first.stdout + first.stderr
+    assert "4/4 runs finished (4 now, 0 before), 0 failed" in first.stdout
+    runs = sorted(exp.glob("AppleCollect-v0/*/seed*/summary.json"))
+    assert [p.parent.relative_to(exp).as_posix() for p in runs] == [
+        "AppleCollect-v0/ddpg/seed0", "AppleCollect-v0/ddpg/seed1",
+        "AppleCollect-v0/ma-ddpg/seed0", "AppleCollect-v0/ma-ddpg/seed1"]
+    for p in runs:
+        summary = json.loads(p.read_text())
+        assert 1500 <= summary["env_steps"] <= 1500 + 5 * 32  # the same budget for both algorithms
+    cfg = {p.parent.parent.name: json.loads((p.parent / "config.json").read_text())["algo"] for p in runs}
+    assert (cfg["ma-ddpg"]["actors"], cfg["ma-ddpg"]["workers"], cfg["ddpg"]["actors"]) == (3, 5, 1)
+
+    rep = subprocess.run([sys.executable, "-m", "services.report", str(exp), "--n-boot", "500"], cwd=ROOT, env=env,
+                         text=True, capture_output=True, timeout=300)
+    assert rep.returncode == 0, rep.stdout + rep.stderr
+    text = (exp / "report.md").read_text()
+    assert "## AppleCollect-v0" in text and "| ma-ddpg |" in text and "| ddpg |" in text
+    assert "P(ma-ddpg > ddpg)" in text and "50 apple" in text
+    for name in ("curves_AppleCollect-v0.png", "allocation_AppleCollect-v0.png", "iqm.png"):
+        assert (exp / "figures" / name).read_bytes()[:8] == PNG_MAGIC
+    assert "ma-ddpg" in rep.stdout and "ddpg" in rep.stdout
+
+    stamps = {p: p.stat().st_mtime_ns for p in runs}
+    second = subprocess.run(args, cwd=ROOT, env=env, text=True, capture_output=True, timeout=120)
+    assert second.returncode == 0, second.stdout + second.stderr
+    assert "4 of 4 runs already finished" in second.stdout and "(0 now, 4 before)" in second.stdout
+    assert {p: p.stat().st_mtime_ns for p in runs} == stamps
