@@ -75,20 +75,16 @@ def bench(ctx: typer.Context) -> None:
     bench_app(ctx.args, prog_name="mam bench", standalone_mode=True)
 
 
-@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True, "help_option_names": []})
-def experiment(ctx: typer.Context) -> None:
-    """A grid of algorithms x seeds x envs through the distributed system, resumable (see --help)."""
-    import services.experiment as mod
+def _register_harness() -> None:
+    """`mam experiment` and `mam report` (their modules import matplotlib)."""
+    from services.experiment import experiment_command
+    from services.report import report_command
 
-    mod.app(ctx.args, prog_name="mam experiment", standalone_mode=True)
+    app.command("experiment")(experiment_command)
+    app.command("report")(report_command)
 
 
-@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True, "help_option_names": []})
-def report(ctx: typer.Context) -> None:
-    """Tables (last-10 mean, max average return, IQM with bootstrap CIs) and figures of an experiment."""
-    import services.report as mod
-
-    mod.app(ctx.args, prog_name="mam report", standalone_mode=True)
+_register_harness()
 
 
 def _role(name: str):
