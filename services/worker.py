@@ -238,6 +238,10 @@ class Worker:
             return False
         room = st.accept_until - st.env_steps
         share = max(room // max(st.workers, 1), 1) if room > 0 else 0
+        mine = st.per_worker.get(self.id)
+        if not mine or mine.get("incarnation") != self.incarnation:
+            # Not yet counted among the learner's workers: one batch in flight until it is.
+            share = min(share, self.cfg.send_batch)
         return self.in_flight() + self.p_n < share
 
     def in_random_phase(self) -> bool:
