@@ -376,7 +376,8 @@ class Learner:
             "duplicates": self.tracker.duplicates, "rejected": self.rejected(),
             "per_worker": {w: {k: v for k, v in d.items() if k in ("received", "incarnation", "last_seq")}
                            for w, d in self.per_worker.items()},
-            "rows_per_stream": dict(self.stream_rows), "streams": self.tracker.per_sender()})
+            "rows_per_stream": dict(self.stream_rows), "streams": self.tracker.per_sender(),
+            "inbox_dropped": self.inbox.dropped})  # shed before decoding when the inbox overflowed
         log.info("done: %d transitions, %d updates, lost %d, duplicates %d, rejected %d", self.env_steps,
                  self.agent.updates, self.tracker.lost, self.tracker.duplicates, self.rejects.total)
 

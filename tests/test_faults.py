@@ -94,6 +94,7 @@ def test_worker_killed_and_restarted(tmp_path: Path) -> None:
         ws["w1"].send_signal(signal.SIGKILL)
         ws["w1"].wait()
         killed_at = time.monotonic()
+        old = view.learner().per_worker.get("w1", {}).get("incarnation")
         # Its slot leaves the allocation at once (liveliness), the others go on.
         view.wait(lambda: (a := view.allocation()) and "w1" not in a.slots and len(a.slots) == 2, 5,
                   "an allocation without w1")
@@ -104,7 +105,6 @@ def test_worker_killed_and_restarted(tmp_path: Path) -> None:
         ws["w1"] = spawn("worker", "--run", run, "--connect", endpoint, "--id", "w1", "--run-dir", str(tmp_path),
                          log=tmp_path / "w1-again.log")
         view.wait(lambda: (a := view.allocation()) and "w1" in a.slots, 60, "w1 back in the allocation")
-        old = view.learner().per_worker.get("w1", {}).get("incarnation")
         view.wait(lambda: (st := view.learner()) and (d := st.per_worker.get("w1", {})).get("incarnation") != old
                   and d.get("incarnation_rows", 0) > 0, 60, "transitions from the new w1")
         wait_for_file(tmp_path / "transport.json")
