@@ -42,7 +42,7 @@ from typing import Annotated, Any, Optional
 import numpy as np
 import typer
 
-from services.plot import read_jsonl
+from services.plot import _read_json, read_jsonl  # one reader of run files for plots and reports
 
 LAST_N = 10
 SUCCESS_RETURN = 40.0  # AppleCollect: a final return >= 40 means a 50 apple was reached (49.96 at best)
@@ -286,14 +286,6 @@ def max_average_return(grid: np.ndarray, matrix: np.ndarray) -> MaxAverage:
 
 
 # --- run directories -------------------------------------------------------------------------
-
-
-def _read_json(path: Path) -> dict[str, Any]:
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (FileNotFoundError, json.JSONDecodeError, UnicodeDecodeError):
-        return {}
-    return data if isinstance(data, dict) else {}
 
 
 @dataclass
