@@ -370,7 +370,10 @@ class Learner:
             self.publish_stats(done=True)
             if not self.workers.live() or time.monotonic() > deadline:
                 break
+            self.ingest(self.inbox.drain())  # what was sent before Done is counted, not left queued
             time.sleep(0.1)
+        self.inbox.close()
+        self.ingest(self.inbox.drain())
         write_json(self.run_dir / "transport.json", {
             "env_steps": self.env_steps, "updates": self.agent.updates, "lost": self.tracker.lost,
             "duplicates": self.tracker.duplicates, "rejected": self.rejected(),
