@@ -22,6 +22,7 @@ def run(
     utd: options.Utd = None, no_ot: options.NoOt = None, no_wt: options.NoWt = None, seed: options.Seed = None,
     device: options.Device = None, hidden: options.Hidden = None, config: options.ConfigFile = None,
     single_env_after_elimination: options.SingleEnv = None,
+    bias_every: options.BiasEvery = None, bias_rollouts: options.BiasRollouts = None,
     run_name: options.Run = None, run_dir: options.RunDir = None,
     sync_every: int = typer.Option(None, help="publish actor weights every N updates (default 100)"),
     save_replay: bool = typer.Option(None, help="include the replay buffer in checkpoints"),
@@ -36,7 +37,8 @@ def run(
         compete_every=compete_every, eta=eta, eval_episodes=eval_episodes, eval_every=eval_every,
         start_steps=start_steps, batch_size=batch_size, utd=utd, no_ot=no_ot, no_wt=no_wt, seed=seed,
         device=device, hidden=hidden, single_env_after_elimination=single_env_after_elimination,
-        run=run_name, sync_every=sync_every, save_replay=save_replay), config)
+        run=run_name, sync_every=sync_every, save_replay=save_replay, bias_every=bias_every,
+        bias_rollouts=bias_rollouts), config)
     summary = run_local(cfg, run_dir or Path("runs") / cfg.run, plot=not no_plot)
     if not summary:
         raise typer.Exit(1)

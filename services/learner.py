@@ -23,6 +23,7 @@ import torch
 import typer
 
 from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
+from mam_core.evaluation import estimation_bias
 from mam_core.replay import ReplayBuffer
 from services import bus, keys, options
 from services.codec import (Allocation, Done, LearnerStats, MessageError, TransitionBatch, TransitionSpec,
@@ -106,6 +107,7 @@ class Learner:
         self.stop_requested = False
         if resume is not None:
             self._restore(resume)
+        self.next_bias = self._next_bias_point()
 
     # -- wiring -------------------------------------------------------------------------------
     def _restore(self, state: dict[str, Any]) -> None:
@@ -135,6 +137,7 @@ class Learner:
         self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
         self.inbox = bus.Inbox(maxsize=8192).subscribe(s, keys.transitions_all(run))
         self.log_writer = JsonlWriter(self.run_dir / "learner.jsonl")
+        self.bias_writer = JsonlWriter(self.run_dir / "bias.jsonl") if self.cfg.bias_every else None
         self.seq = 0
         self.publish_config()
         try:
@@ -145,6 +148,8 @@ class Learner:
             self.workers.close()
             self.referees.close()
             self.log_writer.close()
+            if self.bias_writer is not None:
+                self.bias_writer.close()
 
     # -- the loop -----------------------------------------------------------------------------
     def _loop(self) -> None:
@@ -157,6 +162,9 @@ class Learner:
         while not self.stop_requested:
             self.ingest(self.inbox.drain(max_items=256))
             self.follow_allocation()
+            if self.next_bias is not None and self.env_steps >= self.next_bias and \
+                    self.agent.updates >= self.algo.utd * (self.next_bias - self.algo.start_steps):
+                self.measure_bias()  # the critic as trained on the point's transitions
             budget_done = self.env_steps >= self.cfg.steps
             ran = self.run_updates(deadline=time.monotonic() + 0.02)
             if self.agent.updates - last_sync >= self.cfg.sync_every:
@@ -351,6 +359,29 @@ class Learner:
             self.episode_returns.clear()
         self.log_writer.write(row)
 
+    def _next_bias_point(self) -> int | None:
+        every = self.cfg.bias_every
+        return (self.env_steps // every + 1) * every if every > 0 else None
+
+    def measure_bias(self) -> None:
+        """Eq. 17 for every live actor k: Q_k1(s0, π_k(s0)) of the current critic against the
+        discounted Monte-Carlo return of π_k from the same initial states (`bias_rollouts`
+        rollouts, seeded by the point so every variant of a seed starts from the same states).
+        Training pauses meanwhile; the rate limiter holds the workers."""
+        point = self.next_bias
+        self.next_bias = self._next_bias_point()
+        started = time.monotonic()
+        live = self.agent.live_actors
+        seed = 1_000_003 * (self.algo.seed + 1) + point // self.cfg.bias_every * 1_009
+        for k in (k for k, alive in enumerate(live) if alive):
+            result = estimation_bias(lambda obs, k=k: self.agent.act(obs, k),
+                                     lambda obs, act, k=k: self.agent.q_value(obs, act, k),
+                                     self.cfg.env_id, self.cfg.bias_rollouts, self.algo.gamma, seed)
+            self.bias_writer.write({"env_steps": self.env_steps, "point": point, "updates": self.agent.updates,
+                                    "live": list(live), "rollouts": self.cfg.bias_rollouts,
+                                    "bias": {"actor": k, **result}})
+        log.info("bias at %d transitions measured in %.1f s", self.env_steps, time.monotonic() - started)
+
     def checkpoint(self) -> None:
         counters = {"env_steps": self.env_steps, "per_worker": json.dumps(self.tracker.per_sender())}
         path = save_checkpoint(self.run_dir, self.agent, self.buffer, counters, self.cfg)
@@ -414,6 +445,7 @@ def learner_command(
     utd: options.Utd = None, no_ot: options.NoOt = None, no_wt: options.NoWt = None, seed: options.Seed = None,
     device: options.Device = None, hidden: options.Hidden = None, config: options.ConfigFile = None,
     single_env_after_elimination: options.SingleEnv = None,
+    bias_every: options.BiasEvery = None, bias_rollouts: options.BiasRollouts = None,
     run: options.Run = None, connect: options.Connect = None, listen: options.Listen = None,
     zenoh_config: options.ZenohConfig = None, run_dir: options.RunDir = None,
     sync_every: int = typer.Option(100, help="publish actor weights every N updates"),
@@ -437,7 +469,8 @@ def learner_command(
             compete_every=compete_every, eta=eta, eval_episodes=eval_episodes, eval_every=eval_every,
             start_steps=start_steps, batch_size=batch_size, utd=utd, no_ot=no_ot, no_wt=no_wt, seed=seed,
             device=device, hidden=hidden, single_env_after_elimination=single_env_after_elimination, run=run,
-            sync_every=sync_every, checkpoint_every=checkpoint_every, save_replay=save_replay), config)
+            sync_every=sync_every, checkpoint_every=checkpoint_every, save_replay=save_replay,
+            bias_every=bias_every, bias_rollouts=bias_rollouts), config)
     if steps is not None and (run_config is not None or resume is not None):
         cfg = RunConfig.from_dict({**cfg.to_dict(), "steps": steps})
     if not listen and not connect and cfg.endpoint:

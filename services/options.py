@@ -40,6 +40,10 @@ NoWt = Annotated[Optional[bool], typer.Option("--no-wt", help="ablation: no Q-va
 Seed = Annotated[Optional[int], typer.Option("--seed", help="random seed")]
 Device = Annotated[Optional[str], typer.Option("--device", help="auto, cpu or cuda (learner)")]
 Hidden = Annotated[Optional[str], typer.Option("--hidden", help="hidden layer sizes, e.g. 256,256")]
+BiasEvery = Annotated[Optional[int], typer.Option(
+    "--bias-every", help="measure the Eq. 17 estimation bias every N transitions in the learner (0: off)")]
+BiasRollouts = Annotated[Optional[int], typer.Option(
+    "--bias-rollouts", help="Monte-Carlo rollouts per bias measurement (default 20, as in the paper)")]
 ConfigFile = Annotated[Optional[Path], typer.Option("--config", help="TOML file holding any of these options")]
 SingleEnv = Annotated[Optional[bool], typer.Option(
     "--single-env-after-elimination", help="paper's schedule: the survivor runs one slot only")]
@@ -70,6 +74,8 @@ class RunConfig:
     learner_threads: int = 1  # torch threads of the learner (0: torch's default); 1 avoids
     # OpenMP spin contention with the workers on a small box
     endpoint: str = ""  # where clients connect (written to config.json)
+    bias_every: int = 0  # Eq. 17 estimation bias every N transitions, measured by the learner (0: off)
+    bias_rollouts: int = 20  # Monte-Carlo rollouts per bias point (the paper: 20)
 
     @property
     def tolerance(self) -> int:
@@ -95,6 +101,8 @@ class RunConfig:
         check_run_name(cfg.run)
         if cfg.steps < 1:
             raise ValueError("steps must be >= 1")
+        if cfg.bias_every < 0 or cfg.bias_rollouts < 1:
+            raise ValueError("bias_every must be >= 0 and bias_rollouts >= 1")
         return cfg
 
 
@@ -129,7 +137,7 @@ def load_toml(path: Path | None) -> dict[str, Any]:
 
 
 _RUN_FIELDS = {"run", "env_id", "env", "steps", "algo", "sync_every", "checkpoint_every", "send_batch",
-               "band", "save_replay", "learner_threads"}
+               "band", "save_replay", "learner_threads", "bias_every", "bias_rollouts"}
 
 
 def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig:
@@ -160,7 +168,11 @@ def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig
         check_run_name(run)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
-    return RunConfig(run=run, env_id=env_id, steps=int(steps), algo=algo, **run_fields)
+    try:
+        return RunConfig.from_dict({"run": run, "env_id": env_id, "steps": int(steps), "algo": algo.to_dict(),
+                                    **run_fields})
+    except (TypeError, ValueError) as e:
+        raise typer.BadParameter(str(e)) from e
 
 
 def check_env_id(env_id: str) -> None:

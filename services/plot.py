@@ -5,7 +5,7 @@ Reads the JSONL metrics a run writes (`eval.jsonl`, `allocation.jsonl`, `learner
 
 - `learning_curves.png`  mean evaluation return per actor (±1 std over episodes), elimination at C
 - `allocation.png`       I_k (slots per actor, stacked) and P_k (Eq. 8) over env steps
-- `bias.png`             estimation bias rate (Eq. 17), only when evaluations carried it
+- `bias.png`             estimation bias rate (Eq. 17) from `bias.jsonl` (runs with `--bias-every`)
 - `learner.png`          critic loss, actor loss, updates per transition, mean Q per actor
 
 A run may still be going: the last JSONL line can be half written and is skipped. A plot whose
@@ -328,7 +328,7 @@ def plot_run(run_dir: Path) -> list[Path]:
     written = [
         plot_learning_curves(evals, survivor, elimination, title, out / "learning_curves.png"),
         plot_allocation(allocation, last_step, survivor, elimination, title, out / "allocation.png"),
-        plot_bias(evals, title, out / "bias.png"),
+        plot_bias(evals + read_jsonl(run_dir / "bias.jsonl"), title, out / "bias.png"),
         plot_learner(learner, target_utd, title, out / "learner.png"),
     ]
     return [p for p in written if p is not None]

@@ -300,6 +300,7 @@ class RunRecord:
     summary: dict[str, Any]
     points: list[tuple[float, float]]
     allocation: list[dict[str, Any]] = field(default_factory=list)
+    bias: list[tuple[float, float]] = field(default_factory=list)  # (point, Eq. 17 rate) from bias.jsonl
 
     @property
     def algo_config(self) -> dict[str, Any]:
@@ -344,7 +345,49 @@ def load_run(path: Path, env: str | None = None, variant: str | None = None) -> 
         variant=variant or str(algo.get("algo") or summary.get("algo") or "?"),
         seed=seed, path=path, config=config, summary=summary,
         points=eval_points(read_jsonl(path / "eval.jsonl")),
-        allocation=read_jsonl(path / "allocation.jsonl"))
+        allocation=read_jsonl(path / "allocation.jsonl"),
+        bias=bias_points(read_jsonl(path / "bias.jsonl")))
+
+
+def bias_points(rows: list[dict[str, Any]]) -> list[tuple[float, float]]:
+    """(point, bias rate) per measurement of a run: the mean of Eq. 17 over the actors live at
+    that point (after the elimination: the survivor's). Points with no finite rate are left out."""
+    by_point: dict[float, list[float]] = {}
+    for r in rows:
+        point = _finite(r.get("point", r.get("env_steps")))
+        rate = _finite(r["bias"].get("bias_rate")) if isinstance(r.get("bias"), dict) else None
+        if point is not None and rate is not None:
+            by_point.setdefault(point, []).append(rate)
+    return [(p, float(np.mean(v))) for p, v in sorted(by_point.items())]
+
+
+@dataclass
+class BiasStats:
+    """Eq. 17 bias rate of one variant over its runs (rows: runs, columns: bias points)."""
+
+    variant: str
+    points: np.ndarray
+    rates: np.ndarray  # runs × points, NaN where a run has no measurement
+
+    @property
+    def n(self) -> int:
+        return self.rates.shape[0]
+
+    def per_run(self, reduce: Callable[[np.ndarray], float]) -> np.ndarray:
+        return np.asarray([reduce(row[np.isfinite(row)]) if np.isfinite(row).any() else np.nan
+                           for row in self.rates])
+
+
+def bias_stats(variant: str, runs: Sequence[RunRecord]) -> BiasStats | None:
+    measured = [r for r in runs if r.bias]
+    if not measured:
+        return None
+    points = np.asarray(sorted({p for r in measured for p, _ in r.bias}))
+    rates = np.full((len(measured), points.size), np.nan)
+    for i, r in enumerate(measured):
+        for p, rate in r.bias:
+            rates[i, np.searchsorted(points, p)] = rate
+    return BiasStats(variant, points, rates)
 
 
 def load_runs(exp_dir: Path) -> list[RunRecord]:
@@ -446,6 +489,7 @@ class Comparison:
 class Report:
     exp_dir: Path
     envs: dict[str, list[VariantStats]]
+    bias: dict[str, list[BiasStats]]
     comparisons: list[Comparison]
     aggregate: list[tuple[str, int, Interval]]  # variant, n envs, normalised IQM
     missing: list[str]
@@ -550,8 +594,11 @@ def build_report(exp_dir: Path, n_boot: int = N_BOOT, seed: int = 0) -> Report:
                     strata.append((v.last10[np.isfinite(v.last10)] - lo) / (hi - lo))
             if len(strata) > 1:
                 aggregate.append((name, len(strata), iqm_ci(strata, n_boot, seed=seed)))
+    bias = {env: [b for b in (bias_stats(v.variant, v.runs) for v in vs) if b is not None]
+            for env, vs in envs.items()}
+    bias = {env: bs for env, bs in bias.items() if bs}
     meta = _read_json(exp_dir / "experiment.json")
-    return Report(exp_dir, envs, comparisons, aggregate, missing, meta)
+    return Report(exp_dir, envs, bias, comparisons, aggregate, missing, meta)
 
 
 # --- rendering -------------------------------------------------------------------------------
@@ -590,6 +637,16 @@ def env_rows(vs: Sequence[VariantStats]) -> tuple[list[str], list[list[str]]]:
             row.append(f"{v.successes}/{v.n} ({_fmt(100 * s.value, 0)}%) "
                        f"[{_fmt(100 * s.lo, 0)}%, {_fmt(100 * s.hi, 0)}%]" if s else "–")
         rows.append(row)
+    return header, rows
+
+
+def bias_rows(bs: Sequence[BiasStats]) -> tuple[list[str], list[list[str]]]:
+    header = ["variant", "runs", "points", "mean bias rate ± std", "mean |bias rate| ± std", "final bias rate ± std"]
+    rows = []
+    for b in bs:
+        cells = [b.per_run(np.mean), b.per_run(lambda x: np.mean(np.abs(x))), b.per_run(lambda x: x[-1])]
+        text = [f"{_fmt(float(np.nanmean(c)), 3)} ± {_fmt(float(np.nanstd(c)), 3)}" for c in cells]
+        rows.append([b.variant, str(b.n), str(b.points.size), *text])
     return header, rows
 
 
@@ -641,6 +698,15 @@ def render_markdown(report: Report, figures: dict[str, list[Path]], out: Path) -
                   _md_table(header, rows)]
         for path in figures.get(env, []):
             lines += ["", f"![{path.stem}]({_rel(path, out)})"]
+        if report.bias.get(env):
+            header, rows = bias_rows(report.bias[env])
+            lines += ["", f"### Estimation bias (Eq. 17), {env}", "",
+                      "Bias rate (Q̂ − Q*)/|Q*| of the critic at the start states against the Monte-Carlo discounted "
+                      "return of the current policy, measured by the learner every `--bias-every` transitions (mean "
+                      "over the live actors); per run the mean (and mean absolute value) over its points and its last "
+                      "point, then mean ± std over seeds. > 0: over-estimation.", "", _md_table(header, rows)]
+            for path in figures.get(f"bias:{env}", []):
+                lines += ["", f"![{path.stem}]({_rel(path, out)})"]
     if report.comparisons:
         header, rows = comparison_rows(report.comparisons)
         lines += ["", "## Probability of improvement", "",
@@ -673,6 +739,14 @@ def print_tables(report: Report, console: Any) -> None:
         table = Table(title=env, show_lines=False)
         for h in header:
             table.add_column(h, overflow="fold")
+        for row in rows:
+            table.add_row(*row)
+        console.print(table)
+    for env, bs in report.bias.items():
+        header, rows = bias_rows(bs)
+        table = Table(title=f"Estimation bias (Eq. 17), {env}")
+        for h in header:
+            table.add_column(h)
         for row in rows:
             table.add_row(*row)
         console.print(table)
@@ -816,6 +890,31 @@ def plot_env_allocation(env: str, vs: Sequence[VariantStats], path: Path) -> Pat
     return _save(fig, path)
 
 
+def plot_bias(env: str, bs: Sequence[BiasStats], path: Path) -> Path | None:
+    """Fig. 3: the Eq. 17 bias rate over env steps per variant, mean over seeds ± one std."""
+    if not bs:
+        return None
+    fig = _figure(figsize=(8.5, 5))
+    ax = fig.add_subplot()
+    for i, b in enumerate(bs):
+        seen = np.isfinite(b.rates).sum(axis=0)
+        ok = seen > 0
+        filled = np.where(np.isfinite(b.rates), b.rates, 0.0)
+        mean = filled.sum(axis=0)[ok] / seen[ok]
+        std = np.sqrt(np.maximum((filled ** 2).sum(axis=0)[ok] / seen[ok] - mean ** 2, 0.0))
+        color = f"C{i % 10}"
+        ax.plot(b.points[ok], mean, color=color, linewidth=1.8, marker="o", markersize=2.5,
+                label=f"{b.variant} (n={b.n})")
+        ax.fill_between(b.points[ok], mean - std, mean + std, color=color, alpha=0.18, linewidth=0)
+    ax.axhline(0.0, color="0.3", linewidth=0.8)
+    ax.set_xlabel("env steps (transitions received by the learner)")
+    ax.set_ylabel("bias rate $(\\hat Q - Q^*)/|Q^*|$ (Eq. 17)")
+    ax.set_title(f"{env}: estimation bias, mean over seeds ± 1 std")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize="small")
+    return _save(fig, path)
+
+
 def plot_iqm(report: Report, path: Path) -> Path | None:
     """IQM of the last-10 scores with 95% CIs, one panel per env (+ the normalised aggregate)."""
     panels = [(env, [(v.variant, v.iqm) for v in vs]) for env, vs in report.envs.items()]
@@ -858,6 +957,10 @@ def write_report(exp_dir: Path, out: Path | None = None, n_boot: int = N_BOOT, s
                       plot_env_allocation(env, vs, fig_dir / f"allocation_{_slug(env)}.png")):
                 if p is not None:
                     written.setdefault(env, []).append(p)
+        for env, bs in report.bias.items():
+            p = plot_bias(env, bs, fig_dir / f"bias_{_slug(env)}.png")
+            if p is not None:
+                written.setdefault(f"bias:{env}", []).append(p)
         p = plot_iqm(report, fig_dir / "iqm.png")
         if p is not None:
             written.setdefault("all", []).append(p)

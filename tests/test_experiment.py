@@ -16,7 +16,7 @@ from rich.console import Console
 from services.experiment import (GridError, check_resume, config_mismatch, load_grid_file, make_grid,
                                  parse_seeds, plan, run_grid, run_state, seeds_text, variants)
 from services.options import RunConfig, write_json
-from services.report import (best_live_score, bucket_points, build_report, iqm, iqm_ci, last_n_mean, mean_ci,
+from services.report import (best_live_score, bias_rows, bucket_points, build_report, iqm, iqm_ci, last_n_mean, mean_ci,
                              probability_of_improvement, probability_of_improvement_ci, stratified_bootstrap,
                              wilson_interval, write_report)
 
@@ -498,3 +498,35 @@ def test_small_real_grid_then_report_then_resume(tmp_path):
     assert second.returncode == 0, second.stdout + second.stderr
     assert "4 of 4 runs already finished" in second.stdout and "(0 now, 4 before)" in second.stdout
     assert {p: p.stat().st_mtime_ns for p in runs} == stamps
+
+
+def write_bias(run_dir: Path, rows: list[tuple[int, int, float]]) -> None:
+    """bias.jsonl as the learner writes it: one row per (point, live actor)."""
+    with open(run_dir / "bias.jsonl", "w") as f:
+        for point, actor, rate in rows:
+            f.write(json.dumps({"env_steps": point + 2, "point": point, "bias": {
+                "actor": actor, "q_estimate": 1.0, "q_true": 1.0, "bias": 0.0, "bias_rate": rate}}) + "\n")
+
+
+def test_report_aggregates_the_eq17_bias_rate_over_actors_and_seeds(tmp_path):
+    exp = tmp_path / "exp"
+    make_experiment(exp)
+    ma = exp / "Toy-v0" / "ma-td3"
+    # seed 0: point 500 has two live actors (0.2, 0.4) -> 0.3; point 1000 the survivor only: -0.1
+    write_bias(ma / "seed0", [(500, 0, 0.2), (500, 1, 0.4), (1000, 1, -0.1)])
+    write_bias(ma / "seed1", [(500, 0, 0.5), (500, 1, 0.5), (1000, 1, 0.1)])
+    (ma / "seed2" / "bias.jsonl").write_text('{"point": 500, "bias": {"actor": 0, "bias_rate": NaN}}\n')
+    write_bias(exp / "Toy-v0" / "td3" / "seed0", [(500, 0, 0.6), (1000, 0, 0.4)])
+    report, md, pngs = write_report(exp, n_boot=200)
+    ma_b, td3_b = report.bias["Toy-v0"]
+    assert (ma_b.variant, ma_b.n, td3_b.variant, td3_b.n) == ("ma-td3", 2, "td3", 1)  # seed2: no finite rate
+    np.testing.assert_allclose(ma_b.points, [500, 1000])
+    np.testing.assert_allclose(ma_b.rates, [[0.3, -0.1], [0.5, 0.1]])
+    np.testing.assert_allclose(ma_b.per_run(np.mean), [0.1, 0.3])
+    np.testing.assert_allclose(ma_b.per_run(lambda x: np.mean(np.abs(x))), [0.2, 0.3])
+    _, rows = bias_rows(report.bias["Toy-v0"])
+    assert rows[0][:3] == ["ma-td3", "2", "2"] and rows[0][3].startswith("0.200 ± 0.100")
+    assert rows[1][5].startswith("0.400 ± 0.000")
+    text = md.read_text()
+    assert "Estimation bias (Eq. 17), Toy-v0" in text and "figures/bias_Toy-v0.png" in text
+    assert (exp / "figures" / "bias_Toy-v0.png").read_bytes()[:8] == PNG_MAGIC

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -81,9 +82,20 @@ def test_mam_run_mujoco_end_to_end(tmp_path: Path) -> None:
     a, c, m, start, steps = 500, 1500, 3, 500, 2500
     mam("run", "--env", "InvertedPendulum-v5", "--algo", "ma-td3", "--steps", str(steps), "--workers", str(m),
         "--actors", "2", "--compete-every", str(a), "--eliminate-at", str(c), "--start-steps", str(start),
-        "--eval-every", "500", "--seed", "2", *SMALL, "--run", run_name, "--run-dir", str(run_dir))
+        "--eval-every", "500", "--seed", "2", *SMALL, "--bias-every", "1000", "--bias-rollouts", "4",
+        "--run", run_name, "--run-dir", str(run_dir))
     run = load(run_dir)
     assert_exactly_once(run)
+    # Eq. 17, measured by the learner at every 1000 transitions for each live actor, once the
+    # critic has had the point's updates.
+    bias = [json.loads(line) for line in (run_dir / "bias.jsonl").read_text().splitlines()]
+    assert [(r["point"], r["bias"]["actor"]) for r in bias] == [(1000, 0), (1000, 1), (2000, run["summary"]["survivor"])]
+    for r in bias:
+        b = r["bias"]
+        assert r["env_steps"] >= r["point"] and r["updates"] >= r["point"] - start and r["rollouts"] == 4
+        assert b["bias"] == pytest.approx(b["q_estimate"] - b["q_true"])
+        assert b["bias_rate"] == pytest.approx(b["bias"] / abs(b["q_true"]))
+    assert (run_dir / "plots" / "bias.png").is_file()
     send_slack = m * run["config"]["send_batch"]
     check_obsolescence(run, a, c, m, send_slack)
     rounds = [r for r in run["allocation"] if r["reason"] == "round"]
