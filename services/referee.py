@@ -157,12 +157,7 @@ class Referee:
 
     # -- evaluation and competition -------------------------------------------------------------
     def policy(self, k: int):
-        members = torch.tensor([k])
-
-        def act(obs: np.ndarray) -> np.ndarray:
-            with torch.inference_mode():
-                return self.actors(torch.as_tensor(obs, dtype=torch.float32), members)[0].numpy()
-        return act
+        return self.actors.numpy_policy(k)  # numpy on views of the loaded weights: no torch dispatch per step
 
     def evaluate(self, steps: int, only_live: bool = True) -> list[float | None]:
         """Deterministic returns of each live actor (eval.jsonl row, `eval` topic)."""

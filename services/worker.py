@@ -91,6 +91,9 @@ class Worker:
         torch.set_num_threads(1)
         self.actors = ActorEnsemble(self.algo.actors, self.spec.obs_dim, self.spec.act_dim, self.algo.hidden,
                                     self.max_action).requires_grad_(False)
+        # numpy forwards on views of the parameters (load_member copies in place): a one-row torch
+        # forward costs ~100 µs of dispatch between env steps, this ~14 µs (docs/PERFORMANCE.md)
+        self.policies = [self.actors.numpy_policy(k) for k in range(self.algo.actors)]
         self.shapes = self.actors.net.member_shapes()
         self.versions = [-1] * self.algo.actors  # -1: no weights yet
         self.actor = slot_index % self.algo.actors  # until the first allocation arrives
@@ -253,9 +256,7 @@ class Worker:
             action, actor, version = self.env.action_space.sample().astype(np.float32), self.actor, -1
         else:
             actor, version = self.actor, self.versions[self.actor]
-            with torch.inference_mode():
-                o = torch.from_numpy(np.asarray(self.obs, np.float32)).view(1, -1)
-                action = self.actors(o, members=torch.tensor([actor]))[0, 0].numpy()
+            action = self.policies[actor](self.obs)
             noise = self.rng.normal(0.0, self.algo.explore_noise, self.spec.act_dim).astype(np.float32)
             action = np.clip(action + noise * self.max_action, -self.max_action, self.max_action)
         if self.p_n and (actor != self.p_actor or version != self.p_version):

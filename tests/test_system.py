@@ -169,7 +169,9 @@ def test_two_runs_on_one_router_never_cross(tmp_path: Path) -> None:
         while not all((tmp_path / run / "transport.json").is_file() for run in runs):
             assert time.monotonic() < deadline, "runs did not finish"
             time.sleep(0.5)
-        time.sleep(1.0)
+        for p in procs[1:]:  # learners and workers leave by themselves once their run is done
+            p.wait(60)
+            assert p.returncode == 0, f"{p.args} exited {p.returncode}"
     finally:
         stop(*reversed(procs))
     for run in runs:
