@@ -160,6 +160,8 @@ class MultiActorAgent:
         self.critic = CriticEnsemble(k, n, spec.obs_dim, spec.act_dim, cfg.hidden, gen)
         self.actor.to(self.device)
         self.critic.to(self.device)
+        if cfg.precision == "bf16":  # mixed precision; the targets (deep copies) inherit it
+            self.actor.net.low_precision = self.critic.net.low_precision = torch.bfloat16
         self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         self.actor_params_list = list(self.actor.parameters())

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 ALGOS = ("ma-td3", "td3", "ma-ddpg", "ddpg")
+PRECISIONS = ("fp32", "bf16")
 
 
 @dataclass(frozen=True)
@@ -43,6 +44,7 @@ class AlgoConfig:
     single_env_after_elimination: bool = False  # paper's schedule: survivor runs one slot only
     seed: int = 0
     device: str = "auto"  # auto | cpu | cuda
+    precision: str = "fp32"  # fp32 | bf16: the learner's hidden-to-hidden GEMMs in bfloat16 (mixed precision)
 
     @property
     def effective_eta(self) -> float:
@@ -134,6 +136,8 @@ def validate(cfg: AlgoConfig) -> AlgoConfig:
         problems.append("hidden sizes must be positive")
     if cfg.device not in ("auto", "cpu", "cuda"):
         problems.append("device must be auto, cpu or cuda")
+    if cfg.precision not in PRECISIONS:
+        problems.append(f"precision must be one of {', '.join(PRECISIONS)}")
     if problems:
         raise ValueError("invalid configuration: " + "; ".join(problems))
     return cfg

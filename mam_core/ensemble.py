@@ -20,8 +20,13 @@ Members = slice | torch.Tensor | None
 FEATURE_MAJOR_MIN_ROWS = 32
 
 
-def run_layers(x: torch.Tensor, layers: Sequence[tuple[torch.Tensor, torch.Tensor]]) -> torch.Tensor:
+def run_layers(x: torch.Tensor, layers: Sequence[tuple[torch.Tensor, torch.Tensor]],
+               low: torch.dtype | None = None) -> torch.Tensor:
     """x [E, B, in] through Linear-ReLU-...-Linear with stacked (w [E, in, out], b [E, 1, out]).
+
+    `low` (e.g. torch.bfloat16): every layer but the head runs its GEMM in that dtype, mixed
+    precision: parameters, their gradients and the optimizer stay float32, and so does the head
+    (Q values and actions keep float32 precision; its GEMMs are narrow and cheap).
 
     Two layouts, the same numbers (docs/PERFORMANCE.md has the measurements). Training
     batches (B >= FEATURE_MAJOR_MIN_ROWS) keep the activations feature-major,
@@ -34,19 +39,25 @@ def run_layers(x: torch.Tensor, layers: Sequence[tuple[torch.Tensor, torch.Tenso
     if x.shape[-2] >= FEATURE_MAJOR_MIN_ROWS:
         h = x.mT
         for i, (w, b) in enumerate(layers):
-            h = torch.baddbmm(b.mT, w.mT, h)
+            if low is not None and i < last:
+                h = torch.baddbmm(b.mT.to(low), w.mT.to(low), h.to(low))
+            else:
+                h = torch.baddbmm(b.mT, w.mT, h.to(w.dtype))
             if i < last:
                 h = torch.relu_(h)  # in place: baddbmm keeps its inputs for backward, not its output
         return h.mT
     for i, (w, b) in enumerate(layers):
-        x = torch.baddbmm(b, x, w)
+        if low is not None and i < last:
+            x = torch.baddbmm(b.to(low), x.to(low), w.to(low))
+        else:
+            x = torch.baddbmm(b, x.to(w.dtype), w)
         if i < last:
             x = torch.relu_(x)
     return x
 
 
 def run_member(x: torch.Tensor, weights: Sequence[torch.Tensor], biases: Sequence[torch.Tensor],
-               k: int) -> torch.Tensor:
+               k: int, low: torch.dtype | None = None) -> torch.Tensor:
     """One member k on x [B, in] or [1, B, in] -> [1, B, out] with plain 2-D GEMMs: a worker's or the referee's
     policy, a K=1 actor. CPU BLAS runs these several times faster than a batched GEMM of one."""
     if x.dim() == 3:
@@ -56,7 +67,10 @@ def run_member(x: torch.Tensor, weights: Sequence[torch.Tensor], biases: Sequenc
     h = x
     last = len(weights) - 1
     for i, (w, b) in enumerate(zip(weights, biases)):
-        h = torch.addmm(b[k], h, w[k])
+        if low is not None and i < last:  # mixed precision as in run_layers
+            h = torch.addmm(b[k].to(low), h.to(low), w[k].to(low))
+        else:
+            h = torch.addmm(b[k], h.to(w.dtype), w[k])
         if i < last:
             h = torch.relu_(h)  # in place: addmm keeps its inputs for backward, not its output
     return h.unsqueeze(0)
@@ -74,6 +88,7 @@ class EnsembleMLP(nn.Module):
         super().__init__()
         self.members = members
         self.sizes = [in_dim, *hidden, out_dim]
+        self.low_precision: torch.dtype | None = None  # see run_layers; one-member paths stay float32
         self.weights = nn.ParameterList()
         self.biases = nn.ParameterList()
         for fan_in, fan_out in zip(self.sizes[:-1], self.sizes[1:]):
@@ -98,11 +113,11 @@ class EnsembleMLP(nn.Module):
         """
         k = self.single_member(members)
         if k is not None:
-            return run_member(x, self.weights, self.biases, k)
+            return run_member(x, self.weights, self.biases, k, self.low_precision)
         layers = self.layers(members)
         if x.dim() == 2:
             x = x.unsqueeze(0).expand(layers[0][0].shape[0], -1, -1)
-        return run_layers(x, layers)
+        return run_layers(x, layers, self.low_precision)
 
     def single_member(self, members: Members) -> int | None:
         """The member's index when `members` names exactly one (without a device sync), else None."""

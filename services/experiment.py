@@ -727,6 +727,7 @@ def experiment_command(
     batch_size: options.BatchSize = None, utd: options.Utd = None, device: options.Device = None,
     hidden: options.Hidden = None, single_env_after_elimination: options.SingleEnv = None,
     bias_every: options.BiasEvery = None, bias_rollouts: options.BiasRollouts = None,
+    precision: options.Precision = None,
     name: Annotated[Optional[str], typer.Option("--name", help="experiment name (default: the grid file's)")] = None,
     dry_run: Annotated[bool, typer.Option("--dry-run", help="print the planned runs and exit")] = False,
     retries: Annotated[int, typer.Option("--retries", help="attempts after a failed run")] = 1,
@@ -749,7 +750,7 @@ def experiment_command(
                      eta=eta, eval_episodes=eval_episodes, eval_every=eval_every, start_steps=start_steps,
                      batch_size=batch_size, utd=utd, device=device, hidden=hidden,
                      single_env_after_elimination=single_env_after_elimination, bias_every=bias_every,
-                     bias_rollouts=bias_rollouts)
+                     bias_rollouts=bias_rollouts, precision=precision)
         grid = make_grid(file, envs=envs, algos=algos, seeds=seeds, steps=steps, ablations=ablations, etas=etas,
                          name=name, flags=flags)
         specs = plan(grid)

@@ -446,6 +446,7 @@ def learner_command(
     device: options.Device = None, hidden: options.Hidden = None, config: options.ConfigFile = None,
     single_env_after_elimination: options.SingleEnv = None,
     bias_every: options.BiasEvery = None, bias_rollouts: options.BiasRollouts = None,
+    precision: options.Precision = None,
     run: options.Run = None, connect: options.Connect = None, listen: options.Listen = None,
     zenoh_config: options.ZenohConfig = None, run_dir: options.RunDir = None,
     sync_every: int = typer.Option(100, help="publish actor weights every N updates"),
@@ -470,7 +471,7 @@ def learner_command(
             start_steps=start_steps, batch_size=batch_size, utd=utd, no_ot=no_ot, no_wt=no_wt, seed=seed,
             device=device, hidden=hidden, single_env_after_elimination=single_env_after_elimination, run=run,
             sync_every=sync_every, checkpoint_every=checkpoint_every, save_replay=save_replay,
-            bias_every=bias_every, bias_rollouts=bias_rollouts), config)
+            bias_every=bias_every, bias_rollouts=bias_rollouts, precision=precision), config)
     if steps is not None and (run_config is not None or resume is not None):
         cfg = RunConfig.from_dict({**cfg.to_dict(), "steps": steps})
     if not listen and not connect and cfg.endpoint:

@@ -40,6 +40,8 @@ NoWt = Annotated[Optional[bool], typer.Option("--no-wt", help="ablation: no Q-va
 Seed = Annotated[Optional[int], typer.Option("--seed", help="random seed")]
 Device = Annotated[Optional[str], typer.Option("--device", help="auto, cpu or cuda (learner)")]
 Hidden = Annotated[Optional[str], typer.Option("--hidden", help="hidden layer sizes, e.g. 256,256")]
+Precision = Annotated[Optional[str], typer.Option(
+    "--precision", help="learner GEMMs: fp32, or bf16 (mixed precision: hidden-to-hidden layers in bfloat16)")]
 BiasEvery = Annotated[Optional[int], typer.Option(
     "--bias-every", help="measure the Eq. 17 estimation bias every N transitions in the learner (0: off)")]
 BiasRollouts = Annotated[Optional[int], typer.Option(
