@@ -47,6 +47,7 @@ def test_reference_driver_follows_algorithm_1_schedule():
 @pytest.mark.parametrize("algo, extra", [
     ("td3", {}),
     ("ma-td3", dict(workers=2, compete_every=2000, eliminate_at=10_000)),
+    ("ma-td3", dict(workers=2, compete_every=2000, eliminate_at=10_000, precision="bf16")),
 ])
 def test_reference_driver_learns_inverted_pendulum(algo, extra):
     """Seen here: TD3 solves it at 12k steps, MA-TD3 at 14k (utd 2, one torch thread, seed 0)."""
