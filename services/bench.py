@@ -53,6 +53,7 @@ TARGETS: dict[str, tuple[str, float]] = {
     "learner_k2_vs_td3": ("ge", 0.8),  # 0.95 on CUDA, see target_for()
     "learner_k2_bf16_vs_td3": ("ge", 0.8),  # the same target, met with the opt-in mixed precision?
     "e2e_vs_single_process": ("le", 0.7),
+    "e2e_bf16_vs_single_process": ("le", 0.7),
     "transport_transitions_per_s": ("ge", 50_000.0),
     "weights_latency_p99_ms": ("le", 10.0),
 }
@@ -389,7 +390,7 @@ def _watch_learner(endpoint: str, run: str, until: Callable[[Any, float], bool],
 
 
 def distributed_run(env_id: str, steps: int, start_steps: int, sizes: BenchSizes, device: str,
-                    work_dir: Path, seed: int = 0) -> dict[str, float]:
+                    work_dir: Path, seed: int = 0, precision: str = "fp32") -> dict[str, float]:
     """`mam run --algo td3` (learner + referee + 1 worker) to `steps` transitions at utd=1.
 
     Returns the command's wall time and, seen from a client of the run, the time from the
@@ -400,7 +401,7 @@ def distributed_run(env_id: str, steps: int, start_steps: int, sizes: BenchSizes
     cmd = [sys.executable, "-m", "services.cli", "run", "--env", env_id, "--algo", "td3", "--steps", str(steps),
            "--start-steps", str(start_steps), "--workers", "1", "--utd", "1", "--seed", str(seed),
            "--batch-size", str(sizes.batch_size), "--hidden", ",".join(map(str, sizes.hidden)),
-           "--eval-episodes", "1", "--eval-every", str(100 * steps), "--device", device,
+           "--eval-episodes", "1", "--eval-every", str(100 * steps), "--device", device, "--precision", precision,
            "--run", run, "--run-dir", str(run_dir), "--no-plot"]
     t0 = time.monotonic()
     log_path = work_dir / f"{run}.out"
@@ -447,7 +448,10 @@ def bench_e2e(sizes: BenchSizes, device: str = "cpu", threads: int = 1, log: Cal
         work = Path(work_dir or tmp)
         single = single_process_td3(sizes.e2e_env, n, start, sizes, device)
         dist = distributed_run(sizes.e2e_env, n, start, sizes, device, work)
+        log("end to end: the same with --precision bf16")
+        bf16 = distributed_run(sizes.e2e_env, n, start, sizes, device, work, precision="bf16")
     return {
+        "e2e_bf16_vs_single_process": bf16["to_done_s"] / single, "e2e_bf16_mam_run_to_done_s": bf16["to_done_s"],
         "e2e_env": sizes.e2e_env, "e2e_steps": n, "e2e_start_steps": start,
         "e2e_single_process_s": single,
         "e2e_mam_run_to_done_s": dist["to_done_s"], "e2e_mam_run_wall_s": dist["wall_s"],
@@ -900,6 +904,7 @@ ROWS: tuple[tuple[str, str], ...] = (
     ("learner_humanoid_k2_updates_per_s", "MA-TD3 K=2 updates/s, Humanoid"),
     ("e2e_vs_single_process", "mam run to N ÷ single process (time)"),
     ("e2e_after_startup_vs_single_process", "  same, without process start-up"),
+    ("e2e_bf16_vs_single_process", "  same, mam run --precision bf16 ÷ single process (fp32)"),
     ("e2e_single_process_s", "single-process TD3 loop, s"),
     ("e2e_mam_run_to_done_s", "mam run: start to learner done, s"),
     ("e2e_mam_run_startup_s", "mam run: start to first transition, s"),

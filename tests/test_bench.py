@@ -48,7 +48,7 @@ def test_learner_transport_and_weights_pieces() -> None:
     assert result["device"] == "cpu" and result["torch_threads"] == 1
     assert {"torch", "zenoh", "mujoco", "gymnasium", "python"} <= set(result["versions"])
     assert_positive(result, [
-        "learner_k2_vs_td3", "learner_halfcheetah_k1_vs_td3", "learner_halfcheetah_td3_updates_per_s",
+        "learner_k2_vs_td3", "learner_k2_bf16_vs_td3", "learner_halfcheetah_k1_vs_td3", "learner_halfcheetah_td3_updates_per_s",
         "learner_halfcheetah_k2_updates_per_s", "learner_halfcheetah_k2_vs_td3_cpu_time",
         "transport_transitions_per_s", "transport_bytes_per_transition",
         "weights_latency_p99_ms", "weights_latency_p50_ms", "weights_humanoid_p99_ms", "weights_halfcheetah_bytes"])
@@ -59,7 +59,7 @@ def test_learner_transport_and_weights_pieces() -> None:
 
 def test_end_to_end_and_collection_pieces() -> None:
     result = bench_json(start_bench("--only", "e2e,collection"))
-    assert_positive(result, ["e2e_vs_single_process", "e2e_single_process_s", "e2e_mam_run_to_done_s",
+    assert_positive(result, ["e2e_vs_single_process", "e2e_bf16_vs_single_process", "e2e_single_process_s", "e2e_mam_run_to_done_s",
                              "e2e_mam_run_wall_s", "collection_steps_per_s_m4"])
     assert result["e2e_mam_run_startup_s"] <= result["e2e_mam_run_to_done_s"] <= result["e2e_mam_run_wall_s"]
 
