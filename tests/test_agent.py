@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import io
+import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -304,3 +306,50 @@ def test_bf16_training_tracks_fp32_training():
 def test_precision_is_validated():
     with pytest.raises(ValueError, match="precision"):
         resolve("ma-td3", precision="fp8")
+
+
+def test_many_updates_track_the_reference_td3():
+    """K=1 TD3 and the plain reference (benchmarks/td3_reference.py, nn.Sequential + torch Adam)
+    from the same weights on the same 300 batches (no smoothing noise: the two draw it from
+    different streams) agree to float rounding. One update is not enough to see an optimizer bug:
+    a fused Adam reading transposed gradients passed the one-step loss check and failed this."""
+    import copy
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from benchmarks.td3_reference import TD3
+
+    obs_dim, act_dim = 11, 2
+    agent = MultiActorAgent(resolve("td3", hidden=(64, 64), batch_size=64, policy_noise=0.0, seed=0),
+                            EnvSpec(obs_dim, act_dim, (1.0,) * act_dim))
+    ref = TD3(obs_dim, act_dim, 1.0, policy_noise=0.0, hidden=64)
+
+    def linears(seq):
+        return [m for m in seq if isinstance(m, torch.nn.Linear)]
+
+    with torch.no_grad():
+        for seq, net, member in ((ref.actor.net, agent.actor.net, 0), (ref.critic.q1, agent.critic.net, 0),
+                                 (ref.critic.q2, agent.critic.net, 1)):
+            for i, lin in enumerate(linears(seq)):
+                lin.weight.copy_(net.weights[i][member].T)
+                lin.bias.copy_(net.biases[i][member, 0])
+    ref.actor_target, ref.critic_target = copy.deepcopy(ref.actor), copy.deepcopy(ref.critic)
+    ref.actor_optimizer = torch.optim.Adam(ref.actor.parameters(), lr=3e-4)
+    ref.critic_optimizer = torch.optim.Adam(ref.critic.parameters(), lr=3e-4)
+    g = torch.Generator().manual_seed(0)
+    w = torch.randn(obs_dim, generator=g)
+    for _ in range(300):
+        s, s2 = torch.randn(64, obs_dim, generator=g), torch.randn(64, obs_dim, generator=g)
+        a = torch.rand(64, act_dim, generator=g) * 2 - 1
+        r = s @ w - (a ** 2).sum(1)
+        agent.update({"obs": s, "action": a, "reward": r, "next_obs": s2, "not_done": torch.ones(64)})
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ref.train(s, a, r.unsqueeze(1), s2, torch.ones(64, 1))
+    with torch.no_grad():
+        for seq, net, member in ((ref.actor.net, agent.actor.net, 0), (ref.critic.q1, agent.critic.net, 0),
+                                 (ref.critic.q2, agent.critic.net, 1), (ref.actor_target.net, agent.actor_target.net, 0),
+                                 (ref.critic_target.q2, agent.critic_target.net, 1)):
+            for i, lin in enumerate(linears(seq)):
+                torch.testing.assert_close(net.weights[i][member].T, lin.weight, rtol=0, atol=1e-5)
+                torch.testing.assert_close(net.biases[i][member, 0], lin.bias, rtol=0, atol=1e-5)
