@@ -351,9 +351,12 @@ def load_run(path: Path, env: str | None = None, variant: str | None = None) -> 
 
 def bias_points(rows: list[dict[str, Any]]) -> list[tuple[float, float]]:
     """(point, bias rate) per measurement of a run: the mean of Eq. 17 over the actors live at
-    that point (after the elimination: the survivor's). Points with no finite rate are left out."""
+    that point (after the elimination: the survivor's). Points with no finite rate are left out,
+    and so are points before the first update (the critic is still its random initialisation)."""
     by_point: dict[float, list[float]] = {}
     for r in rows:
+        if r.get("updates") == 0:
+            continue
         point = _finite(r.get("point", r.get("env_steps")))
         rate = _finite(r["bias"].get("bias_rate")) if isinstance(r.get("bias"), dict) else None
         if point is not None and rate is not None:

@@ -504,7 +504,7 @@ def write_bias(run_dir: Path, rows: list[tuple[int, int, float]]) -> None:
     """bias.jsonl as the learner writes it: one row per (point, live actor)."""
     with open(run_dir / "bias.jsonl", "w") as f:
         for point, actor, rate in rows:
-            f.write(json.dumps({"env_steps": point + 2, "point": point, "bias": {
+            f.write(json.dumps({"env_steps": point + 2, "point": point, "updates": point, "bias": {
                 "actor": actor, "q_estimate": 1.0, "q_true": 1.0, "bias": 0.0, "bias_rate": rate}}) + "\n")
 
 
@@ -517,10 +517,13 @@ def test_report_aggregates_the_eq17_bias_rate_over_actors_and_seeds(tmp_path):
     write_bias(ma / "seed1", [(500, 0, 0.5), (500, 1, 0.5), (1000, 1, 0.1)])
     (ma / "seed2" / "bias.jsonl").write_text('{"point": 500, "bias": {"actor": 0, "bias_rate": NaN}}\n')
     write_bias(exp / "Toy-v0" / "td3" / "seed0", [(500, 0, 0.6), (1000, 0, 0.4)])
+    with open(exp / "Toy-v0" / "td3" / "seed0" / "bias.jsonl", "a") as f:  # before the first update: left out
+        f.write(json.dumps({"point": 200, "updates": 0, "bias": {"actor": 0, "bias_rate": 0.99}}) + "\n")
     report, md, pngs = write_report(exp, n_boot=200)
     ma_b, td3_b = report.bias["Toy-v0"]
     assert (ma_b.variant, ma_b.n, td3_b.variant, td3_b.n) == ("ma-td3", 2, "td3", 1)  # seed2: no finite rate
     np.testing.assert_allclose(ma_b.points, [500, 1000])
+    np.testing.assert_allclose(td3_b.points, [500, 1000])  # the point before any update is left out
     np.testing.assert_allclose(ma_b.rates, [[0.3, -0.1], [0.5, 0.1]])
     np.testing.assert_allclose(ma_b.per_run(np.mean), [0.1, 0.3])
     np.testing.assert_allclose(ma_b.per_run(lambda x: np.mean(np.abs(x))), [0.2, 0.3])
