@@ -374,9 +374,13 @@ class Learner:
         live = self.agent.live_actors
         seed = 1_000_003 * (self.algo.seed + 1) + point // self.cfg.bias_every * 1_009
         for k in (k for k, alive in enumerate(live) if alive):
-            result = estimation_bias(lambda obs, k=k: self.agent.act(obs, k),
-                                     lambda obs, act, k=k: self.agent.q_value(obs, act, k),
-                                     self.cfg.env_id, self.cfg.bias_rollouts, self.algo.gamma, seed)
+            try:
+                result = estimation_bias(lambda obs, k=k: self.agent.act(obs, k),
+                                         lambda obs, act, k=k: self.agent.q_value(obs, act, k),
+                                         self.cfg.env_id, self.cfg.bias_rollouts, self.algo.gamma, seed)
+            except Exception:  # a diagnostic never stops the training
+                log.exception("bias measurement at %d transitions failed (actor %d)", point, k)
+                continue
             self.bias_writer.write({"env_steps": self.env_steps, "point": point, "updates": self.agent.updates,
                                     "live": list(live), "rollouts": self.cfg.bias_rollouts,
                                     "bias": {"actor": k, **result}})
