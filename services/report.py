@@ -986,7 +986,7 @@ def report_command(
     no_figures: Annotated[bool, typer.Option("--no-figures", help="tables only, no PNGs")] = False,
 ) -> None:
     """Tables (last-10 mean, IQM and P(improvement) with 95% CIs, Table 4's max average return,
-    updates, wall time) and figures (learning curves with CI bands, allocation) of an experiment."""
+    updates, wall time, Eq. 17 bias) and figures (learning curves with CI bands, allocation, bias) of an experiment."""
     from rich.console import Console
 
     console = Console()
