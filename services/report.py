@@ -21,7 +21,10 @@ Per env and variant the report gives:
 - probability of improvement P(X > Y) (MA-TD3 vs TD3, MA-DDPG vs DDPG, the full method vs each
   ablation / η variant) with a stratified-bootstrap 95% CI, per env and over all envs;
 - updates, env steps and wall time per algorithm; for AppleCollect the share of runs whose final
-  policy reaches a 50 apple (final return ≥ 40) with a Wilson 95% interval.
+  policy reaches a 50 apple (final return ≥ 40) with a Wilson 95% interval;
+- for runs with `--bias-every` (the learner's `bias.jsonl`): the Eq. 17 bias rate per point
+  (mean over the live actors; points before the first update left out), per run its mean, mean
+  absolute value and last value, then mean ± std over seeds, and the Fig. 3 curve (mean ± 1 std).
 
 Across envs (when there are several), scores are range-normalised per env — (x − min)/(max − min)
 over every finished run of that env — and the IQM uses a stratified bootstrap: seeds are resampled
