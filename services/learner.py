@@ -393,6 +393,8 @@ class Learner:
 
     def finish(self) -> None:
         """Budget reached: final weights, checkpoint, then tell everyone until they have left."""
+        if self.next_bias is not None and self.env_steps >= self.next_bias:
+            self.measure_bias()  # a point at the budget itself: the loop leaves before checking it
         self.publish_weights(all_actors=True)
         self.write_log()
         self.checkpoint()

@@ -384,16 +384,29 @@ class BiasStats:
                            for row in self.rates])
 
 
-def bias_stats(variant: str, runs: Sequence[RunRecord]) -> BiasStats | None:
+def bias_stats(variant: str, runs: Sequence[RunRecord], points: Sequence[float] | None = None) -> BiasStats | None:
+    """`points`: only these (e.g. the points every run of the env measured), else every point."""
     measured = [r for r in runs if r.bias]
     if not measured:
         return None
-    points = np.asarray(sorted({p for r in measured for p, _ in r.bias}))
+    if points is None:
+        points = sorted({p for r in measured for p, _ in r.bias})
+    points = np.asarray(sorted(points), dtype=float)
+    if not points.size:
+        return None
     rates = np.full((len(measured), points.size), np.nan)
     for i, r in enumerate(measured):
         for p, rate in r.bias:
-            rates[i, np.searchsorted(points, p)] = rate
+            j = np.searchsorted(points, p)
+            if j < points.size and points[j] == p:
+                rates[i, j] = rate
     return BiasStats(variant, points, rates)
+
+
+def common_bias_points(runs: Sequence[RunRecord]) -> list[float]:
+    """The bias points every measured run of an env has: the table compares like with like."""
+    sets = [{p for p, _ in r.bias} for r in runs if r.bias]
+    return sorted(set.intersection(*sets)) if sets else []
 
 
 def load_runs(exp_dir: Path) -> list[RunRecord]:
@@ -600,8 +613,10 @@ def build_report(exp_dir: Path, n_boot: int = N_BOOT, seed: int = 0) -> Report:
                     strata.append((v.last10[np.isfinite(v.last10)] - lo) / (hi - lo))
             if len(strata) > 1:
                 aggregate.append((name, len(strata), iqm_ci(strata, n_boot, seed=seed)))
-    bias = {env: [b for b in (bias_stats(v.variant, v.runs) for v in vs) if b is not None]
-            for env, vs in envs.items()}
+    bias = {}
+    for env, vs in envs.items():
+        common = common_bias_points([r for v in vs for r in v.runs])
+        bias[env] = [b for b in (bias_stats(v.variant, v.runs, common) for v in vs) if b is not None]
     bias = {env: bs for env, bs in bias.items() if bs}
     meta = _read_json(exp_dir / "experiment.json")
     return Report(exp_dir, envs, bias, comparisons, aggregate, missing, meta)
@@ -709,8 +724,9 @@ def render_markdown(report: Report, figures: dict[str, list[Path]], out: Path) -
             lines += ["", f"### Estimation bias (Eq. 17), {env}", "",
                       "Bias rate (Q̂ − Q*)/|Q*| of the critic at the start states against the Monte-Carlo discounted "
                       "return of the current policy, measured by the learner every `--bias-every` transitions (mean "
-                      "over the live actors); per run the mean (and mean absolute value) over its points and its last "
-                      "point, then mean ± std over seeds. > 0: over-estimation.", "", _md_table(header, rows)]
+                      "over the live actors), at the points every run of the env measured (before the first update "
+                      "left out); per run the mean (and mean absolute value) over those points and its last one, then "
+                      "mean ± std over seeds. > 0: over-estimation.", "", _md_table(header, rows)]
             for path in figures.get(f"bias:{env}", []):
                 lines += ["", f"![{path.stem}]({_rel(path, out)})"]
     if report.comparisons:

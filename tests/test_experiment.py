@@ -533,3 +533,14 @@ def test_report_aggregates_the_eq17_bias_rate_over_actors_and_seeds(tmp_path):
     text = md.read_text()
     assert "Estimation bias (Eq. 17), Toy-v0" in text and "figures/bias_Toy-v0.png" in text
     assert (exp / "figures" / "bias_Toy-v0.png").read_bytes()[:8] == PNG_MAGIC
+
+
+def test_report_compares_bias_only_at_points_every_run_measured(tmp_path):
+    exp = tmp_path / "exp"
+    make_experiment(exp)
+    write_bias(exp / "Toy-v0" / "ma-td3" / "seed0", [(500, 0, 0.2), (1000, 0, 0.4)])
+    write_bias(exp / "Toy-v0" / "td3" / "seed0", [(500, 0, 0.6)])  # no point at 1000
+    ma_b, td3_b = build_report(exp, n_boot=100).bias["Toy-v0"]
+    np.testing.assert_allclose(ma_b.points, [500])
+    np.testing.assert_allclose(ma_b.rates, [[0.2]])
+    np.testing.assert_allclose(td3_b.rates, [[0.6]])

@@ -85,14 +85,18 @@ def test_mam_run_mujoco_end_to_end(tmp_path: Path) -> None:
     a, c, m, start, steps = 500, 1500, 3, 500, 2500
     mam("run", "--env", "InvertedPendulum-v5", "--algo", "ma-td3", "--steps", str(steps), "--workers", str(m),
         "--actors", "2", "--compete-every", str(a), "--eliminate-at", str(c), "--start-steps", str(start),
-        "--eval-every", "500", "--seed", "2", *SMALL, "--bias-every", "1000", "--bias-rollouts", "4",
+        "--eval-every", "500", "--seed", "2", *SMALL, "--bias-every", "1250", "--bias-rollouts", "4",
         "--run", run_name, "--run-dir", str(run_dir))
     run = load(run_dir)
     assert_exactly_once(run)
-    # Eq. 17, measured by the learner at every 1000 transitions for each live actor, once the
-    # critic has had the point's updates.
+    # Eq. 17, measured by the learner at every 1250 transitions for each live actor, once the
+    # critic has had the point's updates; the last point is the budget itself.
     bias = [json.loads(line) for line in (run_dir / "bias.jsonl").read_text().splitlines()]
-    assert [(r["point"], r["bias"]["actor"]) for r in bias] == [(1000, 0), (1000, 1), (2000, run["summary"]["survivor"])]
+    assert sorted({r["point"] for r in bias}) == [1250, 2500]
+    for point in (1250, 2500):  # every actor live at the measurement (the elimination may come first)
+        rows = [r for r in bias if r["point"] == point]
+        assert [r["bias"]["actor"] for r in rows] == [k for k, live in enumerate(rows[0]["live"]) if live]
+    assert [r["bias"]["actor"] for r in bias if r["point"] == 2500] == [run["summary"]["survivor"]]
     for r in bias:
         b = r["bias"]
         assert r["env_steps"] >= r["point"] and r["updates"] >= r["point"] - start and r["rollouts"] == 4
