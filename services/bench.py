@@ -839,7 +839,7 @@ def profile_worker_step(env_id: str = "HalfCheetah-v5", steps: int = 2000, hidde
     us = 1e6 / steps
     torch_us, numpy_us = t_pol * 1e6 / max(n_torch, 1), t_np * 1e6 / max(n_np, 1)
     rest = (t_env + t_enc + t_pub) * us
-    return {"env.step (+ noise, clip)": t_env * us, "policy forward, torch (as the worker runs it)": torch_us,
+    return {"env.step (+ noise, clip)": t_env * us, "policy forward, torch (the worker before numpy_policy)": torch_us,
             "policy forward, numpy_policy": numpy_us, "encode (per transition)": t_enc * us,
             "publish (per transition)": t_pub * us, "total with the torch forward": rest + torch_us,
             "total with numpy_policy": rest + numpy_us}
