@@ -118,6 +118,12 @@ class Learner:
             self.buffer.load_state_dict(state["replay"])
         # Sequence numbers go on from the checkpoint: a gap then counts what died with the old learner.
         self.tracker.restore(json.loads(c.get("per_worker", "{}")))
+        # Policy versions jump past anything the dead incarnation can have published after this
+        # checkpoint (at most checkpoint_every updates, one actor step per policy_delay of them).
+        # Otherwise workers keep its newer-numbered weights, tag their transitions with versions
+        # this learner has not reached, and those are rejected as future versions: a stall.
+        jump = self.cfg.checkpoint_every // self.algo.policy_delay + 2
+        self.agent.versions = [v + jump for v in self.agent.versions]
         live = self.agent.live_actors
         if sum(live) == 1 and self.algo.actors > 1:
             self.survivor = live.index(True)
