@@ -753,40 +753,28 @@ def _rel(path: Path, out: Path) -> str:
         return str(path)
 
 
-def print_tables(report: Report, console: Any) -> None:
+def _rich_table(title: str, header: Sequence[str], rows: Sequence[Sequence[str]], fold: bool = False) -> Any:
     from rich.table import Table
 
+    table = Table(title=title)
+    for h in header:
+        table.add_column(h, overflow="fold" if fold else "ellipsis")
+    for row in rows:
+        table.add_row(*row)
+    return table
+
+
+def print_tables(report: Report, console: Any) -> None:
     for env, vs in report.envs.items():
-        header, rows = env_rows(vs)
-        table = Table(title=env, show_lines=False)
-        for h in header:
-            table.add_column(h, overflow="fold")
-        for row in rows:
-            table.add_row(*row)
-        console.print(table)
+        console.print(_rich_table(env, *env_rows(vs), fold=True))
     for env, bs in report.bias.items():
-        header, rows = bias_rows(bs)
-        table = Table(title=f"Estimation bias (Eq. 17), {env}")
-        for h in header:
-            table.add_column(h)
-        for row in rows:
-            table.add_row(*row)
-        console.print(table)
+        console.print(_rich_table(f"Estimation bias (Eq. 17), {env}", *bias_rows(bs)))
     if report.comparisons:
-        header, rows = comparison_rows(report.comparisons)
-        table = Table(title="Probability of improvement (last-10 scores)")
-        for h in header:
-            table.add_column(h)
-        for row in rows:
-            table.add_row(*row)
-        console.print(table)
+        console.print(_rich_table("Probability of improvement (last-10 scores)", *comparison_rows(report.comparisons)))
     if report.aggregate:
-        table = Table(title="Aggregate over envs: IQM of range-normalised scores")
-        for h in ("variant", "envs", "normalised IQM", "95% CI"):
-            table.add_column(h)
-        for name, n, i in report.aggregate:
-            table.add_row(name, str(n), _fmt(i.value, 3), _ci(i, 3))
-        console.print(table)
+        rows = [[name, str(n), _fmt(i.value, 3), _ci(i, 3)] for name, n, i in report.aggregate]
+        console.print(_rich_table("Aggregate over envs: IQM of range-normalised scores",
+                                  ("variant", "envs", "normalised IQM", "95% CI"), rows))
     if report.missing:
         console.print(f"[yellow]{len(report.missing)} planned run(s) not finished[/]")
 
