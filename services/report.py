@@ -797,6 +797,15 @@ def _save(fig: Any, path: Path) -> Path:
     return path
 
 
+def _label_steps_axes(ax: Any, ylabel: str, title: str) -> None:
+    """Labels, grid and legend of a plot over env steps."""
+    ax.set_xlabel("env steps (transitions received by the learner)")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize="small")
+
+
 def curve_band(curves: np.ndarray, n_boot: int = N_BOOT, confidence: float = CONFIDENCE, seed: int = 0,
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mean over runs at each grid point and a bootstrap CI band (runs resampled; NaN where a run
@@ -835,11 +844,8 @@ def plot_env_curves(env: str, vs: Sequence[VariantStats], path: Path, n_boot: in
             ax.axvline(c, color=color, linestyle=":", linewidth=1.0)
     if is_apple_collect(env):
         ax.axhline(SUCCESS_RETURN, color="0.5", linestyle="--", linewidth=0.8, label=f"return {SUCCESS_RETURN:g}")
-    ax.set_xlabel("env steps (transitions received by the learner)")
-    ax.set_ylabel("evaluation return (best live actor)")
-    ax.set_title(f"{env}: mean over seeds, 95% bootstrap CI (dotted: elimination C)")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize="small")
+    _label_steps_axes(ax, "evaluation return (best live actor)",
+                      f"{env}: mean over seeds, 95% bootstrap CI (dotted: elimination C)")
     return _save(fig, path)
 
 
@@ -917,11 +923,7 @@ def plot_bias(env: str, bs: Sequence[BiasStats], path: Path) -> Path | None:
                 label=f"{b.variant} (n={b.n})")
         ax.fill_between(b.points[ok], mean - std, mean + std, color=color, alpha=0.18, linewidth=0)
     ax.axhline(0.0, color="0.3", linewidth=0.8)
-    ax.set_xlabel("env steps (transitions received by the learner)")
-    ax.set_ylabel("bias rate $(\\hat Q - Q^*)/|Q^*|$ (Eq. 17)")
-    ax.set_title(f"{env}: estimation bias, mean over seeds ± 1 std")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize="small")
+    _label_steps_axes(ax, "bias rate $(\\hat Q - Q^*)/|Q^*|$ (Eq. 17)", f"{env}: estimation bias, mean over seeds ± 1 std")
     return _save(fig, path)
 
 
