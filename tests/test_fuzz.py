@@ -131,6 +131,14 @@ def malformed(key: str, payload: bytes, rng: np.random.Generator, i: int, run: s
 def test_fuzz_every_topic_while_a_run_goes_on(tmp_path: Path) -> None:
     run, endpoint = unique_run("fuzz"), bus.loopback_endpoint(bus.free_tcp_port())
     steps = 3000
+    # Every malformed message is made before the run starts: sending is then quick enough to end
+    # long before the budget (making them while sending took longer than the run on a loaded CI box,
+    # and what arrives after the learner has finished cannot be counted by it).
+    rng = np.random.default_rng(0)
+    base = valid_messages(run)
+    fuzz = [(key, malformed(key, payload, rng, i, run)) for i in range(PER_TOPIC) for key, payload in base.items()]
+    huge = rng.bytes(70 * 1024 * 1024)  # over every size cap
+    fuzz += [(keys.transitions(run, "w0"), huge), (keys.weights(run, 0), huge)]
     learner = spawn("learner", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--steps", str(steps),
                     "--start-steps", "300", "--compete-every", "500", "--eliminate-at", "2000", "--hidden", "32,32",
                     "--batch-size", "32", "--eval-episodes", "3", "--run", run, "--listen", endpoint,
@@ -150,17 +158,15 @@ def test_fuzz_every_topic_while_a_run_goes_on(tmp_path: Path) -> None:
                     LearnerStats.from_bytes(stats.get(keys.learner_stats(run)).payload).env_steps < 400:
                 assert time.monotonic() < deadline, "the run did not start"
                 time.sleep(0.1)
-            rng = np.random.default_rng(0)
-            base = valid_messages(run)
             pubs = {key: bus.declare_reliable_publisher(s, key) for key in base}
-            for i in range(PER_TOPIC):
-                for key, payload in base.items():
-                    pubs[key].put(malformed(key, payload, rng, i, run))
-                    sent[key] += 1
-            huge = rng.bytes(70 * 1024 * 1024)  # over every size cap
-            for key in (keys.transitions(run, "w0"), keys.weights(run, 0)):
-                pubs[key].put(huge)
+            for key, payload in fuzz:
+                pubs[key].put(payload)
                 sent[key] += 1
+            # The premise of the count below: the learner was still taking transitions when the last
+            # malformed one was sent (stats are published several times a second).
+            time.sleep(0.5)
+            at_end = LearnerStats.from_bytes(stats.get(keys.learner_stats(run)).payload)
+            assert at_end.env_steps < steps, "the run reached its budget before the fuzz was sent"
             deadline = time.monotonic() + 240
             while not (tmp_path / "summary.json").is_file():
                 assert time.monotonic() < deadline, "the run did not finish under fuzzing"
