@@ -10,7 +10,6 @@ from __future__ import annotations
 import copy
 import ctypes
 import sys
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -18,38 +17,7 @@ import torch
 
 from mam_core.config import AlgoConfig
 from mam_core.ensemble import ActorEnsemble, CriticEnsemble, soft_update
-
-
-@dataclass(frozen=True)
-class EnvSpec:
-    """What the networks need to know about an environment."""
-
-    obs_dim: int
-    act_dim: int
-    max_action: tuple[float, ...]  # per action dimension, symmetric bounds ±max_action
-
-    @classmethod
-    def from_env(cls, env: Any) -> "EnvSpec":
-        space = env.action_space
-        if not np.allclose(space.low, -space.high):
-            raise ValueError("only symmetric action bounds (low == -high) are supported")
-        return cls(int(np.prod(env.observation_space.shape)), int(space.shape[0]),
-                   tuple(float(h) for h in space.high))
-
-    @classmethod
-    def from_env_id(cls, env_id: str) -> "EnvSpec":
-        import gymnasium as gym
-
-        import mam_core.envs  # noqa: F401  (registers AppleCollect-v0)
-
-        env = gym.make(env_id)
-        try:
-            return cls.from_env(env)
-        finally:
-            env.close()
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"obs_dim": self.obs_dim, "act_dim": self.act_dim, "max_action": list(self.max_action)}
+from mam_core.policy import EnvSpec  # noqa: F401  (re-exported: EnvSpec lives with the torch-free code)
 
 
 def weighted_target(q_next: torch.Tensor, eta: float) -> torch.Tensor:

@@ -7,11 +7,13 @@ over the whole ensemble is one `baddbmm` per layer instead of a Python loop over
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
 from torch import nn
+
+from mam_core.policy import Policy, member_shapes, mlp_policy
 
 
 Members = slice | torch.Tensor | None
@@ -139,11 +141,7 @@ class EnsembleMLP(nn.Module):
         return out
 
     def member_shapes(self) -> dict[str, tuple[int, ...]]:
-        shapes: dict[str, tuple[int, ...]] = {}
-        for i, (fan_in, fan_out) in enumerate(zip(self.sizes[:-1], self.sizes[1:])):
-            shapes[f"w{i}"] = (fan_in, fan_out)
-            shapes[f"b{i}"] = (1, fan_out)
-        return shapes
+        return member_shapes(self.sizes[0], self.sizes[1:-1], self.sizes[-1])
 
     @torch.no_grad()
     def load_member(self, k: int, params: dict[str, np.ndarray]) -> None:
@@ -167,7 +165,7 @@ class ActorEnsemble(nn.Module):
         """obs: [B, obs_dim] shared by all members, or [E, B, obs_dim] -> actions [E, B, act_dim]."""
         return self.max_action * torch.tanh(self.net(obs, members))
 
-    def numpy_policy(self, k: int) -> Callable[[np.ndarray], np.ndarray]:
+    def numpy_policy(self, k: int) -> Policy:
         """Actor k as a numpy function, obs [obs_dim] or [B, obs_dim] -> action(s), for the
         per-step inference of a worker or an evaluation loop.
 
@@ -179,18 +177,7 @@ class ActorEnsemble(nn.Module):
         if self.max_action.device.type != "cpu":
             raise ValueError("numpy_policy needs the ensemble on the CPU")
         layers = [(w[k].detach().numpy(), b[k, 0].detach().numpy()) for w, b in zip(self.net.weights, self.net.biases)]
-        max_action = self.max_action.numpy()
-        last = len(layers) - 1
-
-        def policy(obs: np.ndarray) -> np.ndarray:
-            h = np.asarray(obs, np.float32)
-            for i, (w, b) in enumerate(layers):
-                h = h @ w + b
-                if i < last:
-                    np.maximum(h, 0.0, out=h)
-            return max_action * np.tanh(h)
-
-        return policy
+        return mlp_policy(layers, self.max_action.numpy())
 
 
 class CriticEnsemble(nn.Module):

@@ -18,6 +18,8 @@ from typing import Any, overload
 
 import numpy as np
 
+from mam_core.config import AlgoConfig
+
 # Mixed signs / zeros: shift so the worst actor sits at this fraction of the return spread
 # above zero. It keeps a small, non-zero chance for the worst actor (it is not eliminated
 # before C) while the ordering and the relative gaps of the others are preserved.
@@ -281,3 +283,10 @@ class Obsolescence:
         state.last_evaluation_step = None if step is None else int(step)
         state.last_round_at = int(data["last_round_at"])
         return state
+
+
+def obsolescence_for(cfg: AlgoConfig) -> Obsolescence:
+    """The schedule an algorithm configuration asks for (disabled for K=1 and `no_ot`)."""
+    return Obsolescence(ObsolescenceConfig(
+        n_actors=cfg.actors, compete_every=cfg.compete_every,
+        eliminate_at=max(cfg.eliminate_at, 1), enabled=not cfg.no_ot and cfg.actors > 1))

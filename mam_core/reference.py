@@ -22,7 +22,7 @@ import mam_core.envs  # noqa: F401  (registers AppleCollect-v0)
 from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
 from mam_core.config import AlgoConfig
 from mam_core.evaluation import evaluate_policy
-from mam_core.obsolescence import Obsolescence, ObsolescenceConfig
+from mam_core.obsolescence import obsolescence_for
 from mam_core.replay import ReplayBuffer
 
 
@@ -39,12 +39,6 @@ class ReferenceResult:
         """Mean return of the best live actor at the last evaluation."""
         last = self.evaluations[-1]
         return max(m for m in last["mean"] if m is not None)
-
-
-def obsolescence_for(cfg: AlgoConfig) -> Obsolescence:
-    return Obsolescence(ObsolescenceConfig(
-        n_actors=cfg.actors, compete_every=cfg.compete_every,
-        eliminate_at=max(cfg.eliminate_at, 1), enabled=not cfg.no_ot and cfg.actors > 1))
 
 
 def run_reference(env_id: str, cfg: AlgoConfig, steps: int,

@@ -28,7 +28,7 @@ from mam_core.replay import ReplayBuffer
 from services import bus, keys, options
 from services.codec import (Allocation, Done, LearnerStats, MessageError, TransitionBatch, TransitionSpec,
                             Weights, decode, encode)
-from services.options import RunConfig, write_json
+from services.options import JsonlWriter, RunConfig, write_json
 
 log = logging.getLogger("mam.learner")
 
@@ -36,20 +36,6 @@ STATS_PERIOD_S = 0.1
 LOG_PERIOD_S = 1.0
 HEARTBEAT_S = 2.0  # config re-published this often
 CHECKPOINT_FILE = "learner.pt"
-
-
-class JsonlWriter:
-    """Append-only JSON lines, flushed per row so a crash loses at most one line."""
-
-    def __init__(self, path: Path) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = open(path, "a", buffering=1)
-
-    def write(self, row: dict[str, Any]) -> None:
-        self._f.write(json.dumps(row, allow_nan=True) + "\n")
-
-    def close(self) -> None:
-        self._f.close()
 
 
 def save_checkpoint(run_dir: Path, agent: MultiActorAgent, buffer: ReplayBuffer, counters: dict[str, Any],

@@ -195,3 +195,17 @@ def write_json(path: Path, data: Any) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(json.dumps(data, indent=2, sort_keys=True))
     os.replace(tmp, path)
+
+
+class JsonlWriter:
+    """Append-only JSON lines, flushed per row so a crash loses at most one line."""
+
+    def __init__(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._f = open(path, "a", buffering=1)
+
+    def write(self, row: dict[str, Any]) -> None:
+        self._f.write(json.dumps(row, allow_nan=True) + "\n")
+
+    def close(self) -> None:
+        self._f.close()

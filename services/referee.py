@@ -20,19 +20,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 import typer
 
 import mam_core.envs  # noqa: F401
-from mam_core.agent import EnvSpec
-from mam_core.ensemble import ActorEnsemble
 from mam_core.evaluation import evaluate_policy
-from mam_core.obsolescence import Obsolescence, counts
-from mam_core.reference import obsolescence_for
+from mam_core.obsolescence import Obsolescence, counts, obsolescence_for
+from mam_core.policy import EnvSpec, NumpyActors, Policy
 from services import bus, keys, options
 from services.codec import Allocation, Eval, LearnerStats, MessageError, Weights, encode
-from services.learner import JsonlWriter
-from services.options import RunConfig, write_json
+from services.options import JsonlWriter, RunConfig, write_json
 from services.worker import REPORT_EVERY_S, fetch_config, plausible_version
 
 log = logging.getLogger("mam.referee")
@@ -50,10 +46,8 @@ class Referee:
         self.id = f"{socket.gethostname()}-{os.getpid()}"
         self.rejects = bus.RejectLog(log, "message")
         self.spec = EnvSpec.from_env_id(cfg.env_id)
-        torch.set_num_threads(1)
-        self.actors = ActorEnsemble(self.algo.actors, self.spec.obs_dim, self.spec.act_dim, self.algo.hidden,
-                                    np.asarray(self.spec.max_action, np.float32)).requires_grad_(False)
-        self.shapes = self.actors.net.member_shapes()
+        self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden)  # acting only: no torch
+        self.shapes = self.actors.shapes
         self.versions = [-1] * self.algo.actors
         self.schedule: Obsolescence = obsolescence_for(self.algo)
         self.rng = np.random.default_rng(self.algo.seed + 17)
@@ -146,7 +140,7 @@ class Referee:
                 self.rejects.reject(keys.parse_last(key), MessageError("future_version", f"v{w.version}"))
                 continue
             if w.version >= self.versions[w.actor]:
-                self.actors.net.load_member(w.actor, w.params)
+                self.actors.load_member(w.actor, w.params)
                 self.versions[w.actor] = w.version
         item = self.stats_sub.fresh().get(keys.learner_stats(self.cfg.run))
         if item is not None:
@@ -156,8 +150,8 @@ class Referee:
                 self.rejects.reject("learner", e)
 
     # -- evaluation and competition -------------------------------------------------------------
-    def policy(self, k: int):
-        return self.actors.numpy_policy(k)  # numpy on views of the loaded weights: no torch dispatch per step
+    def policy(self, k: int) -> Policy:
+        return self.actors.policy(k)
 
     def evaluate(self, steps: int, only_live: bool = True) -> list[float | None]:
         """Deterministic returns of each live actor (eval.jsonl row, `eval` topic)."""

@@ -21,12 +21,10 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-import torch
 import typer
 
 import mam_core.envs  # noqa: F401  (registers AppleCollect-v0)
-from mam_core.agent import EnvSpec
-from mam_core.ensemble import ActorEnsemble
+from mam_core.policy import EnvSpec, NumpyActors
 from services import bus, keys, options
 from services.codec import Allocation, LearnerStats, MessageError, TransitionBatch, Weights, decode, encode
 from services.options import RunConfig, write_json
@@ -88,13 +86,11 @@ class Worker:
         self.rng = np.random.default_rng(seed)
         self.env.action_space.seed(seed)
         self.obs, _ = self.env.reset(seed=seed)
-        torch.set_num_threads(1)
-        self.actors = ActorEnsemble(self.algo.actors, self.spec.obs_dim, self.spec.act_dim, self.algo.hidden,
-                                    self.max_action).requires_grad_(False)
-        # numpy forwards on views of the parameters (load_member copies in place): a one-row torch
-        # forward costs ~100 µs of dispatch between env steps, this ~14 µs (docs/PERFORMANCE.md)
-        self.policies = [self.actors.numpy_policy(k) for k in range(self.algo.actors)]
-        self.shapes = self.actors.net.member_shapes()
+        # numpy forwards, no torch in a worker: a one-row torch forward costs ~100 µs of dispatch
+        # between env steps, this ~14 µs, and importing torch seconds and ~300 MB (docs/PERFORMANCE.md)
+        self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden)
+        self.policies = [self.actors.policy(k) for k in range(self.algo.actors)]
+        self.shapes = self.actors.shapes
         self.versions = [-1] * self.algo.actors  # -1: no weights yet
         self.actor = slot_index % self.algo.actors  # until the first allocation arrives
         self.stats: LearnerStats | None = None
@@ -199,7 +195,7 @@ class Worker:
                 self.rejects.reject(keys.parse_last(key), MessageError("future_version", f"v{w.version}"))
                 continue
             if w.version > self.versions[w.actor] or self.versions[w.actor] < 0:
-                self.actors.net.load_member(w.actor, w.params)
+                self.actors.load_member(w.actor, w.params)
                 self.versions[w.actor] = w.version
         item = self.allocation.fresh().get(keys.allocation(self.cfg.run))
         if item is not None:
