@@ -63,7 +63,7 @@ def adam_step(opt: torch.optim.Optimizer, loss: torch.Tensor, params: list[torch
     transposed weight gradients, and torch's fused CPU Adam (2.13) reads a strided gradient as
     if it were contiguous, i.e. it applies another element's gradient (measured: a [2, 8, 4]
     parameter with a transposed gradient moved 0.2 away from plain Adam after one step at
-    lr 0.1). `tests/test_agent.py` checks 1,000 updates against the reference TD3.
+    lr 0.1). `tests/test_agent.py` checks 300 updates against the reference TD3.
     """
     grads = torch.autograd.grad(loss, params)
     for p, g in zip(params, grads):

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from mam_core.policy import Policy, member_shapes, mlp_policy
+from mam_core.policy import member_shapes
 
 
 Members = slice | torch.Tensor | None
@@ -164,20 +164,6 @@ class ActorEnsemble(nn.Module):
     def forward(self, obs: torch.Tensor, members: Members = None) -> torch.Tensor:
         """obs: [B, obs_dim] shared by all members, or [E, B, obs_dim] -> actions [E, B, act_dim]."""
         return self.max_action * torch.tanh(self.net(obs, members))
-
-    def numpy_policy(self, k: int) -> Policy:
-        """Actor k as a numpy function, obs [obs_dim] or [B, obs_dim] -> action(s), for the
-        per-step inference of a worker or an evaluation loop.
-
-        For one row, torch's per-op dispatch dominates a forward pass (~90 µs next to a
-        MuJoCo step, against ~12 µs here, docs/PERFORMANCE.md). The function reads numpy
-        views of this CPU module's parameters, so `load_member` updates are seen at once.
-        Equal to `forward` up to float32 rounding.
-        """
-        if self.max_action.device.type != "cpu":
-            raise ValueError("numpy_policy needs the ensemble on the CPU")
-        layers = [(w[k].detach().numpy(), b[k, 0].detach().numpy()) for w, b in zip(self.net.weights, self.net.biases)]
-        return mlp_policy(layers, self.max_action.numpy())
 
 
 class CriticEnsemble(nn.Module):

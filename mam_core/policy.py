@@ -3,8 +3,8 @@
 Workers and the referee only run policies forward, one observation (or a few) at a time.
 For that, torch's per-op dispatch costs more than the arithmetic (docs/PERFORMANCE.md), and
 importing it costs seconds of start-up and a few hundred MB per process. This module holds
-what acting needs, with numpy alone; the learner's `ActorEnsemble` shares the forward pass
-(`mlp_policy`) and the parameter layout (`member_shapes`), so both compute the same function.
+what acting needs, with numpy alone; the learner's `ActorEnsemble` shares the parameter layout
+(`member_shapes`), and `tests/test_policy.py` checks that both compute the same function.
 """
 
 from __future__ import annotations

@@ -771,15 +771,16 @@ def profile_learner_step(shape: str = "halfcheetah", k: int = 2, updates: int = 
 def profile_worker_step(env_id: str = "HalfCheetah-v5", steps: int = 2000, hidden: tuple[int, ...] = (256, 256),
                         send_batch: int = 32) -> dict[str, float]:
     """Where one worker step goes: env.step, the 1-row policy forward (as the worker runs it,
-    and with `ActorEnsemble.numpy_policy`), encoding and publishing (µs per transition).
+    numpy `NumpyActors`, and as it ran before, a torch forward), encoding and publishing (µs per
+    transition).
     Publishing goes to a subscriber of the same session (no network). The two policy paths
     alternate by episode chunk so both see the same cache state after MuJoCo's step."""
     import gymnasium as gym
     import torch
 
     import mam_core.envs  # noqa: F401
-    from mam_core.agent import EnvSpec
     from mam_core.ensemble import ActorEnsemble
+    from mam_core.policy import EnvSpec, NumpyActors
     from services import bus
     from services.codec import TransitionBatch
 
@@ -791,7 +792,9 @@ def profile_worker_step(env_id: str = "HalfCheetah-v5", steps: int = 2000, hidde
     members = torch.tensor([0])
     rng = np.random.default_rng(0)
     obs, _ = env.reset(seed=0)
-    numpy_policy = actors.numpy_policy(0)
+    numpy_actors = NumpyActors(1, spec, hidden)
+    numpy_actors.load_member(0, actors.net.member_state(0))
+    numpy_policy = numpy_actors.policy(0)
     t_env = t_pol = t_np = t_enc = t_pub = 0.0
     n_torch = n_np = 0
     buf_o = np.empty((send_batch, spec.obs_dim), np.float32)
@@ -806,7 +809,7 @@ def profile_worker_step(env_id: str = "HalfCheetah-v5", steps: int = 2000, hidde
         for t in range(steps):
             use_torch = (t // 100) % 2 == 0
             t0 = time.perf_counter()
-            if use_torch:  # services.worker's forward
+            if use_torch:  # services.worker's forward before it dropped torch
                 with torch.inference_mode():
                     a = actors(torch.from_numpy(np.asarray(obs, np.float32)).view(1, -1), members=members)[0, 0].numpy()
             else:
@@ -839,10 +842,10 @@ def profile_worker_step(env_id: str = "HalfCheetah-v5", steps: int = 2000, hidde
     us = 1e6 / steps
     torch_us, numpy_us = t_pol * 1e6 / max(n_torch, 1), t_np * 1e6 / max(n_np, 1)
     rest = (t_env + t_enc + t_pub) * us
-    return {"env.step (+ noise, clip)": t_env * us, "policy forward, torch (the worker before numpy_policy)": torch_us,
-            "policy forward, numpy_policy": numpy_us, "encode (per transition)": t_enc * us,
+    return {"env.step (+ noise, clip)": t_env * us, "policy forward, torch (the worker before numpy)": torch_us,
+            "policy forward, numpy (NumpyActors)": numpy_us, "encode (per transition)": t_enc * us,
             "publish (per transition)": t_pub * us, "total with the torch forward": rest + torch_us,
-            "total with numpy_policy": rest + numpy_us}
+            "total with the numpy forward": rest + numpy_us}
 
 
 # --------------------------------------------------------------------------- the whole bench

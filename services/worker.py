@@ -87,7 +87,7 @@ class Worker:
         self.env.action_space.seed(seed)
         self.obs, _ = self.env.reset(seed=seed)
         # numpy forwards, no torch in a worker: a one-row torch forward costs ~100 µs of dispatch
-        # between env steps, this ~14 µs, and importing torch seconds and ~300 MB (docs/PERFORMANCE.md)
+        # between env steps, this ~14 µs, and importing torch ~3 s and ~180 MB (docs/PERFORMANCE.md)
         self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden)
         self.policies = [self.actors.policy(k) for k in range(self.algo.actors)]
         self.shapes = self.actors.shapes

@@ -90,22 +90,6 @@ def test_sizes_and_pieces() -> None:
         run_bench(tiny, ("nope",))
 
 
-def test_numpy_policy_matches_the_torch_forward() -> None:
-    import numpy as np
-    import torch
-
-    from mam_core.ensemble import ActorEnsemble
-
-    actors = ActorEnsemble(2, 5, 3, (16, 16), np.array([0.4, 1.0, 2.0], np.float32)).requires_grad_(False)
-    policy = actors.numpy_policy(1)
-    obs = np.random.default_rng(0).normal(size=(4, 5)).astype(np.float32)
-    expected = actors(torch.from_numpy(obs), members=torch.tensor([1]))[0].numpy()
-    np.testing.assert_allclose(policy(obs), expected, rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(policy(obs[0]), expected[0], rtol=1e-5, atol=1e-6)
-    actors.net.load_member(1, actors.net.member_state(0))  # in-place loads are seen by the policy
-    np.testing.assert_allclose(policy(obs), actors.numpy_policy(0)(obs), rtol=1e-6)
-
-
 @pytest.mark.parametrize("rows", [1, 8, 64])
 def test_fast_layouts_compute_the_plain_mlp(rows: int) -> None:
     """Feature-major (many rows), row-major (few rows) and one-member 2-D paths, forward and
