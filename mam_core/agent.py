@@ -35,10 +35,26 @@ def weighted_target(q_next: torch.Tensor, eta: float) -> torch.Tensor:
     return (1.0 - eta) * own + (eta / (n * (k - 1))) * others
 
 
+def weighted_target_per_batch(q_next: torch.Tensor, eta: float) -> torch.Tensor:
+    """Eq. 9 when every actor has its own mini-batch: q_next [K, n, K, B] holds Q'_ji(s'_k, ã_j)
+    (critic j, i on actor k's batch, with actor j's target action there) -> [K, B], row k on
+    actor k's batch: (1−η)·min_i Q'_ki(s'_k, ã_k) + η/(n(K−1))·Σ_{j≠k} Σ_i Q'_ji(s'_k, ã_j).
+    Equal to `weighted_target` when all K batches are the same."""
+    k, n, _, _ = q_next.shape
+    own = torch.diagonal(q_next.min(dim=1).values, dim1=0, dim2=1).T  # [K(k), B]
+    if k == 1 or eta == 0.0:
+        return own
+    per_actor = q_next.sum(dim=1)  # [K(j), K(k), B]
+    others = per_actor.sum(dim=0) - torch.diagonal(per_actor, dim1=0, dim2=1).T
+    return (1.0 - eta) * own + (eta / (n * (k - 1))) * others
+
+
 def critic_target(reward: torch.Tensor, not_done: torch.Tensor, q_next: torch.Tensor,
                   gamma: float, eta: float) -> torch.Tensor:
-    """y_k = r + γ(1−d)·weighted_target: reward/not_done [B], q_next [K, n, B] -> [K, B]."""
-    return reward + gamma * not_done * weighted_target(q_next, eta)
+    """y_k = r + γ(1−d)·weighted_target: reward/not_done [B] (or [K, B], one batch per actor),
+    q_next [K, n, B] (or [K, n, K, B], see `weighted_target_per_batch`) -> [K, B]."""
+    weighted = weighted_target(q_next, eta) if q_next.dim() == 3 else weighted_target_per_batch(q_next, eta)
+    return reward + gamma * not_done * weighted
 
 
 def critic_loss(q: torch.Tensor, y: torch.Tensor, live: torch.Tensor) -> torch.Tensor:
@@ -114,8 +130,10 @@ class MultiActorAgent:
     """Networks, targets, optimizers and the update step of Algorithm 1.
 
     Usage: `agent.update(batch)` with batch tensors `obs, action, reward, next_obs, not_done`
-    on `agent.device`; `agent.eliminate(survivor)` at step C; `agent.actor_params(k)` for the
-    workers; `state_dict()` / `load_state_dict()` for pickle-free checkpoints.
+    on `agent.device`, either one mini-batch for all actors (obs [B, obs_dim]) or one per actor
+    (obs [K, B, obs_dim]: `ReplayBuffer.sample(B, groups=K)`, Algorithm 1's default,
+    `agent.batch_groups`); `agent.eliminate(survivor)` at step C; `agent.actor_params(k)` for
+    the workers; `state_dict()` / `load_state_dict()` for pickle-free checkpoints.
     """
 
     def __init__(self, cfg: AlgoConfig, spec: EnvSpec, device: str | torch.device = "cpu") -> None:
@@ -145,8 +163,11 @@ class MultiActorAgent:
         self.max_action = self.actor.max_action
         self.first_critics = torch.arange(k, device=self.device) * n
         self._first_critics = slice(0, k * n, n)  # the same members as a view: no weight copy
-        self.live = torch.ones(k, device=self.device)
+        self.live = torch.ones(k, device=self.device)  # actors that act and train (Eq. 7)
+        self.critic_live = torch.ones(k, device=self.device)  # actors whose critics train (Eq. 5)
         self._live_flags = [True] * k
+        # Algorithm 1 samples a mini-batch per actor; K = 1 is the same draw either way.
+        self.batch_groups = k if k > 1 and not cfg.shared_batch else None
         self._tau_actor = torch.full((k, 1, 1), cfg.tau, device=self.device)
         self._tau_critic = torch.full((k * n, 1, 1), cfg.tau, device=self.device)
         self.updates = 0
@@ -159,22 +180,16 @@ class MultiActorAgent:
         obs, action, reward = batch["obs"], batch["action"], batch["reward"]
         next_obs, not_done = batch["next_obs"], batch["not_done"]
 
+        per_actor = obs.dim() == 3  # [K, B, obs_dim]: actor k's own mini-batch (Algorithm 1, line 11)
         with torch.no_grad():
-            # Target policy smoothing: ã_j = clip(π'_j(s') + clip(N(0, σ̃), ±c), ±max_action).
-            next_action = self.actor_target(next_obs)  # [K, B, A]
-            if cfg.target_smoothing:
-                noise = torch.randn(next_action.shape, generator=self.noise_gen, device=self.device)
-                noise = (noise * (cfg.policy_noise * self.max_action)).clamp(
-                    -cfg.noise_clip * self.max_action, cfg.noise_clip * self.max_action)
-                next_action = torch.maximum(torch.minimum(next_action + noise, self.max_action),
-                                            -self.max_action)
-            q_next = self.critic_target(next_obs, self.critic.per_actor_actions(next_action))
-            # Eq. 9: weighted target, one y_k per actor.
-            y = critic_target(reward, not_done, q_next.view(k, n, -1), cfg.gamma, self.eta)
+            y = self._targets(next_obs, reward, not_done, per_actor)
 
         # Eq. 5: critic regression for every live actor's n critics.
-        q = self.critic(obs, action).view(k, n, -1)  # the batch's action is shared by all n·K critics
-        loss_q = critic_loss(q, y, self.live)
+        if per_actor:  # critic (k, i) regresses on actor k's batch
+            q = self.critic(obs.repeat_interleave(n, dim=0), action.repeat_interleave(n, dim=0)).view(k, n, -1)
+        else:
+            q = self.critic(obs, action).view(k, n, -1)  # the batch's action is shared by all n·K critics
+        loss_q = critic_loss(q, y, self.critic_live)
         adam_step(self.critic_opt, loss_q, self.critic_params_list)
         self.updates += 1
 
@@ -200,13 +215,50 @@ class MultiActorAgent:
             out["loss/actor"] = values[1 + k]
         return out
 
+    def _smoothed(self, action: torch.Tensor) -> torch.Tensor:
+        """Target policy smoothing: ã = clip(π'(s') + clip(N(0, σ̃), ±c), ±max_action)."""
+        if not self.cfg.target_smoothing:
+            return action
+        noise = torch.randn(action.shape, generator=self.noise_gen, device=self.device)
+        noise = (noise * (self.cfg.policy_noise * self.max_action)).clamp(
+            -self.cfg.noise_clip * self.max_action, self.cfg.noise_clip * self.max_action)
+        return torch.maximum(torch.minimum(action + noise, self.max_action), -self.max_action)
+
+    def _targets(self, next_obs: torch.Tensor, reward: torch.Tensor, not_done: torch.Tensor,
+                 per_actor: bool) -> torch.Tensor:
+        """Eq. 9 targets y [K, B], one per actor (on its own batch when `per_actor`)."""
+        cfg, k, n = self.cfg, self.cfg.actors, self.cfg.critics_per_actor
+        if not per_actor:
+            next_action = self._smoothed(self.actor_target(next_obs))  # [K, B, A]
+            q_next = self.critic_target(next_obs, self.critic.per_actor_actions(next_action))
+            return critic_target(reward, not_done, q_next.view(k, n, -1), cfg.gamma, self.eta)
+        b = next_obs.shape[1]
+        if self.eta == 0.0:  # each actor's own critics on its own batch only
+            next_action = self._smoothed(self.actor_target(next_obs))  # actor k on batch k: [K, B, A]
+            q_next = self.critic_target(next_obs.repeat_interleave(n, dim=0),
+                                        self.critic.per_actor_actions(next_action))
+            return critic_target(reward, not_done, q_next.view(k, n, -1), cfg.gamma, 0.0)
+        # Eq. 9 needs every critic j on actor k's next states with actor j's target action there.
+        flat = next_obs.reshape(k * b, -1)
+        next_action = self._smoothed(self.actor_target(flat))  # actor j on all K batches: [K, K·B, A]
+        q_next = self.critic_target(flat, self.critic.per_actor_actions(next_action))  # [K·n, K·B]
+        return critic_target(reward, not_done, q_next.view(k, n, k, b), cfg.gamma, self.eta)
+
     # -- obsolescence ----------------------------------------------------------------------
     def eliminate(self, survivor: int) -> None:
-        """Freeze every actor but `survivor` with its critics and targets (Sec. 3.1.1).
+        """Freeze every actor but `survivor` with its target (Sec. 3.1.1); what happens to the
+        eliminated actors' critics and to Eq. 9 is `cfg.after_elimination`:
 
-        Frozen members keep serving the Eq. 9 sum through their target networks. Their Adam
-        moments are zeroed: with zero gradients from the masked losses, Adam then moves them
-        by exactly zero.
+        - `frozen` (the paper's literal reading): their critics and target critics freeze too
+          and keep serving the Eq. 9 sum with their values from step C.
+        - `train-critics`: their critics keep training on the shared buffer with their own Eq. 9
+          targets (their frozen target actors pick ã), so the survivor's weighting term tracks
+          the data.
+        - `no-weighting`: their critics freeze and the survivor's target becomes plain TD3/DDPG
+          (η = 0).
+
+        Frozen members' Adam moments are zeroed: with zero gradients from the masked losses,
+        Adam then moves them by exactly zero.
         """
         k, n = self.cfg.actors, self.cfg.critics_per_actor
         if not 0 <= survivor < k:
@@ -214,10 +266,14 @@ class MultiActorAgent:
         self.live.zero_()
         self.live[survivor] = 1.0
         self._live_flags = [j == survivor for j in range(k)]
+        if self.cfg.after_elimination != "train-critics":
+            self.critic_live.copy_(self.live)
+        if self.cfg.after_elimination == "no-weighting":
+            self.eta = 0.0
         self._tau_actor.copy_(self.live.view(k, 1, 1) * self.cfg.tau)
-        self._tau_critic.copy_(self.live.repeat_interleave(n).view(k * n, 1, 1) * self.cfg.tau)
+        self._tau_critic.copy_(self.critic_live.repeat_interleave(n).view(k * n, 1, 1) * self.cfg.tau)
         frozen_actor = self.live == 0
-        frozen_critic = frozen_actor.repeat_interleave(n)
+        frozen_critic = (self.critic_live == 0).repeat_interleave(n)
         for opt, mask in ((self.actor_opt, frozen_actor), (self.critic_opt, frozen_critic)):
             for group in opt.param_groups:
                 for p in group["params"]:

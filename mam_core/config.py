@@ -13,6 +13,8 @@ from typing import Any
 
 ALGOS = ("ma-td3", "td3", "ma-ddpg", "ddpg")
 PRECISIONS = ("fp32", "bf16")
+SCHEDULES = ("paper", "equal-data")  # mam_core.schedule
+AFTER_ELIMINATION = ("frozen", "train-critics", "no-weighting")
 
 
 @dataclass(frozen=True)
@@ -41,10 +43,20 @@ class AlgoConfig:
     utd: float = 1.0  # gradient updates per received transition
     no_ot: bool = False  # ablation "w/o OT": uniform fixed allocation, no elimination
     no_wt: bool = False  # ablation "w/o WT": η = 0
-    single_env_after_elimination: bool = False  # paper's schedule: survivor runs one slot only
+    single_env_after_elimination: bool = False  # survivor runs one slot only (implied by schedule "paper")
+    # Algorithm 1's open choices (docs/DESIGN-DECISIONS.md, "Algorithm 1 as options"):
+    schedule: str = "paper"  # paper: options count iterations (M transitions, one update); equal-data: transitions
+    shared_batch: bool = False  # one mini-batch for all actors (Algorithm 1 samples one per actor)
+    after_elimination: str = "frozen"  # frozen | train-critics | no-weighting: the Eq. 9 target after C
+    skip_random_rounds: bool = False  # no allocation round during the random start phase
     seed: int = 0
     device: str = "auto"  # auto | cpu | cuda
     precision: str = "fp32"  # fp32 | bf16: the learner's hidden-to-hidden GEMMs in bfloat16 (mixed precision)
+
+    @property
+    def single_env(self) -> bool:
+        """After the elimination the survivor runs one environment slot (I_e = 1)."""
+        return self.single_env_after_elimination or self.schedule == "paper"
 
     @property
     def effective_eta(self) -> float:
@@ -136,6 +148,10 @@ def validate(cfg: AlgoConfig) -> AlgoConfig:
         problems.append("hidden sizes must be positive")
     if cfg.device not in ("auto", "cpu", "cuda"):
         problems.append("device must be auto, cpu or cuda")
+    if cfg.schedule not in SCHEDULES:
+        problems.append(f"schedule must be one of {', '.join(SCHEDULES)}")
+    if cfg.after_elimination not in AFTER_ELIMINATION:
+        problems.append(f"after_elimination must be one of {', '.join(AFTER_ELIMINATION)}")
     if cfg.precision not in PRECISIONS:
         problems.append(f"precision must be one of {', '.join(PRECISIONS)}")
     if problems:

@@ -177,13 +177,14 @@ class CriticEnsemble(nn.Module):
         self.net = EnsembleMLP(n_actors * critics_per_actor, obs_dim + act_dim, hidden, 1, generator)
 
     def forward(self, obs: torch.Tensor, actions: torch.Tensor, members: Members = None) -> torch.Tensor:
-        """obs [B, obs_dim] shared; actions [E, B, act_dim] one per member, or [B, act_dim]
-        shared by all members (the critic regression step) -> Q [E, B].
+        """obs [B, obs_dim] shared, or [E, B, obs_dim] one per member (per-actor mini-batches);
+        actions [E, B, act_dim] one per member, or [B, act_dim] shared by all members (the
+        critic regression step on a shared batch) -> Q [E, B].
 
         One concatenated first layer: measured faster than splitting its weights into an obs
         part (one GEMM shared by all members) and an action part (docs/PERFORMANCE.md).
         """
-        if actions.dim() == 2:
+        if actions.dim() == 2 or obs.dim() == 3:
             x = torch.cat((obs, actions), dim=-1)
         else:
             x = torch.cat((obs.unsqueeze(0).expand(actions.shape[0], -1, -1), actions), dim=-1)

@@ -32,6 +32,9 @@ class Rollouts:
     initial_actions: np.ndarray  # [episodes, act_dim] float32, π(s0) as applied
     returns: np.ndarray  # [episodes] undiscounted sum of rewards
     discounted_returns: np.ndarray  # [episodes] sum_t γ^t r_t
+    final_obs: np.ndarray | None = None  # [episodes, obs_dim] s_T, the observation the episode ended on
+    truncated: np.ndarray | None = None  # [episodes] bool: ended by the time limit, not by termination
+    final_discount: np.ndarray | None = None  # [episodes] γ^T, T the episode's length
 
 
 def rollout(
@@ -59,6 +62,9 @@ def rollout(
         initial_obs, initial_actions = [], []
         returns = np.zeros(episodes)
         discounted = np.zeros(episodes)
+        final_obs = np.zeros((episodes, int(np.prod(envs[0].observation_space.shape))), np.float32)
+        truncated_at_end = np.zeros(episodes, bool)
+        final_discount = np.ones(episodes)
         for first in range(0, episodes, width):
             ids = list(range(first, min(first + width, episodes)))
             obs = [np.asarray(envs[j].reset(seed=seed + i)[0], np.float32).reshape(-1) for j, i in enumerate(ids)]
@@ -82,6 +88,9 @@ def rollout(
                     obs[j] = np.asarray(next_obs, np.float32).reshape(-1)
                     if not (terminated or truncated):
                         still.append(j)
+                    else:
+                        final_obs[i], truncated_at_end[i], final_discount[i] = obs[j], truncated and not terminated, \
+                            discount[j]
                 active = still
                 step += 1
     finally:
@@ -92,6 +101,9 @@ def rollout(
         initial_actions=np.concatenate(initial_actions),
         returns=returns,
         discounted_returns=discounted,
+        final_obs=final_obs,
+        truncated=truncated_at_end,
+        final_discount=final_discount,
     )
 
 
@@ -126,19 +138,20 @@ def monte_carlo_q(
     return r.initial_obs, r.initial_actions, r.discounted_returns
 
 
-def bias_rate(q_estimate: float | np.ndarray, q_true: float | np.ndarray, atol: float = 1e-8) -> float:
-    """Eq. 17: (mean Q̂ - mean Q*) / |mean Q*|.
+def bias_rate(q_estimate: float | np.ndarray, q_true: float | np.ndarray, atol: float = 1e-8,
+              absolute: bool = False) -> float:
+    """Eq. 17 as printed: (mean Q̂ - mean Q*) / mean Q*; `absolute=True` divides by |mean Q*|.
 
-    Dividing by |Q*| (the paper prints Q*) keeps the sign meaning for negative returns:
-    > 0 is over-estimation, < 0 under-estimation. Means are taken first (a ratio of means,
-    stable when single Q* values are near zero). When |mean Q*| <= atol the rate is
-    undefined and NaN is returned; the absolute bias is still reported by `estimation_bias`.
+    The two differ only where Q* < 0 (e.g. Reacher): there the printed rate is > 0 for an
+    under-estimate, and the |Q*| form keeps "> 0 is over-estimation". Means are taken first
+    (a ratio of means, stable when single Q* values are near zero). When |mean Q*| <= atol the
+    rate is undefined and NaN is returned; the absolute bias is still reported by `estimation_bias`.
     """
     q_hat = float(np.mean(q_estimate))
     q_star = float(np.mean(q_true))
     if not np.isfinite(q_hat) or not np.isfinite(q_star) or abs(q_star) <= atol:
         return float("nan")
-    return (q_hat - q_star) / abs(q_star)
+    return (q_hat - q_star) / (abs(q_star) if absolute else q_star)
 
 
 def estimation_bias(
@@ -149,17 +162,42 @@ def estimation_bias(
     gamma: float,
     seed: int,
     env_kwargs: dict[str, Any] | None = None,
-) -> dict[str, float]:
-    """The critic's Q̂(s0, π(s0)) against the Monte-Carlo Q* of the same policy (Eq. 17)."""
-    obs, actions, discounted = monte_carlo_q(policy, env_id, episodes, gamma, seed, env_kwargs)
-    q_hat = np.asarray(q(obs, actions), dtype=np.float64).reshape(-1)
+    horizon: str = "critic",
+) -> dict[str, Any]:
+    """The critic's Q̂(s0, π(s0)) against the Monte-Carlo Q* of the same policy (Eq. 17).
+
+    `horizon="critic"` (default): an episode cut by the time limit gets the bootstrap tail
+    γ^T·Q̂(s_T, π(s_T)), because the critic bootstraps through truncation and so estimates
+    an infinite-horizon value; without the tail Q* is a T-step value and the rate measures
+    the horizon mismatch as under-estimation. `horizon="episode"`: the return is cut at the
+    time limit (terminated episodes get no tail in either case). The tail uses the critic
+    itself, so at a time limit Q* is the critic's own n-step target, not an independent truth;
+    with γ^T small (long episodes) it hardly matters.
+    """
+    if horizon not in ("critic", "episode"):
+        raise ValueError(f"horizon must be critic or episode, not {horizon!r}")
+    r = rollout(policy, env_id, episodes, seed, gamma, env_kwargs)
+    q_hat = np.asarray(q(r.initial_obs, r.initial_actions), dtype=np.float64).reshape(-1)
     if q_hat.shape != (episodes,):
         raise ValueError(f"q returned {q_hat.shape[0]} values for {episodes} states")
+    discounted = r.discounted_returns.copy()
+    tail = 0.0
+    if horizon == "critic" and r.truncated.any():
+        cut = np.flatnonzero(r.truncated)
+        final_obs = r.final_obs[cut]
+        tails = np.asarray(q(final_obs, np.asarray(policy(final_obs), np.float32)), np.float64).reshape(-1)
+        discounted[cut] += r.final_discount[cut] * tails
+        tail = float((r.final_discount[cut] * tails).sum() / episodes)
     q_estimate = float(q_hat.mean())
     q_true = float(discounted.mean())
-    return {
+    out = {
         "q_estimate": q_estimate,
         "q_true": q_true,
         "bias": q_estimate - q_true,
-        "bias_rate": bias_rate(q_estimate, q_true),
+        "bias_rate": bias_rate(q_estimate, q_true),  # Eq. 17 as printed: ÷ Q*
+        "tail": tail,  # mean bootstrap tail included in q_true (0 for horizon="episode")
+        "horizon": horizon,
     }
+    if q_true < 0:  # the two forms differ: keep the sign-preserving one, labelled
+        out["bias_rate_abs"] = bias_rate(q_estimate, q_true, absolute=True)
+    return out

@@ -19,6 +19,7 @@ from typing import Any, overload
 import numpy as np
 
 from mam_core.config import AlgoConfig
+from mam_core.schedule import first_round_at
 
 # Mixed signs / zeros: shift so the worst actor sits at this fraction of the return spread
 # above zero. It keeps a small, non-zero chance for the worst actor (it is not eliminated
@@ -140,15 +141,25 @@ def counts(allocation: Mapping[str, int] | Sequence[int], n_actors: int) -> np.n
     return np.bincount(a, minlength=n_actors)
 
 
-def choose_survivor(returns: Sequence[float] | np.ndarray, live: Sequence[bool] | None = None) -> int:
-    """The actor kept at step C: best mean evaluation return, ties to the lowest index."""
+def best_actors(returns: Sequence[float] | np.ndarray, live: Sequence[bool] | None = None) -> list[int]:
+    """The live actors that share the best mean evaluation return (more than one is a tie)."""
     r = _as_returns(returns)
     if live is not None:
         mask = np.asarray(live, dtype=bool)
         if mask.shape != r.shape or not mask.any():
             raise ValueError("live must match returns and hold at least one actor")
         r = np.where(mask, r, -np.inf)
-    return int(np.argmax(r))
+    return [int(k) for k in np.flatnonzero(r == r.max())]
+
+
+def choose_survivor(returns: Sequence[float] | np.ndarray, live: Sequence[bool] | None = None,
+                    rng: np.random.Generator | None = None) -> int:
+    """The actor kept at step C: best mean evaluation return. A tie is broken by `rng` (the
+    run's seeded generator) or, without one, goes to the lowest index."""
+    best = best_actors(returns, live)
+    if rng is None or len(best) == 1:
+        return best[0]
+    return best[int(rng.integers(len(best)))]
 
 
 @dataclass(frozen=True)
@@ -159,6 +170,7 @@ class ObsolescenceConfig:
     compete_every: int  # A: env steps between evaluation rounds
     eliminate_at: int  # C: env step at which all but the best actor are eliminated
     enabled: bool = True  # False is `--no-ot`: uniform fixed round-robin allocation, no elimination
+    first_round: int = 0  # no round before this step (`--skip-random-rounds`: the first multiple of A after the start)
 
     def __post_init__(self) -> None:
         if self.n_actors < 1 or self.compete_every < 1 or self.eliminate_at < 1:
@@ -195,24 +207,25 @@ class Obsolescence:
         if not self.config.enabled or self.survivor is not None or env_steps >= self.config.eliminate_at:
             return False
         multiple = (env_steps // self.config.compete_every) * self.config.compete_every
-        return multiple > self.last_round_at
+        return multiple > self.last_round_at and multiple >= self.config.first_round
 
     def due_elimination(self, env_steps: int) -> bool:
         """Elimination is due once, at the first step >= C."""
         return self.config.enabled and self.survivor is None and env_steps >= self.config.eliminate_at
 
-    def record_evaluation(self, env_steps: int, returns: Sequence[float] | np.ndarray) -> np.ndarray:
+    def record_evaluation(self, env_steps: int, returns: Sequence[float] | np.ndarray,
+                          rng: np.random.Generator | None = None) -> np.ndarray:
         """Apply one evaluation (R_k for every actor) and return the current P.
 
-        If elimination is due, the best actor survives and P becomes one-hot on it; else if a
-        round is due, P follows Eq. 8; otherwise (a reporting-only evaluation, `--no-ot`, or
-        after elimination) the returns are only remembered.
+        If elimination is due, the best actor survives (a tie broken by `rng`) and P becomes
+        one-hot on it; else if a round is due, P follows Eq. 8; otherwise (a reporting-only
+        evaluation, `--no-ot`, or after elimination) the returns are only remembered.
         """
         r = _as_returns(returns)
         if r.size != self.config.n_actors:
             raise ValueError(f"expected {self.config.n_actors} returns, got {r.size}")
         if self.due_elimination(env_steps):
-            self.eliminate(choose_survivor(r))
+            self.eliminate(choose_survivor(r, self.live, rng))
             self.round += 1
             self.last_round_at = (env_steps // self.config.compete_every) * self.config.compete_every
         elif self.due_round(env_steps):
@@ -286,7 +299,9 @@ class Obsolescence:
 
 
 def obsolescence_for(cfg: AlgoConfig) -> Obsolescence:
-    """The schedule an algorithm configuration asks for (disabled for K=1 and `no_ot`)."""
+    """The schedule an algorithm configuration asks for (disabled for K=1 and `no_ot`), in the
+    units of its `schedule` (iterations or transitions: mam_core.schedule)."""
     return Obsolescence(ObsolescenceConfig(
-        n_actors=cfg.actors, compete_every=cfg.compete_every,
-        eliminate_at=max(cfg.eliminate_at, 1), enabled=not cfg.no_ot and cfg.actors > 1))
+        n_actors=cfg.actors, compete_every=cfg.compete_every, eliminate_at=max(cfg.eliminate_at, 1),
+        enabled=not cfg.no_ot and cfg.actors > 1,
+        first_round=first_round_at(cfg.compete_every, cfg.start_steps, cfg.skip_random_rounds)))

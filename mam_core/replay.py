@@ -92,13 +92,19 @@ class ReplayBuffer:
         for name, dst in self._mirror.items():
             dst[rows].copy_(torch.from_numpy(getattr(self, name)[rows]))
 
-    def sample(self, batch_size: int) -> dict[str, torch.Tensor]:
-        """Uniform mini-batch as float32 tensors on the buffer's device."""
-        idx = self.sample_indices(batch_size)
+    def sample(self, batch_size: int, groups: int | None = None) -> dict[str, torch.Tensor]:
+        """Uniform mini-batch as float32 tensors on the buffer's device.
+
+        `groups=K` draws K independent mini-batches at once (Algorithm 1, line 11: every actor
+        samples its own): every field gets a leading axis of K, e.g. obs [K, B, obs_dim].
+        """
+        shape = (batch_size,) if groups is None else (groups, batch_size)
+        idx = self.sample_indices(batch_size) if groups is None else self.sample_indices(groups * batch_size)
         if self._mirror:
             # Indices to the device (2 KB), then the gather happens there.
             i = torch.from_numpy(idx).to(self.device, non_blocking=self.device.type == "cuda")
-            return {name: t.index_select(0, i) for name, t in self._mirror.items()}
+            return {name: t.index_select(0, i).reshape(*shape, *t.shape[1:]) for name, t in self._mirror.items()}
+        idx = idx.reshape(shape)
         pin = self.device.type == "cuda"
         out = {}
         for name in self.FIELDS:

@@ -23,7 +23,9 @@ def run(
     device: options.Device = None, hidden: options.Hidden = None, config: options.ConfigFile = None,
     single_env_after_elimination: options.SingleEnv = None,
     bias_every: options.BiasEvery = None, bias_rollouts: options.BiasRollouts = None,
-    precision: options.Precision = None,
+    precision: options.Precision = None, schedule: options.Schedule = None, shared_batch: options.SharedBatch = None,
+    after_elimination: options.AfterElimination = None, skip_random_rounds: options.SkipRandomRounds = None,
+    bias_horizon: options.BiasHorizon = None,
     run_name: options.Run = None, run_dir: options.RunDir = None,
     sync_every: int = typer.Option(None, help="publish actor weights every N updates (default 100)"),
     save_replay: bool = typer.Option(None, help="include the replay buffer in checkpoints"),
@@ -39,7 +41,8 @@ def run(
         start_steps=start_steps, batch_size=batch_size, utd=utd, no_ot=no_ot, no_wt=no_wt, seed=seed,
         device=device, hidden=hidden, single_env_after_elimination=single_env_after_elimination,
         run=run_name, sync_every=sync_every, save_replay=save_replay, bias_every=bias_every,
-        bias_rollouts=bias_rollouts, precision=precision), config)
+        bias_rollouts=bias_rollouts, precision=precision, schedule=schedule, shared_batch=shared_batch,
+        after_elimination=after_elimination, skip_random_rounds=skip_random_rounds, bias_horizon=bias_horizon), config)
     summary = run_local(cfg, run_dir or Path("runs") / cfg.run, plot=not no_plot)
     if not summary:
         raise typer.Exit(1)

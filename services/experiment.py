@@ -55,9 +55,10 @@ from services.options import RunConfig, write_json
 
 ABLATIONS = {"no-ot": "no_ot", "no-wt": "no_wt"}
 MULTI_ACTOR_FLAGS = frozenset({"actors", "workers", "eliminate_at", "compete_every", "eta",
-                               "single_env_after_elimination", "no_ot", "no_wt"})
+                               "single_env_after_elimination", "no_ot", "no_wt", "shared_batch",
+                               "after_elimination", "skip_random_rounds"})
 RUN_FLAGS = frozenset({"sync_every", "checkpoint_every", "send_batch", "band", "save_replay", "learner_threads",
-                       "bias_every", "bias_rollouts"})
+                       "bias_every", "bias_rollouts", "bias_horizon"})
 _ALGO_FLAGS = frozenset(f.name for f in dataclasses.fields(AlgoConfig)) - {"algo", "seed"}
 FLAG_NAMES = _ALGO_FLAGS | RUN_FLAGS
 GRID_KEYS = {"name", "exp_dir", "envs", "algos", "seeds", "steps", "ablations", "etas", "common", "algo"}
@@ -727,7 +728,9 @@ def experiment_command(
     batch_size: options.BatchSize = None, utd: options.Utd = None, device: options.Device = None,
     hidden: options.Hidden = None, single_env_after_elimination: options.SingleEnv = None,
     bias_every: options.BiasEvery = None, bias_rollouts: options.BiasRollouts = None,
-    precision: options.Precision = None,
+    precision: options.Precision = None, schedule: options.Schedule = None, shared_batch: options.SharedBatch = None,
+    after_elimination: options.AfterElimination = None, skip_random_rounds: options.SkipRandomRounds = None,
+    bias_horizon: options.BiasHorizon = None,
     name: Annotated[Optional[str], typer.Option("--name", help="experiment name (default: the grid file's)")] = None,
     dry_run: Annotated[bool, typer.Option("--dry-run", help="print the planned runs and exit")] = False,
     retries: Annotated[int, typer.Option("--retries", help="attempts after a failed run")] = 1,
@@ -750,7 +753,9 @@ def experiment_command(
                      eta=eta, eval_episodes=eval_episodes, eval_every=eval_every, start_steps=start_steps,
                      batch_size=batch_size, utd=utd, device=device, hidden=hidden,
                      single_env_after_elimination=single_env_after_elimination, bias_every=bias_every,
-                     bias_rollouts=bias_rollouts, precision=precision)
+                     bias_rollouts=bias_rollouts, precision=precision, schedule=schedule,
+                     shared_batch=shared_batch, after_elimination=after_elimination,
+                     skip_random_rounds=skip_random_rounds, bias_horizon=bias_horizon)
         grid = make_grid(file, envs=envs, algos=algos, seeds=seeds, steps=steps, ablations=ablations, etas=etas,
                          name=name, flags=flags)
         specs = plan(grid)

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import os
 import signal
 import socket
@@ -25,6 +24,7 @@ import typer
 from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
 from mam_core.evaluation import estimation_bias
 from mam_core.replay import ReplayBuffer
+from mam_core.schedule import Schedule
 from services import bus, keys, options
 from services.codec import (Allocation, Done, LearnerStats, MessageError, TransitionBatch, TransitionSpec,
                             Weights, decode, encode)
@@ -73,7 +73,8 @@ class Learner:
         if cfg.learner_threads > 0:
             torch.set_num_threads(cfg.learner_threads)
         self.agent = MultiActorAgent(self.algo, self.spec, self.device)
-        capacity = min(self.algo.buffer_size, cfg.steps + cfg.tolerance)
+        self.schedule = Schedule.for_run(self.algo, cfg.steps)  # iterations (paper) or transitions
+        capacity = min(self.algo.buffer_size, self.schedule.budget + cfg.tolerance)
         self.buffer = ReplayBuffer(capacity, self.spec.obs_dim, self.spec.act_dim, self.device, self.algo.seed)
         self.transition_spec = TransitionSpec(self.spec.obs_dim, self.spec.act_dim, self.algo.actors,
                                               max_rows=4096, max_action=max(self.spec.max_action))
@@ -85,10 +86,10 @@ class Learner:
         self.per_worker: dict[str, dict[str, Any]] = {}
         self.stream_rows: dict[str, int] = {}  # rows per worker/incarnation (proof of exactly-once)
         self.metrics: dict[str, float] = {}
-        self.env_steps = 0  # transitions received into the buffer (the budget's unit)
+        self.env_steps = 0  # transitions received into the buffer (the schedule maps them to iterations)
         self.episode_returns: list[float] = []
         self.survivor: int | None = None
-        self.round_done_at = 0  # env step of the last obsolescence round the referee published
+        self.round_done_at = 0  # schedule step (units) of the last obsolescence round the referee published
         self.started = time.monotonic()
         self.stop_requested = False
         if resume is not None:
@@ -154,10 +155,9 @@ class Learner:
         while not self.stop_requested:
             self.ingest(self.inbox.drain(max_items=256))
             self.follow_allocation()
-            if self.next_bias is not None and self.env_steps >= self.next_bias and \
-                    self.agent.updates >= self.algo.utd * (self.next_bias - self.algo.start_steps):
+            if self.bias_due():
                 self.measure_bias()  # the critic as trained on the point's transitions
-            budget_done = self.env_steps >= self.cfg.steps
+            budget_done = self.env_steps >= self.schedule.budget
             ran = self.run_updates(deadline=time.monotonic() + 0.02)
             if self.agent.updates - last_sync >= self.cfg.sync_every:
                 self.publish_weights()
@@ -191,39 +191,37 @@ class Learner:
         self.checkpoint()
 
     def updates_allowed(self) -> int:
-        """Rate limiter: updates may reach utd × (transitions − start_steps)."""
-        if self.env_steps < self.algo.start_steps or len(self.buffer) < self.algo.batch_size:
+        """Rate limiter: utd updates per schedule step (iteration or transition) past the start."""
+        if len(self.buffer) < self.algo.batch_size:
             return 0
-        return int(self.algo.utd * (self.env_steps - self.algo.start_steps))
+        return self.schedule.updates_allowed(self.env_steps)
 
     def accept_until(self) -> int:
-        """Credit: collection may run `tolerance` transitions ahead of what utd has consumed,
-        and never past the next obsolescence round until the referee has published it."""
-        consumed = self.algo.start_steps + math.ceil(self.agent.updates / self.algo.utd)
-        if self.env_steps < self.algo.start_steps:
-            consumed = self.algo.start_steps
-        limit = min(self.cfg.steps, consumed + self.cfg.tolerance)
+        """Credit: collection may run `tolerance` transitions ahead of what the updates have
+        consumed, and never past the next obsolescence round until the referee has published it."""
+        consumed = max(self.schedule.transitions_consumed(self.agent.updates), self.schedule.random_until)
+        limit = min(self.schedule.budget, consumed + self.cfg.tolerance)
         boundary = self.next_round_boundary()
         if boundary is not None and self.referees.live():
             limit = min(limit, boundary)
         return limit
 
     def next_round_boundary(self) -> int | None:
-        """Env step of the next allocation round (A, 2A, ... before C) or of the elimination (C).
+        """Transitions at the next allocation round (A, 2A, ... before C) or the elimination (C).
 
         Rounds are barriers, as in Algorithm 1: the allocation for steps (jA, (j+1)A] is
         decided from the evaluation at jA. Without a live referee there is no barrier.
         """
-        a, c = self.algo.compete_every, self.algo.eliminate_at
-        if self.algo.no_ot or self.algo.actors == 1 or self.survivor is not None or self.round_done_at >= c:
+        if self.survivor is not None:
             return None
-        return min((self.round_done_at // a + 1) * a, c)
+        barrier = self.schedule.next_barrier(self.round_done_at)
+        return None if barrier is None else self.schedule.transitions_at(barrier)
 
     def run_updates(self, deadline: float) -> int:
         ran = 0
         allowed = self.updates_allowed()
         while self.agent.updates < allowed:
-            self.metrics = self.agent.update(self.buffer.sample(self.algo.batch_size))
+            self.metrics = self.agent.update(self.buffer.sample(self.algo.batch_size, self.agent.batch_groups))
             ran += 1
             if time.monotonic() > deadline:
                 break
@@ -275,9 +273,10 @@ class Learner:
         except MessageError as e:
             self.other_rejects.reject("allocation", e)
             return
-        if alloc.round > 0:  # env_steps: where the current P was decided
+        if alloc.round > 0:  # env_steps: the transitions at which the current P was decided
             a, c = self.algo.compete_every, self.algo.eliminate_at
-            done_at = c if alloc.env_steps >= c else (alloc.env_steps // a) * a
+            units = self.schedule.units_at(alloc.env_steps)
+            done_at = c if units >= c else (units // a) * a
             self.round_done_at = max(self.round_done_at, done_at)
         if alloc.survivor is not None and self.survivor is None:
             self.survivor = alloc.survivor
@@ -311,13 +310,22 @@ class Learner:
                                "actor": w["actor"], "lag": w["lag"], "rate": round(w["rate"], 2)}
         losses = {k.split("/", 1)[1]: v for k, v in self.metrics.items() if k.startswith("loss/")}
         q_means = [self.metrics.get(f"q/actor{k}", float("nan")) for k in range(self.algo.actors)]
-        consumed = max(self.env_steps - self.algo.start_steps, 0)
         return LearnerStats(
             env_steps=self.env_steps, updates=self.agent.updates, accept_until=self.accept_until(),
-            utd=self.agent.updates / consumed if consumed else 0.0, losses=losses, q_means=tuple(q_means),
+            utd=self.utd(), losses=losses, q_means=tuple(q_means),
             versions=tuple(self.agent.versions), per_worker=per_worker, rejected=self.rejected(),
             done=done, live=tuple(self.agent.live_actors), workers=self.active_workers(now),
-            steps=self.cfg.steps, incarnation=self.incarnation)
+            steps=self.schedule.budget, incarnation=self.incarnation)
+
+    @property
+    def iterations(self) -> int:
+        """Schedule steps done: Algorithm 1's iterations (paper) or transitions (equal-data)."""
+        return self.schedule.units_at(self.env_steps)
+
+    def utd(self) -> float:
+        """Updates per schedule step past the start (per iteration or per transition)."""
+        consumed = max(self.iterations - self.algo.start_steps, 0)
+        return self.agent.updates / consumed if consumed else 0.0
 
     def active_workers(self, now: float) -> int:
         """Workers sharing the credit: live tokens, or recent senders if tokens are not seen."""
@@ -337,9 +345,8 @@ class Learner:
         self.stats_pub.put(self.stats(done).to_bytes(self.id, self._next_seq()))
 
     def write_log(self) -> None:
-        consumed = max(self.env_steps - self.algo.start_steps, 0)
         row = {"t": round(time.monotonic() - self.started, 3), "env_steps": self.env_steps,
-               "updates": self.agent.updates, "utd": self.agent.updates / consumed if consumed else 0.0,
+               "iterations": self.iterations, "updates": self.agent.updates, "utd": self.utd(),
                "transitions_per_s": round(self.rates[0], 2), "updates_per_s": round(self.rates[1], 2),
                "versions": list(self.agent.versions), "live": self.agent.live_actors,
                "lost": self.tracker.lost, "duplicates": self.tracker.duplicates,
@@ -352,8 +359,15 @@ class Learner:
         self.log_writer.write(row)
 
     def _next_bias_point(self) -> int | None:
+        """The next multiple of `bias_every` schedule steps (None: no bias measurement)."""
         every = self.cfg.bias_every
-        return (self.env_steps // every + 1) * every if every > 0 else None
+        return (self.iterations // every + 1) * every if every > 0 else None
+
+    def bias_due(self) -> bool:
+        """A bias point is reached and the updates have caught up with it."""
+        point = self.next_bias
+        return point is not None and self.iterations >= point and \
+            self.agent.updates >= self.schedule.updates_allowed(self.schedule.transitions_at(point))
 
     def measure_bias(self) -> None:
         """Eq. 17 for every live actor k: Q_k1(s0, π_k(s0)) of the current critic against the
@@ -369,11 +383,13 @@ class Learner:
             try:
                 result = estimation_bias(lambda obs, k=k: self.agent.act(obs, k),
                                          lambda obs, act, k=k: self.agent.q_value(obs, act, k),
-                                         self.cfg.env_id, self.cfg.bias_rollouts, self.algo.gamma, seed)
+                                         self.cfg.env_id, self.cfg.bias_rollouts, self.algo.gamma, seed,
+                                         horizon=self.cfg.bias_horizon)
             except Exception:  # a diagnostic never stops the training
                 log.exception("bias measurement at %d transitions failed (actor %d)", point, k)
                 continue
-            self.bias_writer.write({"env_steps": self.env_steps, "point": point, "updates": self.agent.updates,
+            self.bias_writer.write({"env_steps": self.env_steps, "iterations": self.iterations, "point": point,
+                                    "updates": self.agent.updates,
                                     "live": list(live), "rollouts": self.cfg.bias_rollouts,
                                     "bias": {"actor": k, **result}})
         log.info("bias at %d transitions measured in %.1f s", self.env_steps, time.monotonic() - started)
@@ -385,7 +401,7 @@ class Learner:
 
     def finish(self) -> None:
         """Budget reached: final weights, checkpoint, then tell everyone until they have left."""
-        if self.next_bias is not None and self.env_steps >= self.next_bias:
+        if self.next_bias is not None and self.iterations >= self.next_bias:
             self.measure_bias()  # a point at the budget itself: the loop leaves before checking it
         self.publish_weights(all_actors=True)
         self.write_log()
@@ -404,7 +420,7 @@ class Learner:
         self.inbox.close()
         self.ingest(self.inbox.drain())
         write_json(self.run_dir / "transport.json", {
-            "env_steps": self.env_steps, "updates": self.agent.updates, "lost": self.tracker.lost,
+            "env_steps": self.env_steps, "iterations": self.iterations, "updates": self.agent.updates, "lost": self.tracker.lost,
             "duplicates": self.tracker.duplicates, "rejected": self.rejected(),
             "per_worker": {w: {k: v for k, v in d.items() if k in ("received", "incarnation", "last_seq")}
                            for w, d in self.per_worker.items()},
@@ -444,7 +460,9 @@ def learner_command(
     device: options.Device = None, hidden: options.Hidden = None, config: options.ConfigFile = None,
     single_env_after_elimination: options.SingleEnv = None,
     bias_every: options.BiasEvery = None, bias_rollouts: options.BiasRollouts = None,
-    precision: options.Precision = None,
+    precision: options.Precision = None, schedule: options.Schedule = None, shared_batch: options.SharedBatch = None,
+    after_elimination: options.AfterElimination = None, skip_random_rounds: options.SkipRandomRounds = None,
+    bias_horizon: options.BiasHorizon = None,
     run: options.Run = None, connect: options.Connect = None, listen: options.Listen = None,
     zenoh_config: options.ZenohConfig = None, run_dir: options.RunDir = None,
     sync_every: int = typer.Option(100, help="publish actor weights every N updates"),
@@ -469,7 +487,9 @@ def learner_command(
             start_steps=start_steps, batch_size=batch_size, utd=utd, no_ot=no_ot, no_wt=no_wt, seed=seed,
             device=device, hidden=hidden, single_env_after_elimination=single_env_after_elimination, run=run,
             sync_every=sync_every, checkpoint_every=checkpoint_every, save_replay=save_replay,
-            bias_every=bias_every, bias_rollouts=bias_rollouts, precision=precision), config)
+            bias_every=bias_every, bias_rollouts=bias_rollouts, precision=precision, schedule=schedule,
+            shared_batch=shared_batch, after_elimination=after_elimination, skip_random_rounds=skip_random_rounds,
+            bias_horizon=bias_horizon), config)
     if steps is not None and (run_config is not None or resume is not None):
         cfg = RunConfig.from_dict({**cfg.to_dict(), "steps": steps})
     if not listen and not connect and cfg.endpoint:

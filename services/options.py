@@ -19,7 +19,7 @@ from typing import Annotated, Any, Optional
 
 import typer
 
-from mam_core.config import ALGOS, AlgoConfig, resolve
+from mam_core.config import AFTER_ELIMINATION, ALGOS, SCHEDULES, AlgoConfig, resolve
 
 # -- algorithm flags (paper symbol in brackets), the same on every command that takes them ----
 Env = Annotated[Optional[str], typer.Option("--env", help="Gymnasium env id, e.g. HalfCheetah-v5 or AppleCollect-v0")]
@@ -48,7 +48,22 @@ BiasRollouts = Annotated[Optional[int], typer.Option(
     "--bias-rollouts", help="Monte-Carlo rollouts per bias measurement (default 20, as in the paper)")]
 ConfigFile = Annotated[Optional[Path], typer.Option("--config", help="TOML file holding any of these options")]
 SingleEnv = Annotated[Optional[bool], typer.Option(
-    "--single-env-after-elimination", help="paper's schedule: the survivor runs one slot only")]
+    "--single-env-after-elimination", help="the survivor runs one slot only (implied by --schedule paper)")]
+Schedule = Annotated[Optional[str], typer.Option(
+    "--schedule", help=f"{' or '.join(SCHEDULES)} (default paper): paper = Algorithm 1, --steps/--start-steps/"
+                       "--compete-every/--eliminate-at/--eval-every/--bias-every count iterations (M transitions "
+                       "and one update each before C, one transition after); equal-data = they count transitions "
+                       "and --utd gives updates per transition")]
+SharedBatch = Annotated[Optional[bool], typer.Option(
+    "--shared-batch", help="one mini-batch for all actors (default: one per actor, as in Algorithm 1)")]
+AfterElimination = Annotated[Optional[str], typer.Option(
+    "--after-elimination", help=f"{', '.join(AFTER_ELIMINATION)} (default frozen): the eliminated actors' "
+                                "critics after C stay frozen in Eq. 9, keep training, or leave Eq. 9 (η → 0)")]
+SkipRandomRounds = Annotated[Optional[bool], typer.Option(
+    "--skip-random-rounds", help="no allocation round during the random start phase (default: rounds from A on)")]
+BiasHorizon = Annotated[Optional[str], typer.Option(
+    "--bias-horizon", help="Eq. 17's Monte-Carlo Q*: critic (default: adds the bootstrap tail γ^T·Q(s_T, π(s_T)) "
+                           "at a time limit, the critic's own horizon) or episode (cut at the time limit)")]
 
 # -- network flags ----------------------------------------------------------------------------
 Run = Annotated[Optional[str], typer.Option("--run", help="run name: the key-expression namespace mam/<run>/...")]
@@ -57,6 +72,7 @@ Listen = Annotated[Optional[list[str]], typer.Option("--listen", help="Zenoh end
 ZenohConfig = Annotated[Optional[Path], typer.Option("--zenoh-config", help="Zenoh JSON5 config file")]
 RunDir = Annotated[Optional[Path], typer.Option("--run-dir", help="directory for this process's logs and outputs")]
 
+BIAS_HORIZONS = ("critic", "episode")
 _RUN_NAME = re.compile(r"[A-Za-z0-9_.\-]+")
 
 
@@ -78,6 +94,7 @@ class RunConfig:
     endpoint: str = ""  # where clients connect (written to config.json)
     bias_every: int = 0  # Eq. 17 estimation bias every N transitions, measured by the learner (0: off)
     bias_rollouts: int = 20  # Monte-Carlo rollouts per bias point (the paper: 20)
+    bias_horizon: str = "critic"  # critic: MC return + bootstrap tail at a time limit; episode: cut there
 
     @property
     def tolerance(self) -> int:
@@ -105,6 +122,8 @@ class RunConfig:
             raise ValueError("steps must be >= 1")
         if cfg.bias_every < 0 or cfg.bias_rollouts < 1:
             raise ValueError("bias_every must be >= 0 and bias_rollouts >= 1")
+        if cfg.bias_horizon not in BIAS_HORIZONS:
+            raise ValueError(f"bias_horizon must be one of {', '.join(BIAS_HORIZONS)}")
         return cfg
 
 
@@ -139,7 +158,7 @@ def load_toml(path: Path | None) -> dict[str, Any]:
 
 
 _RUN_FIELDS = {"run", "env_id", "env", "steps", "algo", "sync_every", "checkpoint_every", "send_batch",
-               "band", "save_replay", "learner_threads", "bias_every", "bias_rollouts"}
+               "band", "save_replay", "learner_threads", "bias_every", "bias_rollouts", "bias_horizon"}
 
 
 def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig:

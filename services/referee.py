@@ -24,8 +24,9 @@ import typer
 
 import mam_core.envs  # noqa: F401
 from mam_core.evaluation import evaluate_policy
-from mam_core.obsolescence import Obsolescence, counts, obsolescence_for
+from mam_core.obsolescence import Obsolescence, best_actors, counts, obsolescence_for
 from mam_core.policy import EnvSpec, NumpyActors, Policy
+from mam_core.schedule import Schedule
 from services import bus, keys, options
 from services.codec import Allocation, Eval, LearnerStats, MessageError, Weights, encode
 from services.options import JsonlWriter, RunConfig, write_json
@@ -49,11 +50,12 @@ class Referee:
         self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden)  # acting only: no torch
         self.shapes = self.actors.shapes
         self.versions = [-1] * self.algo.actors
-        self.schedule: Obsolescence = obsolescence_for(self.algo)
+        self.schedule: Obsolescence = obsolescence_for(self.algo)  # counts schedule steps (units)
+        self.clock = Schedule.for_run(self.algo, cfg.steps)  # transitions <-> iterations
         self.rng = np.random.default_rng(self.algo.seed + 17)
         self.slots: dict[str, int] = {}
         self.eval_round = 0
-        self.decided_at = 0  # env step of the evaluation behind the current P
+        self.decided_at = 0  # transitions at the evaluation behind the current P
         self.next_curve_eval = self.algo.eval_every
         self.stats: LearnerStats | None = None
         self.seq = 0
@@ -117,11 +119,12 @@ class Referee:
             if set(self.workers.live()) != set(self.slots):
                 self.publish_allocation("workers-changed", returns=None)
             steps = self.stats.env_steps if self.stats else 0
-            if self.schedule.due_elimination(steps) or self.schedule.due_round(steps):
+            units = self.clock.units_at(steps)  # iterations (paper) or transitions (equal-data)
+            if self.schedule.due_elimination(units) or self.schedule.due_round(units):
                 self.compete(steps)
-            elif steps >= self.next_curve_eval and steps >= self.algo.start_steps:
+            elif units >= self.next_curve_eval and units >= self.algo.start_steps:
                 self.evaluate(steps)
-                self.next_curve_eval = (steps // self.algo.eval_every + 1) * self.algo.eval_every
+                self.next_curve_eval = (units // self.algo.eval_every + 1) * self.algo.eval_every
                 self._save_state()
             else:
                 if time.monotonic() - self.last_publish > HEARTBEAT_S:
@@ -169,7 +172,8 @@ class Referee:
         msg = Eval(self.eval_round, steps, tuple(tuple(r) for r in returns), tuple(means), tuple(self.versions))
         self.eval_pub.put(msg.to_bytes(self.id, self._next_seq()))
         self.eval_log.write({"t": round(time.monotonic() - self.started, 3), "round": self.eval_round,
-                             "env_steps": steps, "returns": returns, "mean": means, "versions": list(self.versions),
+                             "env_steps": steps, "iterations": self.clock.units_at(steps),
+                             "updates": self.stats.updates if self.stats else 0, "returns": returns, "mean": means, "versions": list(self.versions),
                              "bias": None})
         log.info("eval at %d steps: %s", steps, [None if m is None else round(m, 2) for m in means])
         return means
@@ -181,16 +185,20 @@ class Referee:
         known = [m for m in means if m is not None]
         floor = min(known) if known else 0.0
         returns = np.array([floor if m is None else m for m in means])
-        eliminating = self.schedule.due_elimination(steps)
-        self.schedule.record_evaluation(steps, returns)
+        units = self.clock.units_at(steps)
+        eliminating = self.schedule.due_elimination(units)
+        best = best_actors(returns, self.schedule.live)
+        self.schedule.record_evaluation(units, returns, rng=self.rng)  # a tie at C: the seeded rng picks
         self.decided_at = steps
         reason = "elimination" if eliminating else "round"
-        self.publish_allocation(reason, returns=returns.tolist(), redraw=True)
-        self.next_curve_eval = (steps // self.algo.eval_every + 1) * self.algo.eval_every
+        self.publish_allocation(reason, returns=returns.tolist(), redraw=True, tie=best if len(best) > 1 else None)
+        self.next_curve_eval = (units // self.algo.eval_every + 1) * self.algo.eval_every
         self._save_state()
 
-    def publish_allocation(self, reason: str, returns: list[float] | None, redraw: bool = False) -> None:
-        """Slots keep their actor unless `redraw`; new workers draw with the current P."""
+    def publish_allocation(self, reason: str, returns: list[float] | None, redraw: bool = False,
+                           tie: list[int] | None = None) -> None:
+        """Slots keep their actor unless `redraw`; new workers draw with the current P. `tie`:
+        the actors that shared the best return in this round (recorded in allocation.jsonl)."""
         live_workers = sorted(self.workers.live())
         if redraw or self.schedule.survivor is not None or not self.schedule.config.enabled:
             self.slots = dict(self.schedule.allocation(live_workers, self.rng)) if live_workers else {}
@@ -200,7 +208,7 @@ class Referee:
             if new:
                 kept.update(self.schedule.allocation(new, self.rng))
             self.slots = kept
-        if self.schedule.survivor is not None and self.algo.single_env_after_elimination and self.slots:
+        if self.schedule.survivor is not None and self.algo.single_env and self.slots:
             first = sorted(self.slots)[0]
             self.slots = {first: self.schedule.survivor}
         i_k = counts(self.slots, self.algo.actors).astype(int).tolist()
@@ -213,7 +221,8 @@ class Referee:
         self.last_publish = time.monotonic()
         now_steps = self.stats.env_steps if self.stats else steps
         self.alloc_log.write({"t": round(time.monotonic() - self.started, 3), "round": self.schedule.round,
-                              "env_steps": max(now_steps, steps), "decided_at": steps, "returns": returns,
+                              "env_steps": max(now_steps, steps), "iterations": self.clock.units_at(max(now_steps, steps)),
+                              "decided_at": steps, "returns": returns, "tie": tie,
                               "probabilities": [float(p) for p in self.schedule.probabilities], "counts": i_k,
                               "slots": dict(self.slots), "eliminated": [bool(e) for e in self.schedule.eliminated],
                               "survivor": self.schedule.survivor, "reason": reason})
@@ -240,6 +249,7 @@ class Referee:
         write_json(self.run_dir / "summary.json", {
             "run": self.cfg.run, "env_id": self.cfg.env_id, "algo": self.algo.algo,
             "final_returns": means, "survivor": survivor, "env_steps": steps,
+            "iterations": self.clock.units_at(steps), "schedule": self.algo.schedule,
             "updates": self.stats.updates if self.stats else 0,
             "wall_time_s": round(time.monotonic() - self.started, 2),
             "rounds": self.schedule.round, "probabilities": self.schedule.probabilities.tolist(),

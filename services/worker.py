@@ -25,6 +25,7 @@ import typer
 
 import mam_core.envs  # noqa: F401  (registers AppleCollect-v0)
 from mam_core.policy import EnvSpec, NumpyActors
+from mam_core.schedule import Schedule
 from services import bus, keys, options
 from services.codec import Allocation, LearnerStats, MessageError, TransitionBatch, Weights, decode, encode
 from services.options import RunConfig, write_json
@@ -93,6 +94,8 @@ class Worker:
         self.shapes = self.actors.shapes
         self.versions = [-1] * self.algo.actors  # -1: no weights yet
         self.actor = slot_index % self.algo.actors  # until the first allocation arrives
+        self.idle = False  # after the elimination with one environment slot, and this is not it
+        self.random_until = Schedule.for_run(self.algo, cfg.steps).random_until  # transitions
         self.stats: LearnerStats | None = None
         self.batch_seq = 0
         self.sent_rows = 0
@@ -152,7 +155,7 @@ class Worker:
                 log.info("run is done after %d transitions from this worker", self.sent_rows)
                 return
             self.refresh()
-            if not self.may_send():
+            if self.idle or not self.may_send():
                 self.flush()
                 idle_since = idle_since or time.monotonic()
                 self.stats_sub.wait_fresh(timeout=0.05)  # pause (rate limiter or no learner): no spinning
@@ -205,6 +208,8 @@ class Worker:
                     self.actor = alloc.slots[self.id]
                 elif alloc.survivor is not None:
                     self.actor = alloc.survivor
+                # The survivor runs one environment (I_e = 1): the other slots wait.
+                self.idle = alloc.survivor is not None and self.algo.single_env and self.id not in alloc.slots
             except MessageError as e:
                 self.rejects.reject("referee", e)
         item = self.stats_sub.fresh().get(keys.learner_stats(self.cfg.run))
@@ -245,7 +250,7 @@ class Worker:
 
     def in_random_phase(self) -> bool:
         st = self.stats
-        return st is None or st.env_steps + self.in_flight() < self.algo.start_steps
+        return st is None or st.env_steps + self.in_flight() < self.random_until
 
     def step(self, random_phase: bool) -> None:
         if random_phase:

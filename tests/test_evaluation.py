@@ -64,9 +64,10 @@ def test_monte_carlo_q_matches_hand_computed_discounted_return():
 def test_bias_rate_hand_computed():
     assert bias_rate(110.0, 100.0) == pytest.approx(0.1)
     assert bias_rate(90.0, 100.0) == pytest.approx(-0.1)
-    # negative Q*: dividing by |Q*| keeps "> 0 means over-estimation"
-    assert bias_rate(-90.0, -100.0) == pytest.approx(0.1)
-    assert bias_rate(-120.0, -100.0) == pytest.approx(-0.2)
+    # negative Q*: Eq. 17 as printed divides by Q* (the sign flips); absolute=True keeps "> 0 is over-estimation"
+    assert bias_rate(-90.0, -100.0) == pytest.approx(-0.1)
+    assert bias_rate(-90.0, -100.0, absolute=True) == pytest.approx(0.1)
+    assert bias_rate(-120.0, -100.0, absolute=True) == pytest.approx(-0.2)
     # ratio of means
     assert bias_rate(np.array([1.0, 3.0]), np.array([1.0, 1.0, 1.0, 1.0])) == pytest.approx(1.0)
     assert math.isnan(bias_rate(1.0, 0.0))

@@ -67,7 +67,7 @@ def cpu_seconds(pid: int) -> float:
 
 
 def start_run(tmp_path: Path, run: str, endpoint: str, steps: int, extra: list[str] = (), workers: int = 3):
-    learner = spawn("learner", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--steps", str(steps),
+    learner = spawn("learner", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--schedule", "equal-data", "--steps", str(steps),
                     "--start-steps", "300", "--compete-every", "500", "--eliminate-at", "1000000", *SMALL, *extra,
                     "--run", run, "--listen", endpoint, "--run-dir", str(tmp_path), log=tmp_path / "learner.log")
     referee = spawn("referee", "--run", run, "--connect", endpoint, "--run-dir", str(tmp_path),

@@ -139,7 +139,7 @@ def test_fuzz_every_topic_while_a_run_goes_on(tmp_path: Path) -> None:
     fuzz = [(key, malformed(key, payload, rng, i, run)) for i in range(PER_TOPIC) for key, payload in base.items()]
     huge = rng.bytes(70 * 1024 * 1024)  # over every size cap
     fuzz += [(keys.transitions(run, "w0"), huge), (keys.weights(run, 0), huge)]
-    learner = spawn("learner", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--steps", str(steps),
+    learner = spawn("learner", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--schedule", "equal-data", "--steps", str(steps),
                     "--start-steps", "300", "--compete-every", "500", "--eliminate-at", "2000", "--hidden", "32,32",
                     "--batch-size", "32", "--eval-episodes", "3", "--run", run, "--listen", endpoint,
                     "--run-dir", str(tmp_path), log=tmp_path / "learner.log")

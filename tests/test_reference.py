@@ -22,26 +22,6 @@ def test_mam_core_never_imports_zenoh():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
-def test_reference_driver_follows_algorithm_1_schedule():
-    a, c, m = 300, 1200, 5
-    cfg = resolve("ma-ddpg", hidden=(32, 32), batch_size=32, start_steps=300, compete_every=a, eliminate_at=c,
-                  workers=m, eval_episodes=3, eval_every=300, seed=4)
-    result = run_reference("AppleCollect-v0", cfg, 1800)
-    steps = [row["env_steps"] for row in result.allocations]
-    # Sweeps of M slots: each round lands on the first sweep at or past its multiple of A.
-    assert steps == [0, 300, 600, 900, 1200]
-    for row, ev in zip(result.allocations[1:-1], result.evaluations):
-        np.testing.assert_allclose(row["probabilities"], allocation_probabilities(ev["mean"]))
-    survivor = result.survivor
-    elim_eval = next(e for e in result.evaluations if e["env_steps"] == 1200)
-    assert survivor == int(np.argmax(elim_eval["mean"]))
-    assert result.allocations[-1]["slots"] == [survivor] * m
-    assert result.env_steps == 1800
-    assert result.updates == 1800 - 300  # utd = 1 per transition after start_steps
-    last = result.evaluations[-1]
-    assert [m is None for m in last["mean"]] == [k != survivor for k in range(3)]
-
-
 @pytest.mark.slow
 @pytest.mark.learning
 @pytest.mark.parametrize("algo, extra", [

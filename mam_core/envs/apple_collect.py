@@ -18,6 +18,12 @@ Choices the paper leaves open (also in docs/APPLECOLLECT.md):
 - Episode length 100 comes from gymnasium's TimeLimit (`max_episode_steps=100` at
   registration), which sets truncated=True; the class itself has no step limit.
 - Deterministic: no randomness in start or dynamics; `reset(seed=)` is accepted for the API.
+
+AppleCollect-v1 reads the open choices so that the premise of the paper's Fig. 1 holds (a
+uniform random policy rarely finds a 50 apple, so a single actor can settle for a 10 apple):
+the move is bounded as a radius (|move| <= 0.2), apples have radius 0.04, and leaving the
+square ends the episode with the step costs it forfeits (the return is -1.0, as for wandering
+until the time limit). docs/APPLECOLLECT.md has the measured hit rates of both versions.
 """
 
 from __future__ import annotations
@@ -34,48 +40,107 @@ APPLE_POSITIONS = np.array([[0.8, 0.8], [-0.8, -0.8], [0.5, -0.5], [-0.5, 0.5]])
 APPLE_VALUES = np.array([50.0, 50.0, 10.0, 10.0])
 
 
+MOVE_BOUNDS = ("axis", "radius")
+EPISODE_STEPS = 100
+
+
 class AppleCollectEnv(gym.Env[np.ndarray, np.ndarray]):
-    """Move from the centre to an apple; every step costs 0.01, an apple ends the episode."""
+    """Move from the centre to an apple; every step costs 0.01, an apple ends the episode.
+
+    v0: `move_bound="axis"`, `apple_radius=0.1`, `leave_ends=False` (the defaults).
+    v1: `move_bound="radius"`, `apple_radius=0.04`, `leave_ends=True`.
+    """
 
     metadata = {"render_modes": []}
 
-    def __init__(self, render_mode: str | None = None) -> None:
+    def __init__(self, render_mode: str | None = None, move_bound: str = "axis", apple_radius: float = APPLE_RADIUS,
+                 leave_ends: bool = False) -> None:
+        if move_bound not in MOVE_BOUNDS:
+            raise ValueError(f"move_bound must be one of {MOVE_BOUNDS}, not {move_bound!r}")
+        if not 0.0 < apple_radius < 0.5:
+            raise ValueError(f"apple_radius must be in (0, 0.5), got {apple_radius}")
         self.render_mode = render_mode
+        self.move_bound = move_bound
+        self.apple_radius = float(apple_radius)
+        self.leave_ends = bool(leave_ends)
         self.observation_space = gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
         self.action_space = gym.spaces.Box(-MAX_MOVE, MAX_MOVE, shape=(2,), dtype=np.float32)
         self._position = np.zeros(2)
+        self._steps = 0
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         super().reset(seed=seed)
         self._position = np.zeros(2)
+        self._steps = 0
         return self._position.astype(np.float32), {}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         move = np.clip(np.asarray(action, dtype=np.float64).reshape(2), -MAX_MOVE, MAX_MOVE)
         if not np.all(np.isfinite(move)):
             raise ValueError(f"AppleCollect action must be finite, got {action}")
+        if self.move_bound == "radius":
+            length = float(np.hypot(*move))
+            if length > MAX_MOVE:
+                move = move * (MAX_MOVE / length)
+        self._steps += 1
         start = self._position
-        end = np.clip(start + move, -1.0, 1.0)
+        unclipped = start + move
+        left = self.leave_ends and bool(np.any(np.abs(unclipped) > 1.0))
+        end = np.clip(unclipped, -1.0, 1.0)
         self._position = end
-        apple = _apple_on_segment(start, end)
+        apple = _apple_on_segment(start, end, self.apple_radius)
         reward = STEP_REWARD
         if apple is not None:
             reward += float(APPLE_VALUES[apple])
-        info = {"apple": 0.0 if apple is None else float(APPLE_VALUES[apple])}
-        return end.astype(np.float32), reward, apple is not None, False, info
+        elif left:  # the episode ends here: charge the steps it forfeits, so leaving never pays
+            reward = STEP_REWARD * max(EPISODE_STEPS - self._steps + 1, 1)
+        info = {"apple": 0.0 if apple is None else float(APPLE_VALUES[apple]), "left": left and apple is None}
+        return end.astype(np.float32), reward, apple is not None or left, False, info
 
 
-def _apple_on_segment(start: np.ndarray, end: np.ndarray) -> int | None:
-    """Index of the first apple the move start -> end passes within APPLE_RADIUS of, else None."""
+def _apple_on_segment(start: np.ndarray, end: np.ndarray, radius: float = APPLE_RADIUS) -> int | None:
+    """Index of the first apple the move start -> end passes within `radius` of, else None."""
     d = end - start
     length2 = float(d @ d)
     to_apples = APPLE_POSITIONS - start  # (4, 2)
     t = np.clip(to_apples @ d / length2, 0.0, 1.0) if length2 > 0 else np.zeros(len(APPLE_POSITIONS))
     closest = start + t[:, None] * d
-    hit = np.sum((APPLE_POSITIONS - closest) ** 2, axis=1) <= APPLE_RADIUS**2
+    hit = np.sum((APPLE_POSITIONS - closest) ** 2, axis=1) <= radius**2
     if not hit.any():
         return None
     candidates = np.flatnonzero(hit)
     return int(candidates[np.argmin(t[candidates])])
+
+
+def random_hit_rates(env_id: str, episodes: int = 2000, seed: int = 0) -> dict[float, float]:
+    """Share of episodes of a uniform random policy that collect a 50 apple and a 10 apple
+    (episode i reset with seed + i, actions from the action space seeded with `seed`)."""
+    env = gym.make(env_id)
+    env.action_space.seed(seed)
+    hits = {50.0: 0, 10.0: 0}
+    try:
+        for i in range(episodes):
+            env.reset(seed=seed + i)
+            while True:
+                _, _, terminated, truncated, info = env.step(env.action_space.sample())
+                if info["apple"]:
+                    hits[info["apple"]] += 1
+                if terminated or truncated:
+                    break
+    finally:
+        env.close()
+    return {value: n / episodes for value, n in hits.items()}
+
+
+if __name__ == "__main__":  # python -m mam_core.envs.apple_collect [EPISODES]: the table of docs/APPLECOLLECT.md
+    import sys
+
+    import mam_core.envs  # noqa: F401  (registers the versions)
+
+    n = int(sys.argv[1]) if len(sys.argv) > 1 else 20_000
+    print(f"uniform random policy, {n:,} episodes, seed 0")
+    for version in ("AppleCollect-v0", "AppleCollect-v1"):
+        rates = random_hit_rates(version, n)
+        print(f"{version}: 50 apple {rates[50.0]:.2%}, 10 apple {rates[10.0]:.2%}")
