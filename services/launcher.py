@@ -109,8 +109,11 @@ class LocalCluster:
             self.wait(5.0)
 
 
-def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plot: bool = True) -> dict[str, Any]:
-    """Train `cfg` on this box; returns summary.json's content (empty if the run was stopped)."""
+def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plot: bool = True,
+              outcome: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Train `cfg` on this box; returns summary.json's content (empty if the run was stopped).
+
+    `outcome`, when given, gets "interrupted": whether SIGINT / SIGTERM stopped the run."""
     console = console or Console()
     run_dir.mkdir(parents=True, exist_ok=True)
     port = bus.free_tcp_port()
@@ -139,6 +142,8 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
         cluster.stop()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    if outcome is not None:
+        outcome["interrupted"] = interrupted
     failed = [c for c in cluster.children if c.proc.returncode not in (0, -signal.SIGTERM, None)]
     for c in failed:
         console.print(f"[red]{c.role} exited with {c.proc.returncode}[/]: see {c.log}")

@@ -48,7 +48,26 @@ import typer
 from services.plot import _read_json, read_jsonl  # one reader of run files for plots and reports
 
 LAST_N = 10
-SUCCESS_RETURN = 40.0  # AppleCollect: a final return >= 40 means a 50 apple was reached (49.96 at best)
+
+
+def _success_return() -> float:
+    """AppleCollect: the least return of an episode that collects a 50 apple within the episode's
+    step limit (50 − 0.01·100 = 49); a 10 apple gives at most 9.99, so a score at or above it means
+    the policy reaches a 50 apple (in every evaluation episode: the env is deterministic)."""
+    try:
+        import gymnasium as gym
+
+        import mam_core.envs  # noqa: F401
+        from mam_core.envs.apple_collect import APPLE_VALUES, STEP_REWARD
+
+        limit = gym.spec("AppleCollect-v0").max_episode_steps or 100
+        return float(APPLE_VALUES.max() + STEP_REWARD * limit) - 1e-6  # float sums of −0.01
+    except Exception:  # noqa: BLE001 - the report must work without the env package
+        return 49.0 - 1e-6
+
+
+SUCCESS_RETURN = _success_return()
+AXES = ("transitions", "iterations")
 CONFIDENCE = 0.95
 N_BOOT = 2000
 DPI = 120
@@ -228,6 +247,25 @@ def eval_points(rows: list[dict[str, Any]]) -> list[tuple[float, float]]:
     return out
 
 
+def eval_triples(rows: list[dict[str, Any]]) -> list[tuple[float, float | None, float]]:
+    """(env_steps, iterations or None, best live score) of every evaluation row with a score."""
+    out = []
+    for row in rows:
+        step, score = _finite(row.get("env_steps")), best_live_score(row)
+        if step is not None and score is not None:
+            out.append((step, _finite(row.get("iterations")), score))
+    return out
+
+
+def first_reach(triples: Sequence[tuple[float, float | None, float]], threshold: float,
+                ) -> tuple[float, float | None] | None:
+    """(env steps, iterations) of the first evaluation scoring >= threshold (None: never)."""
+    for step, it, score in triples:
+        if score >= threshold:
+            return step, it
+    return None
+
+
 def bucket_points(points: Sequence[tuple[float, float]], spacing: float) -> dict[int, float]:
     """Evaluation points on the grid of `spacing`: step s goes to floor(s / spacing)·spacing,
     the last point of a grid cell (in file order) wins. Returns {grid step: score}, sorted."""
@@ -304,6 +342,37 @@ class RunRecord:
     points: list[tuple[float, float]]
     allocation: list[dict[str, Any]] = field(default_factory=list)
     bias: list[tuple[float, float]] = field(default_factory=list)  # (point, Eq. 17 rate) from bias.jsonl
+    evals: list[tuple[float, float | None, float]] = field(default_factory=list)  # (env steps, iterations, score)
+    record: dict[str, Any] = field(default_factory=dict)  # record.json (the commit it ran at), if any
+
+    @property
+    def key(self) -> str:
+        """<env>/<variant>/seed<k>: the run's place in the grid (and in the ledger)."""
+        return f"{_slug(self.env)}/{self.variant}/seed{self.seed}"
+
+    @property
+    def has_iterations(self) -> bool:
+        return any(it is not None for _, it, _ in self.evals)
+
+    def axis_points(self, axis: str = "transitions") -> list[tuple[float, float]]:
+        """(x, score) on the x-axis `axis`: env transitions, or iterations (env transitions in
+        the rows that carry no `iterations`, i.e. runs older than it)."""
+        if axis == "transitions" or not self.evals:
+            return self.points
+        return [(step if it is None else it, score) for step, it, score in self.evals]
+
+    def iterations_per_transition(self) -> float:
+        """From the last evaluation row with both counts (1 without iterations)."""
+        for step, it, _ in reversed(self.evals):
+            if it is not None and step > 0:
+                return it / step
+        return 1.0
+
+    @property
+    def commit(self) -> str:
+        from services.experiment import commit_label
+
+        return commit_label(self.record)
 
     @property
     def algo_config(self) -> dict[str, Any]:
@@ -343,13 +412,15 @@ def load_run(path: Path, env: str | None = None, variant: str | None = None) -> 
     if not isinstance(seed, int):
         m = re.fullmatch(r"seed(\d+)", path.name)
         seed = int(m.group(1)) if m else 0
+    rows = read_jsonl(path / "eval.jsonl")
     return RunRecord(
         env=env or str(config.get("env_id") or summary.get("env_id") or "?"),
         variant=variant or str(algo.get("algo") or summary.get("algo") or "?"),
         seed=seed, path=path, config=config, summary=summary,
-        points=eval_points(read_jsonl(path / "eval.jsonl")),
+        points=eval_points(rows), evals=eval_triples(rows),
         allocation=read_jsonl(path / "allocation.jsonl"),
-        bias=bias_points(read_jsonl(path / "bias.jsonl")))
+        bias=bias_points(read_jsonl(path / "bias.jsonl")),
+        record=_read_json(path / "record.json"))
 
 
 def bias_points(rows: list[dict[str, Any]]) -> list[tuple[float, float]]:
@@ -410,25 +481,48 @@ def common_bias_points(runs: Sequence[RunRecord]) -> list[float]:
 
 
 def load_runs(exp_dir: Path) -> list[RunRecord]:
-    """Every finished run under EXP_DIR/<env>/<variant>/seed<k>/ (other layouts: any dir with a
-    summary.json, env and algo read from its config)."""
+    """Every finished run under a directory: <env>/<variant>/seed<k>/ directories with a summary.json,
+    at any depth (EXP_DIR/<env>/..., a ledger DIR/<env>/..., docs/results/<exp>/runs/<env>/...);
+    other layouts: any dir with a summary.json, env and algo read from its config. Hidden
+    directories (a ledger record being written) and EXP_DIR/failures are left out."""
     exp_dir = Path(exp_dir)
     runs = []
     for summary in sorted(exp_dir.rglob("summary.json")):
         path = summary.parent
         rel = path.relative_to(exp_dir).parts
-        if rel and rel[0].startswith("."):
+        if any(p.startswith(".") for p in rel) or (rel and rel[0] == "failures"):
             continue
-        layout = len(rel) == 3 and re.fullmatch(r"seed\d+", rel[2]) is not None
-        run = load_run(path, env=None, variant=rel[1] if layout else None)
+        layout = len(rel) >= 3 and re.fullmatch(r"seed\d+", rel[-1]) is not None
+        run = load_run(path, env=None, variant=rel[-2] if layout else None)
         if run is not None:
             runs.append(run)
     return runs
 
 
+def manifest(root: Path) -> dict[str, Any]:
+    """experiment.json of an experiment directory or ledger (ROOT, else ROOT/runs)."""
+    root = Path(root)
+    for path in (root / "experiment.json", root / "runs" / "experiment.json"):
+        data = _read_json(path)
+        if data:
+            return data
+    return {}
+
+
+def collect_runs(root: Path) -> list[RunRecord]:
+    """The finished runs of an experiment: those under ROOT and, when ROOT's experiment.json names a
+    ledger, the ledger's records of runs ROOT does not have (the run directory wins when both do)."""
+    runs = load_runs(root)
+    ledger = manifest(root).get("ledger")
+    if isinstance(ledger, str) and Path(ledger).is_dir() and Path(ledger).resolve() != Path(root).resolve():
+        have = {r.key for r in runs}
+        runs += [r for r in load_runs(Path(ledger)) if r.key not in have]
+    return runs
+
+
 def planned_runs(exp_dir: Path) -> list[str]:
     """Relative run paths that experiment.json planned (empty without it)."""
-    plan = _read_json(Path(exp_dir) / "experiment.json").get("runs")
+    plan = manifest(exp_dir).get("runs")
     return [r["path"] for r in plan if isinstance(r, dict) and isinstance(r.get("path"), str)] if isinstance(
         plan, list) else []
 
@@ -448,13 +542,18 @@ def variant_order(name: str, planned: Sequence[str] = ()) -> tuple:
     return (2, 0, name)
 
 
-def env_spacing(runs: Sequence[RunRecord]) -> float:
-    """Grid spacing of one env: the largest eval_every of its runs, else the median gap."""
-    every = [r.algo_config.get("eval_every") for r in runs]
-    every = [float(e) for e in every if isinstance(e, (int, float)) and e > 0]
+def env_spacing(runs: Sequence[RunRecord], axis: str = "transitions") -> float:
+    """Grid spacing of one env on `axis`: the largest evaluation spacing of its runs (eval_every,
+    in iterations: × the run's iterations per transition), else the median gap."""
+    every = []
+    for r in runs:
+        e = r.algo_config.get("eval_every")
+        if isinstance(e, (int, float)) and e > 0:
+            every.append(float(e) * (r.iterations_per_transition() if axis == "iterations" else 1.0))
     if every:
         return max(every)
-    gaps = [b[0] - a[0] for r in runs for a, b in zip(r.points, r.points[1:]) if b[0] > a[0]]
+    pts = [r.axis_points(axis) for r in runs]
+    gaps = [b[0] - a[0] for p in pts for a, b in zip(p, p[1:]) if b[0] > a[0]]
     return float(np.median(gaps)) if gaps else 1.0
 
 
@@ -478,10 +577,27 @@ class VariantStats:
     env_steps: float
     wall_time_s: float
     launcher_wall_time_s: float
+    axis: str = "transitions"
+    reached: list[tuple[float, float | None] | None] = field(default_factory=list)  # AppleCollect, per run
+    curves_by_axis: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # axis -> (grid, curves)
 
     @property
     def n(self) -> int:
         return len(self.runs)
+
+    @property
+    def commits(self) -> dict[str, int]:
+        """Commit label -> number of runs (record.json; "unknown" without one)."""
+        out: dict[str, int] = {}
+        for r in self.runs:
+            out[r.commit] = out.get(r.commit, 0) + 1
+        return out
+
+    def wall_times(self) -> np.ndarray:
+        """Per run: the launcher's wall time (start to end of the run), else the referee's."""
+        vals = [_finite(r.summary.get("launcher_wall_time_s")) or _finite(r.summary.get("wall_time_s"))
+                for r in self.runs]
+        return np.asarray([v for v in vals if v is not None], dtype=float)
 
     def setting(self) -> str:
         a = self.runs[0].algo_config
@@ -504,6 +620,79 @@ class Comparison:
     p: Interval
 
 
+BETTER, WORSE, NOT_SEPARATED = "better", "worse", "not separated"
+SINGLE_ACTOR_BASELINE = {"ma-td3": "td3", "ma-ddpg": "ddpg"}
+
+
+def verdict_word(p: Interval) -> str:
+    """*better* only where the 95% CI of P(MA > baseline) lies above ½, *worse* where it lies
+    below, else *not separated* (also without a finite interval)."""
+    if math.isfinite(p.lo) and p.lo > 0.5:
+        return BETTER
+    if math.isfinite(p.hi) and p.hi < 0.5:
+        return WORSE
+    return NOT_SEPARATED
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """One multi-actor variant against the single-actor baseline of its family, on one env."""
+
+    env: str
+    variant: str
+    baseline: str
+    n_x: int
+    n_y: int
+    p: Interval  # P(variant > baseline), last-10 scores
+    iqm_x: Interval
+    iqm_y: Interval
+    wall_x: float  # mean wall-clock seconds per run
+    wall_y: float
+    commits: dict[str, int]  # over the runs of both rows
+
+    @property
+    def word(self) -> str:
+        return verdict_word(self.p)
+
+    @property
+    def mixed(self) -> bool:
+        return len(self.commits) > 1
+
+
+def baseline_of(v: VariantStats, vs: Sequence[VariantStats]) -> VariantStats | None:
+    """The K=1 run of the variant's family in the same env: TD3 for MA-TD3 variants, DDPG for
+    MA-DDPG ones; the variant named like the algorithm first."""
+    algo = v.runs[0].algo_config.get("algo")
+    base = SINGLE_ACTOR_BASELINE.get(algo) if isinstance(algo, str) else None
+    if base is None or (v.runs[0].algo_config.get("actors") or 1) <= 1:
+        return None
+    cands = [w for w in vs if w.runs[0].algo_config.get("algo") == base
+             and (w.runs[0].algo_config.get("actors") or 1) == 1]
+    cands.sort(key=lambda w: w.variant != base)
+    return cands[0] if cands else None
+
+
+def verdicts(envs: dict[str, list[VariantStats]], n_boot: int = N_BOOT, seed: int = 0) -> list[Verdict]:
+    out = []
+    for env, vs in envs.items():
+        for v in vs:
+            b = baseline_of(v, vs)
+            if b is None:
+                continue
+            x, y = v.last10[np.isfinite(v.last10)], b.last10[np.isfinite(b.last10)]
+            if not x.size or not y.size:
+                continue
+            commits = dict(v.commits)
+            for c, n in b.commits.items():
+                commits[c] = commits.get(c, 0) + n
+            wx, wy = v.wall_times(), b.wall_times()
+            out.append(Verdict(env, v.variant, b.variant, x.size, y.size,
+                               probability_of_improvement_ci([x], [y], n_boot, seed=seed), v.iqm, b.iqm,
+                               float(wx.mean()) if wx.size else math.nan, float(wy.mean()) if wy.size else math.nan,
+                               commits))
+    return out
+
+
 @dataclass
 class Report:
     exp_dir: Path
@@ -513,6 +702,10 @@ class Report:
     aggregate: list[tuple[str, int, Interval]]  # variant, n envs, normalised IQM
     missing: list[str]
     meta: dict[str, Any]
+    axis: str = "transitions"
+    verdicts: list[Verdict] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)  # e.g. runs of one row at different commits
+    axes: tuple[str, ...] = ("transitions",)  # the learning curves drawn
 
 
 def _mean_of(runs: Sequence[RunRecord], key: str) -> float:
@@ -526,16 +719,26 @@ def is_apple_collect(env: str) -> bool:
 
 
 def variant_stats(env: str, variant: str, runs: list[RunRecord], spacing: float, n_boot: int = N_BOOT,
-                  seed: int = 0) -> VariantStats:
+                  seed: int = 0, axis: str = "transitions",
+                  spacings: dict[str, float] | None = None) -> VariantStats:
+    """Statistics of one variant on `axis` (its grid `spacing`); `spacings` (axis -> spacing) adds
+    the learning curves on those axes too."""
     runs = sorted(runs, key=lambda r: r.seed)
-    last10 = np.asarray([last_n_mean(r.points, spacing) for r in runs])
+    points = [r.axis_points(axis) for r in runs]
+    last10 = np.asarray([last_n_mean(p, spacing) for p in points])
     scored = last10[np.isfinite(last10)]
-    grid, curves = aligned_curves([r.points for r in runs], spacing)
+    grid, curves = aligned_curves(points, spacing)
+    by_axis = {axis: (grid, curves)}
+    for other, sp in (spacings or {}).items():
+        if other not in by_axis:
+            by_axis[other] = aligned_curves([r.axis_points(other) for r in runs], sp)
     final = np.asarray([np.nan if r.final_score is None else r.final_score for r in runs])
     successes, success = 0, None
+    reached: list[tuple[float, float | None] | None] = []
     if is_apple_collect(env):
         successes = int(np.sum(final >= SUCCESS_RETURN))
         success = wilson_interval(successes, len(runs))
+        reached = [first_reach(r.evals, SUCCESS_RETURN) for r in runs]
     nan = Interval(math.nan, math.nan, math.nan)
     return VariantStats(
         env=env, variant=variant, runs=runs, spacing=spacing, last10=last10,
@@ -545,7 +748,8 @@ def variant_stats(env: str, variant: str, runs: list[RunRecord], spacing: float,
         max_avg=max_average_return(grid, curves), grid=grid, curves=curves, final=final,
         success=success, successes=successes,
         updates=_mean_of(runs, "updates"), env_steps=_mean_of(runs, "env_steps"),
-        wall_time_s=_mean_of(runs, "wall_time_s"), launcher_wall_time_s=_mean_of(runs, "launcher_wall_time_s"))
+        wall_time_s=_mean_of(runs, "wall_time_s"), launcher_wall_time_s=_mean_of(runs, "launcher_wall_time_s"),
+        axis=axis, reached=reached, curves_by_axis=by_axis)
 
 
 def comparison_pairs(variants: Sequence[str]) -> list[tuple[str, str]]:
@@ -559,27 +763,45 @@ def comparison_pairs(variants: Sequence[str]) -> list[tuple[str, str]]:
     return pairs
 
 
-def build_report(exp_dir: Path, n_boot: int = N_BOOT, seed: int = 0) -> Report:
-    """All statistics of an experiment directory (no files written)."""
+def build_report(exp_dir: Path, n_boot: int = N_BOOT, seed: int = 0, axis: str = "transitions") -> Report:
+    """All statistics of an experiment directory, a ledger, or a folder holding the ledger in runs/
+    (no files written, nothing rerun). Tables on the x-axis `axis` (transitions or iterations)."""
+    if axis not in AXES:
+        raise ValueError(f"axis must be one of {AXES}")
     exp_dir = Path(exp_dir)
-    runs = load_runs(exp_dir)
+    runs = collect_runs(exp_dir)
     planned = planned_runs(exp_dir)
     plan_variants: list[str] = []
     for p in planned:
         parts = Path(p).parts
         if len(parts) == 3 and parts[1] not in plan_variants:
             plan_variants.append(parts[1])
-    done = {str(r.path.relative_to(exp_dir)) for r in runs}
+    done = {r.key for r in runs}
     missing = [p for p in planned if p not in done]
+    axes = AXES if any(r.has_iterations for r in runs) else ("transitions",)
+    if axis not in axes:
+        axes = (*axes, axis)
 
     by_env: dict[str, dict[str, list[RunRecord]]] = {}
     for r in runs:
         by_env.setdefault(r.env, {}).setdefault(r.variant, []).append(r)
     envs: dict[str, list[VariantStats]] = {}
+    notes: list[str] = []
     for env in sorted(by_env):
-        spacing = env_spacing([r for rs in by_env[env].values() for r in rs])
+        env_runs = [r for rs in by_env[env].values() for r in rs]
+        spacings = {a: env_spacing(env_runs, a) for a in axes}
         names = sorted(by_env[env], key=lambda v: variant_order(v, plan_variants))
-        envs[env] = [variant_stats(env, v, by_env[env][v], spacing, n_boot, seed) for v in names]
+        envs[env] = [variant_stats(env, v, by_env[env][v], spacings[axis], n_boot, seed, axis, spacings)
+                     for v in names]
+        for v in envs[env]:
+            if len(v.commits) > 1:
+                notes.append(f"{env} / {v.variant}: runs at different commits: "
+                             + ", ".join(f"{c} ({n})" for c, n in sorted(v.commits.items())))
+        if axis == "iterations":
+            old = sum(not r.has_iterations for r in env_runs)
+            if old:
+                notes.append(f"{env}: {old} run(s) without `iterations` in eval.jsonl (older code): their env "
+                             "transitions stand in for iterations")
 
     comparisons: list[Comparison] = []
     all_variants = sorted({v.variant for vs in envs.values() for v in vs},
@@ -618,8 +840,9 @@ def build_report(exp_dir: Path, n_boot: int = N_BOOT, seed: int = 0) -> Report:
         common = common_bias_points([r for v in vs for r in v.runs])
         bias[env] = [b for b in (bias_stats(v.variant, v.runs, common) for v in vs) if b is not None]
     bias = {env: bs for env, bs in bias.items() if bs}
-    meta = _read_json(exp_dir / "experiment.json")
-    return Report(exp_dir, envs, bias, comparisons, aggregate, missing, meta)
+    meta = manifest(exp_dir)
+    return Report(exp_dir, envs, bias, comparisons, aggregate, missing, meta, axis=axis,
+                  verdicts=verdicts(envs, n_boot, seed), notes=notes, axes=axes)
 
 
 # --- rendering -------------------------------------------------------------------------------
@@ -645,7 +868,7 @@ def env_rows(vs: Sequence[VariantStats]) -> tuple[list[str], list[list[str]]]:
     header = list(TABLE_HEADER)
     apple = any(v.success is not None for v in vs)
     if apple:
-        header.append(f"final ≥ {SUCCESS_RETURN:g} (50 apple) [95% CI]")
+        header.append(f"final ≥ {SUCCESS_RETURN:.2f} (50 apple) [95% CI]")
     rows = []
     for v in vs:
         row = [v.variant, v.setting(), str(v.n),
@@ -658,6 +881,54 @@ def env_rows(vs: Sequence[VariantStats]) -> tuple[list[str], list[list[str]]]:
             row.append(f"{v.successes}/{v.n} ({_fmt(100 * s.value, 0)}%) "
                        f"[{_fmt(100 * s.lo, 0)}%, {_fmt(100 * s.hi, 0)}%]" if s else "–")
         rows.append(row)
+    return header, rows
+
+
+AXIS_TEXT = {"transitions": "env transitions (received by the learner, all slots together)",
+             "iterations": "iterations (Algorithm 1's loop count; env transitions for runs without it)"}
+
+
+def _wall(v: float) -> str:
+    return "–" if not math.isfinite(v) else f"{v:,.0f}"
+
+
+def verdict_rows(vd: Sequence[Verdict]) -> tuple[list[str], list[list[str]]]:
+    header = ["env", "variant", "vs", "runs", "P(variant > baseline) [95% CI]", "IQM variant [95% CI]",
+              "IQM baseline [95% CI]", "wall s/run variant / baseline", "verdict", "commit"]
+    rows = []
+    for v in vd:
+        commit = (next(iter(v.commits)) if not v.mixed else
+                  "**different commits**: " + ", ".join(f"{c} ({n})" for c, n in sorted(v.commits.items())))
+        ratio = v.wall_x / v.wall_y if math.isfinite(v.wall_x) and math.isfinite(v.wall_y) and v.wall_y > 0 else None
+        rows.append([v.env, v.variant, v.baseline, f"{v.n_x} / {v.n_y}", f"{_fmt(v.p.value, 2)} {_ci(v.p, 2)}",
+                     f"{_fmt(v.iqm_x.value)} {_ci(v.iqm_x)}", f"{_fmt(v.iqm_y.value)} {_ci(v.iqm_y)}",
+                     f"{_wall(v.wall_x)} / {_wall(v.wall_y)}" + (f" (×{ratio:.2f})" if ratio else ""),
+                     f"*{v.word}*", commit])
+    return header, rows
+
+
+def _steps_text(values: Sequence[float]) -> str:
+    return ", ".join(_fmt(x, 0) for x in values)
+
+
+def reach_rows(vs: Sequence[VariantStats]) -> tuple[list[str], list[list[str]]]:
+    """AppleCollect: share of runs whose final policy reaches a 50 apple, and when each run's
+    evaluation first reached one (env transitions, iterations)."""
+    header = ["variant", "final policy reaches a 50 apple [Wilson 95% CI]", "runs whose evaluation reached it",
+              "first reached at env transitions (median; per run)", "first reached at iterations (median)"]
+    rows = []
+    for v in vs:
+        if v.success is None:
+            continue
+        s = v.success
+        hit = [r for r in v.reached if r is not None]
+        steps = sorted(r[0] for r in hit)
+        its = sorted(r[1] for r in hit if r[1] is not None)
+        rows.append([v.variant,
+                     f"{v.successes}/{v.n} ({_fmt(100 * s.value, 0)}%) [{_fmt(100 * s.lo, 0)}%, {_fmt(100 * s.hi, 0)}%]",
+                     f"{len(hit)}/{v.n}",
+                     f"{_fmt(float(np.median(steps)), 0)}; {_steps_text(steps)}" if steps else "–",
+                     _fmt(float(np.median(its)), 0) if its else "–"])
     return header, rows
 
 
@@ -707,7 +978,19 @@ def render_markdown(report: Report, figures: dict[str, list[Path]], out: Path) -
                       f"(resume with the same `mam experiment` command): "
                       + ", ".join(f"`{m}`" for m in report.missing[:20])
                       + (" …" if len(report.missing) > 20 else "")]
-    lines += ["", "Score of an evaluation = mean return of the best live actor (the survivor after the "
+    if report.verdicts:
+        header, rows = verdict_rows(report.verdicts)
+        lines += ["", "## Verdict", "",
+                  "Each multi-actor variant against the K=1 baseline of its family in the same grid (TD3 for "
+                  "MA-TD3, DDPG for MA-DDPG): P(variant > baseline) of the per-run last-10 scores with a bootstrap "
+                  "95% CI, the IQM of those scores with 95% CIs, and the mean wall-clock time per run. *better* only "
+                  "where the CI's lower bound is above 0.5, *worse* where its upper bound is below 0.5, else *not "
+                  f"separated*. Last-10 scores on the {report.axis} axis.", "", _md_table(header, rows)]
+    if report.notes:
+        lines += ["", "**Notes:**", ""] + [f"- {n}" for n in report.notes]
+    lines += ["", f"Tables on the x-axis: **{AXIS_TEXT.get(report.axis, report.axis)}**; learning curves on "
+              + " and on ".join(report.axes) + ".",
+              "", "Score of an evaluation = mean return of the best live actor (the survivor after the "
               "elimination). *last-10 mean*: per run the mean of its last 10 evaluations, then mean ± std over "
               "seeds and a bootstrap 95% CI; *IQM*: interquartile mean of the per-run last-10 scores "
               f"(bootstrap 95% CI, {N_BOOT if not report.meta.get('n_boot') else report.meta['n_boot']} "
@@ -715,8 +998,15 @@ def render_markdown(report: Report, figures: dict[str, list[Path]], out: Path) -
               "mean over seeds, ± std over seeds at that point."]
     for env, vs in report.envs.items():
         header, rows = env_rows(vs)
-        lines += ["", f"## {env}", "", f"Evaluation grid spacing: {_fmt(vs[0].spacing, 0)} env steps.", "",
-                  _md_table(header, rows)]
+        unit = "env steps" if report.axis == "transitions" else report.axis
+        lines += ["", f"## {env}", "", f"Evaluation grid spacing: {_fmt(vs[0].spacing, 0)} {unit} (x-axis: "
+                  f"{report.axis}); wall s: mean wall-clock seconds per run (the referee's, and the launcher's from "
+                  "start to end).", "", _md_table(header, rows)]
+        if any(v.success is not None for v in vs):
+            header, rows = reach_rows(vs)
+            lines += ["", f"A final return ≥ {SUCCESS_RETURN:.2f} means the final policy reaches a 50 apple (a 50 "
+                      "apple within the 100-step limit returns at least 50 − 0.01·100 = 49; a 10 apple at most "
+                      "9.99).", "", _md_table(header, rows)]
         for path in figures.get(env, []):
             lines += ["", f"![{path.stem}]({_rel(path, out)})"]
         if report.bias.get(env):
@@ -765,8 +1055,15 @@ def _rich_table(title: str, header: Sequence[str], rows: Sequence[Sequence[str]]
 
 
 def print_tables(report: Report, console: Any) -> None:
+    if report.verdicts:
+        console.print(_rich_table(f"Verdict (last-10 scores, x-axis {report.axis})", *verdict_rows(report.verdicts),
+                                  fold=True))
+    for note in report.notes:
+        console.print(f"[yellow]note[/]: {note}")
     for env, vs in report.envs.items():
-        console.print(_rich_table(env, *env_rows(vs), fold=True))
+        console.print(_rich_table(f"{env} (x-axis {report.axis})", *env_rows(vs), fold=True))
+        if any(v.success is not None for v in vs):
+            console.print(_rich_table(f"{env}: 50 apple", *reach_rows(vs), fold=True))
     for env, bs in report.bias.items():
         console.print(_rich_table(f"Estimation bias (Eq. 17), {env}", *bias_rows(bs)))
     if report.comparisons:
@@ -797,9 +1094,10 @@ def _save(fig: Any, path: Path) -> Path:
     return path
 
 
-def _label_steps_axes(ax: Any, ylabel: str, title: str) -> None:
-    """Labels, grid and legend of a plot over env steps."""
-    ax.set_xlabel("env steps (transitions received by the learner)")
+def _label_steps_axes(ax: Any, ylabel: str, title: str, axis: str = "transitions") -> None:
+    """Labels, grid and legend of a plot over env steps (or iterations)."""
+    ax.set_xlabel("env steps (transitions received by the learner)" if axis == "transitions"
+                  else "iterations (env transitions where a run does not record them)")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.grid(alpha=0.3)
@@ -825,27 +1123,34 @@ def curve_band(curves: np.ndarray, n_boot: int = N_BOOT, confidence: float = CON
 
 
 def plot_env_curves(env: str, vs: Sequence[VariantStats], path: Path, n_boot: int = 1000, seed: int = 0,
-                    ) -> Path | None:
-    """Mean best-live-actor return over seeds per variant, with a bootstrap 95% CI band."""
-    if not any(v.grid.size for v in vs):
+                    axis: str = "transitions") -> Path | None:
+    """Mean best-live-actor return over seeds per variant on `axis`, with a bootstrap 95% CI band;
+    the legend gives each variant's mean wall-clock time per run."""
+    curves = [(v, *v.curves_by_axis.get(axis, (v.grid, v.curves))) for v in vs]
+    if not any(grid.size for _, grid, _ in curves):
         return None
     fig = _figure(figsize=(8.5, 5))
     ax = fig.add_subplot()
-    for i, v in enumerate(vs):
-        if not v.grid.size:
+    for i, (v, grid, matrix) in enumerate(curves):
+        if not grid.size:
             continue
-        mean, lo, hi = curve_band(v.curves, n_boot, seed=seed)
+        mean, lo, hi = curve_band(matrix, n_boot, seed=seed)
         color = f"C{i % 10}"
-        ax.plot(v.grid, mean, color=color, linewidth=1.8, marker="o", markersize=2.5, label=f"{v.variant} (n={v.n})")
-        ax.fill_between(v.grid, lo, hi, color=color, alpha=0.18, linewidth=0)
+        wall = v.wall_times()
+        wall_text = f", {wall.mean():,.0f} s/run" if wall.size else ""
+        ax.plot(grid, mean, color=color, linewidth=1.8, marker="o", markersize=2.5,
+                label=f"{v.variant} (n={v.n}{wall_text})")
+        ax.fill_between(grid, lo, hi, color=color, alpha=0.18, linewidth=0)
         c = v.runs[0].algo_config.get("eliminate_at")
         k = v.runs[0].algo_config.get("actors") or 1
-        if k > 1 and not v.runs[0].algo_config.get("no_ot") and isinstance(c, (int, float)) and 0 < c <= v.grid[-1]:
+        if isinstance(c, (int, float)) and axis == "iterations":
+            c = c * v.runs[0].iterations_per_transition()
+        if k > 1 and not v.runs[0].algo_config.get("no_ot") and isinstance(c, (int, float)) and 0 < c <= grid[-1]:
             ax.axvline(c, color=color, linestyle=":", linewidth=1.0)
     if is_apple_collect(env):
-        ax.axhline(SUCCESS_RETURN, color="0.5", linestyle="--", linewidth=0.8, label=f"return {SUCCESS_RETURN:g}")
+        ax.axhline(SUCCESS_RETURN, color="0.5", linestyle="--", linewidth=0.8, label=f"return {SUCCESS_RETURN:.2f}")
     _label_steps_axes(ax, "evaluation return (best live actor)",
-                      f"{env}: mean over seeds, 95% bootstrap CI (dotted: elimination C)")
+                      f"{env}: mean over seeds, 95% bootstrap CI (dotted: elimination C)", axis)
     return _save(fig, path)
 
 
@@ -955,18 +1260,19 @@ def plot_iqm(report: Report, path: Path) -> Path | None:
 
 
 def write_report(exp_dir: Path, out: Path | None = None, n_boot: int = N_BOOT, seed: int = 0,
-                 figures: bool = True) -> tuple[Report, Path, list[Path]]:
+                 figures: bool = True, axis: str = "transitions") -> tuple[Report, Path, list[Path]]:
     """Build the report, write the Markdown file and the PNGs; returns (report, markdown, PNGs)."""
     exp_dir = Path(exp_dir)
     out = Path(out) if out is not None else exp_dir / "report.md"
-    report = build_report(exp_dir, n_boot=n_boot, seed=seed)
+    report = build_report(exp_dir, n_boot=n_boot, seed=seed, axis=axis)
     report.meta = {**report.meta, "n_boot": n_boot}
     fig_dir = out.parent / "figures"
     written: dict[str, list[Path]] = {}
     if figures:
         for env, vs in report.envs.items():
-            for p in (plot_env_curves(env, vs, fig_dir / f"curves_{_slug(env)}.png", seed=seed),
-                      plot_env_allocation(env, vs, fig_dir / f"allocation_{_slug(env)}.png")):
+            curves = [plot_env_curves(env, vs, fig_dir / f"curves_{_slug(env)}{'' if a == 'transitions' else '_' + a}"
+                                                         f".png", seed=seed, axis=a) for a in report.axes]
+            for p in (*curves, plot_env_allocation(env, vs, fig_dir / f"allocation_{_slug(env)}.png")):
                 if p is not None:
                     written.setdefault(env, []).append(p)
         for env, bs in report.bias.items():
@@ -987,12 +1293,17 @@ def write_report(exp_dir: Path, out: Path | None = None, n_boot: int = N_BOOT, s
 
 
 def report_command(
-    exp_dir: Annotated[Path, typer.Argument(help="experiment directory written by `mam experiment`")],
+    exp_dir: Annotated[Path, typer.Argument(
+        help="experiment directory written by `mam experiment` (its ledger's records count too), a ledger "
+             "directory, or a folder with the ledger in runs/ (docs/results/<exp>)")],
     out: Annotated[Optional[Path], typer.Option(
         "--out", help="Markdown file to write (default EXP_DIR/report.md); PNGs go to its folder's figures/")] = None,
     n_boot: Annotated[int, typer.Option("--n-boot", help="bootstrap resamples for the 95% CIs")] = N_BOOT,
     seed: Annotated[int, typer.Option("--seed", help="seed of the bootstrap")] = 0,
     no_figures: Annotated[bool, typer.Option("--no-figures", help="tables only, no PNGs")] = False,
+    x: Annotated[str, typer.Option("--x", help="x-axis of the tables: transitions (env transitions) or "
+                                              "iterations (Algorithm 1's count; transitions for older runs)")
+                 ] = "transitions",
 ) -> None:
     """Tables (last-10 mean, IQM and P(improvement) with 95% CIs, Table 4's max average return,
     updates, wall time, Eq. 17 bias) and figures (learning curves with CI bands, allocation, bias) of an experiment."""
@@ -1003,7 +1314,9 @@ def report_command(
         raise typer.BadParameter(f"{exp_dir} is not a directory")
     if n_boot < 100:
         raise typer.BadParameter("--n-boot must be at least 100")
-    report, md, pngs = write_report(exp_dir, out, n_boot=n_boot, seed=seed, figures=not no_figures)
+    if x not in AXES:
+        raise typer.BadParameter(f"--x must be one of {', '.join(AXES)}")
+    report, md, pngs = write_report(exp_dir, out, n_boot=n_boot, seed=seed, figures=not no_figures, axis=x)
     if not report.envs:
         console.print(f"[yellow]no finished runs under {exp_dir}[/]")
     print_tables(report, console)

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -13,8 +15,9 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from services.experiment import (GridError, check_resume, config_mismatch, load_grid_file, make_grid,
-                                 parse_seeds, plan, run_grid, run_state, seeds_text, variants)
+from services.experiment import (LEARNER_ROWS, GridError, Launch, check_resume, config_mismatch, core_slots,
+                                 default_parallel, in_ledger, load_grid_file, make_grid, parse_seeds, plan, run_grid,
+                                 run_state, seeds_text, thin_indices, thin_jsonl, variants)
 from services.options import RunConfig, write_json
 from services.report import (best_live_score, bias_rows, bucket_points, build_report, iqm, iqm_ci, last_n_mean, mean_ci,
                              probability_of_improvement, probability_of_improvement_ci, stratified_bootstrap,
@@ -366,31 +369,71 @@ def test_grid_file_rejects_unknown_keys(tmp_path):
         make_grid(load_grid_file(f))
 
 
-# --- running and resuming (a fake launcher) ------------------------------------------------
+# --- running and resuming (real child processes that stand in for a run) --------------------
+
+# A run process as `mam experiment` starts it (see services/experiment_run.py), with its training
+# replaced by a sleep: it takes its affinity from launch.json, writes the files a run writes and
+# reports its outcome through its exit status. MODE: ok, fail (exit 3), interrupt (exit 130),
+# hang (until SIGTERM, then 130).
+FAKE_RUN = r"""
+import json, os, signal, sys, time
+run_dir, mode, delay = sys.argv[1], sys.argv[2], float(sys.argv[3])
+launch = json.load(open(os.path.join(run_dir, "launch.json")))
+if launch["cores"]:
+    os.sched_setaffinity(0, launch["cores"])
+assert not os.path.exists(os.path.join(run_dir, "junk")), "a partial run was not cleared"
+cfg = launch["config"]
+json.dump(cfg, open(os.path.join(run_dir, "config.json"), "w"))
+os.makedirs(os.path.join(run_dir, "logs"))
+open(os.path.join(run_dir, "logs", "learner.log"), "w").write("boom" if mode == "fail" else "ok")
+t0 = time.time()
+if mode == "hang":
+    signal.signal(signal.SIGTERM, lambda *a: sys.exit(130))
+    print("hanging", flush=True)
+    time.sleep(120)
+    sys.exit(1)
+time.sleep(delay)
+if mode == "fail":
+    sys.exit(3)
+if mode == "interrupt":
+    sys.exit(130)
+with open(os.path.join(run_dir, "learner.jsonl"), "w") as f:
+    for i in range(1000):
+        f.write(json.dumps({"env_steps": i, "updates": i}) + "\n")
+with open(os.path.join(run_dir, "eval.jsonl"), "w") as f:
+    f.write(json.dumps({"env_steps": cfg["steps"], "mean": [1.0]}) + "\n")
+os.makedirs(os.path.join(run_dir, "checkpoints"))
+open(os.path.join(run_dir, "checkpoints", "learner.pt"), "wb").write(b"x" * 1000)
+json.dump({"start": t0, "end": time.time(), "cores": sorted(os.sched_getaffinity(0))},
+          open(os.path.join(run_dir, "timing.json"), "w"))
+json.dump({"final_returns": [1.0], "survivor": 0, "env_steps": cfg["steps"], "updates": 1, "wall_time_s": 1},
+          open(os.path.join(run_dir, "summary.json"), "w"))
+"""
 
 
-class FakeRunner:
-    """Stands in for services.launcher.run_local: writes config.json and summary.json."""
+class FakeLauncher:
+    """Starts FAKE_RUN as the run's process; `modes` gives each successive start its mode (then "ok")."""
 
-    def __init__(self, fail: int = 0, interrupt: bool = False) -> None:
+    def __init__(self, *modes: str, delay: float = 0.0) -> None:
+        self.modes = list(modes)
+        self.delay = delay
         self.calls: list[Path] = []
-        self.fail = fail
-        self.interrupt = interrupt
+        self.cores: list[tuple[int, ...]] = []
 
-    def __call__(self, cfg: RunConfig, run_dir: Path, console: Console, plot: bool) -> dict[str, Any]:
-        self.calls.append(run_dir)
-        assert not any(p.name == "junk" for p in run_dir.iterdir())  # a partial run was cleared
-        if self.interrupt:
-            raise KeyboardInterrupt
-        write_json(run_dir / "config.json", cfg.to_dict())
-        (run_dir / "logs").mkdir()
-        (run_dir / "logs" / "learner.log").write_text("boom" if self.fail else "ok")
-        if self.fail:
-            self.fail -= 1
-            return {}
-        summary = {"final_returns": [1.0], "survivor": 0, "env_steps": cfg.steps, "updates": 1, "wall_time_s": 1}
-        write_json(run_dir / "summary.json", summary)
-        return summary
+    def __call__(self, job: Launch) -> subprocess.Popen:
+        self.calls.append(job.run_dir)
+        self.cores.append(job.cores)
+        mode = self.modes.pop(0) if self.modes else "ok"
+        write_json(job.run_dir / "launch.json", {"config": job.cfg.to_dict(), "cores": list(job.cores) or None})
+        return subprocess.Popen([sys.executable, "-c", FAKE_RUN, str(job.run_dir), mode, str(self.delay)],
+                                stdout=job.log, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def finish_fake(spec, exp: Path) -> None:
+    """A finished run directory, as FAKE_RUN leaves it."""
+    run_dir = _mkdir(exp / spec.path)
+    write_json(run_dir / "launch.json", {"config": spec.run_config("x").to_dict(), "cores": None})
+    subprocess.run([sys.executable, "-c", FAKE_RUN, str(run_dir), "ok", "0"], check=True)
 
 
 def small_grid():
@@ -403,28 +446,28 @@ def test_resume_skips_finished_runs_and_redoes_partial_ones(tmp_path):
     exp = tmp_path / "exp"
     assert [run_state(s, exp) for s in specs] == ["todo"] * 4
     done, partial = specs[0], specs[1]
-    FakeRunner()(done.run_config("x"), _mkdir(exp / done.path), quiet(), False)
+    finish_fake(done, exp)
     _mkdir(exp / partial.path)
     (exp / partial.path / "junk").write_text("left by an interrupted run")
     assert run_state(done, exp) == "done" and run_state(partial, exp) == "partial"
     check_resume(specs, exp)
 
-    runner = FakeRunner()
-    result = run_grid(specs, exp, quiet(), runner=runner)
+    runner = FakeLauncher()
+    result = run_grid(specs, exp, quiet(), launcher=runner, cores=[()])
     assert result.skipped == [done] and result.finished == specs[1:] and not result.failed
     assert runner.calls == [exp / s.path for s in specs[1:]]
     assert all(run_state(s, exp) == "done" for s in specs)
     assert (exp / partial.path / "launcher.log").is_file()
 
-    again = FakeRunner()
-    result = run_grid(specs, exp, quiet(), runner=again)
+    again = FakeLauncher()
+    result = run_grid(specs, exp, quiet(), launcher=again, cores=[()])
     assert again.calls == [] and result.skipped == specs and result.finished == []
 
 
 def test_resume_refuses_finished_runs_of_another_grid(tmp_path):
     specs = plan(small_grid())
     exp = tmp_path / "exp"
-    FakeRunner()(specs[0].run_config("x"), _mkdir(exp / specs[0].path), quiet(), False)
+    finish_fake(specs[0], exp)
     other = plan(make_grid(envs="AppleCollect-v0", algos="ma-ddpg,ddpg", seeds="2", steps=600,
                            flags={"hidden": "8,8", "batch_size": 8}))
     assert config_mismatch(other[0], exp / other[0].path) == ["steps: run 300, grid 600"]
@@ -435,23 +478,24 @@ def test_resume_refuses_finished_runs_of_another_grid(tmp_path):
 def test_failed_runs_are_retried_and_their_logs_kept(tmp_path):
     specs = plan(small_grid())[:2]
     exp = tmp_path / "exp"
-    runner = FakeRunner(fail=1)
-    result = run_grid(specs, exp, quiet(), runner=runner, retries=1)
+    runner = FakeLauncher("fail")
+    result = run_grid(specs, exp, quiet(), launcher=runner, retries=1, cores=[()])
     assert result.finished == specs and not result.failed and len(runner.calls) == 3
     kept = list((exp / "failures").iterdir())
     assert len(kept) == 1 and (kept[0] / "logs" / "learner.log").read_text() == "boom"
 
     exp2 = tmp_path / "exp2"
-    result = run_grid(specs, exp2, quiet(), runner=FakeRunner(fail=10), retries=1, fail_fast=True)
+    result = run_grid(specs, exp2, quiet(), launcher=FakeLauncher(*["fail"] * 10), retries=1, fail_fast=True,
+                      cores=[()])
     assert result.failed == specs[:1] and result.finished == []
     assert run_state(specs[0], exp2) == "partial"  # redone on the next call
 
 
-def test_interrupt_stops_the_grid(tmp_path):
+def test_a_run_that_exits_130_stops_the_grid(tmp_path):
     specs = plan(small_grid())
-    runner = FakeRunner(interrupt=True)
-    result = run_grid(specs, tmp_path / "exp", quiet(), runner=runner)
-    assert result.interrupted and len(runner.calls) == 1 and not result.finished
+    runner = FakeLauncher("interrupt")
+    result = run_grid(specs, tmp_path / "exp", quiet(), launcher=runner, cores=[()])
+    assert result.interrupted and len(runner.calls) == 1 and not result.finished and not result.failed
 
 
 def _mkdir(path: Path) -> Path:
@@ -463,16 +507,17 @@ def _mkdir(path: Path) -> Path:
 
 
 @pytest.mark.slow
-def test_small_real_grid_then_report_then_resume(tmp_path):
-    exp = tmp_path / "exp"
+def test_small_real_grid_in_parallel_then_report_then_resume_from_the_ledger(tmp_path):
+    exp, ledger = tmp_path / "exp", tmp_path / "ledger"
     env = dict(os.environ, COLUMNS="160", PYTHONWARNINGS="ignore")
     args = [sys.executable, "-m", "services.experiment", "--exp-dir", str(exp), "--envs", "AppleCollect-v0",
             "--algos", "ma-ddpg,ddpg", "--seeds", "2", "--steps", "1500", "--hidden", "32,32", "--batch-size", "32",
             "--start-steps", "300", "--compete-every", "300", "--eliminate-at", "900", "--eval-every", "300",
-            "--eval-episodes", "2", "--no-plot", "--no-report"]
+            "--eval-episodes", "2", "--no-plot", "--no-report", "--parallel", "2", "--ledger", str(ledger)]
     first = subprocess.run(args, cwd=ROOT, env=env, text=True, capture_output=True, timeout=600)
     assert first.returncode == 0, first.stdout + first.stderr
     assert "4/4 runs finished (4 now, 0 before), 0 failed" in first.stdout
+    assert "2 run(s) at once" in first.stdout
     runs = sorted(exp.glob("AppleCollect-v0/*/seed*/summary.json"))
     assert [p.parent.relative_to(exp).as_posix() for p in runs] == [
         "AppleCollect-v0/ddpg/seed0", "AppleCollect-v0/ddpg/seed1",
@@ -480,8 +525,14 @@ def test_small_real_grid_then_report_then_resume(tmp_path):
     for p in runs:
         summary = json.loads(p.read_text())
         assert 1500 <= summary["env_steps"] <= 1500 + 5 * 32  # the same budget for both algorithms
+        log = (p.parent / "launcher.log").read_text()
+        assert "pinned to cores" in log and "done in" in log
+        record = json.loads((ledger / p.parent.relative_to(exp) / "record.json").read_text())
+        assert record["exit_status"] == 0 and record["parallel"] == 2 and len(record["commit"]) == 40
+        assert sum(record["files"].values()) < 300_000
     cfg = {p.parent.parent.name: json.loads((p.parent / "config.json").read_text())["algo"] for p in runs}
     assert (cfg["ma-ddpg"]["actors"], cfg["ma-ddpg"]["workers"], cfg["ddpg"]["actors"]) == (3, 5, 1)
+    assert not list(ledger.rglob("*.pt")) and not list(ledger.rglob("*.log"))
 
     rep = subprocess.run([sys.executable, "-m", "services.report", str(exp), "--n-boot", "500"], cwd=ROOT, env=env,
                          text=True, capture_output=True, timeout=300)
@@ -498,6 +549,12 @@ def test_small_real_grid_then_report_then_resume(tmp_path):
     assert second.returncode == 0, second.stdout + second.stderr
     assert "4 of 4 runs already finished" in second.stdout and "(0 now, 4 before)" in second.stdout
     assert {p: p.stat().st_mtime_ns for p in runs} == stamps
+
+    # a fresh clone: the experiment directory is gone, the ledger says every run is finished
+    fresh = args[:args.index("--exp-dir") + 1] + [str(tmp_path / "fresh")] + args[args.index("--exp-dir") + 2:]
+    third = subprocess.run(fresh, cwd=ROOT, env=env, text=True, capture_output=True, timeout=120)
+    assert third.returncode == 0, third.stdout + third.stderr
+    assert "(0 now, 4 before)" in third.stdout
 
 
 def write_bias(run_dir: Path, rows: list[tuple[int, int, float]]) -> None:
@@ -544,3 +601,235 @@ def test_report_compares_bias_only_at_points_every_run_measured(tmp_path):
     np.testing.assert_allclose(ma_b.points, [500])
     np.testing.assert_allclose(ma_b.rates, [[0.2]])
     np.testing.assert_allclose(td3_b.rates, [[0.6]])
+
+
+# --- parallel runs, affinity, Ctrl-C ---------------------------------------------------------
+
+
+def test_core_slots_and_default_parallel():
+    assert core_slots(2, [0, 1]) == [(0,), (1,)]
+    assert core_slots(2, [0, 1, 2, 3, 4]) == [(0, 1), (2, 3)]
+    assert core_slots(1, [3, 1]) == [(1, 3)]
+    assert core_slots(3, [0, 1]) == [(0,), (1,), (0,)]  # more runs than cores: shared round-robin
+    assert default_parallel(1, [0, 1]) == 2 and default_parallel(2, [0, 1, 2, 3, 4]) == 2
+    assert default_parallel(4, [0, 1]) == 1
+    with pytest.raises(ValueError):
+        core_slots(0, [0])
+
+
+def _timing(exp: Path, spec) -> dict[str, Any]:
+    return json.loads((exp / spec.path / "timing.json").read_text())
+
+
+def test_parallel_runs_go_side_by_side_each_on_its_own_cores(tmp_path):
+    specs = plan(small_grid())
+    exp = tmp_path / "exp"
+    cores = sorted(os.sched_getaffinity(0))
+    slots = [(cores[0],), (cores[-1],)]
+    runner = FakeLauncher(delay=1.5)
+    result = run_grid(specs, exp, quiet(), launcher=runner, parallel=2, cores=slots)
+    assert result.finished == specs and not result.failed and not result.interrupted
+    times = [_timing(exp, s) for s in specs]
+    # two at a time: runs 0 and 1 overlap, and so do 2 and 3; the third starts after one ended
+    assert times[0]["start"] < times[1]["end"] and times[1]["start"] < times[0]["end"]
+    assert times[2]["start"] >= min(times[0]["end"], times[1]["end"]) - 0.05
+    assert result.elapsed_s < 4 * 1.5  # not one after the other
+    # every run on the cores of its slot, and the two concurrent runs on different slots
+    assert all(tuple(t["cores"]) in slots for t in times)
+    assert set(runner.cores[:2]) == set(slots)
+
+
+def test_ctrl_c_stops_every_run_and_a_rerun_resumes(tmp_path):
+    exp = tmp_path / "exp"
+    ledger = tmp_path / "ledger"
+    script = f"""
+import sys
+sys.path.insert(0, {str(ROOT)!r})
+sys.path.insert(0, {str(Path(__file__).parent)!r})
+from pathlib import Path
+from test_experiment import FakeLauncher, quiet, small_grid
+from services.experiment import plan, run_grid
+specs = plan(small_grid())
+r = run_grid(specs, Path({str(exp)!r}), quiet(), launcher=FakeLauncher("ok", "hang", "hang"), parallel=2,
+             cores=[(), ()], ledger=Path({str(ledger)!r}))
+print("RESULT", r.interrupted, len(r.finished), len(r.failed), flush=True)
+sys.exit(130 if r.interrupted else 0)
+"""
+    proc = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    specs = plan(small_grid())
+    deadline = time.monotonic() + 60
+    # run 0 finishes at once, then runs 1 and 2 hang side by side
+    while time.monotonic() < deadline and not all(
+            "hanging" in _read(exp / s.path / "launcher.log") for s in specs[1:3]):
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 130, out
+    assert "RESULT True 1 0" in out  # interrupted, run 0 finished, none failed
+    assert run_state(specs[0], exp, ledger) == "done"
+    assert [run_state(s, exp) for s in specs[1:]] == ["partial", "partial", "todo"]
+    # the hanging runs got SIGTERM and exited: no process of theirs is left
+    leftover = subprocess.run(["pgrep", "-f", str(exp)], capture_output=True, text=True)
+    assert leftover.stdout.strip() == ""
+    # a rerun redoes the partial runs and skips the finished one
+    runner = FakeLauncher()
+    result = run_grid(specs, exp, quiet(), launcher=runner, parallel=2, cores=[(), ()], ledger=ledger)
+    assert result.skipped == specs[:1] and result.finished == specs[1:]
+    assert sorted(runner.calls) == sorted(exp / s.path for s in specs[1:])
+
+
+def _read(path: Path) -> str:
+    try:
+        return path.read_text(errors="replace")
+    except FileNotFoundError:
+        return ""
+
+
+def test_experiment_run_exit_status_and_pinning(tmp_path):
+    """The real run process: pinned to the cores it is given; a run that cannot start exits 1."""
+    run_dir = _mkdir(tmp_path / "run")
+    core = sorted(os.sched_getaffinity(0))[-1]
+    cfg = plan(small_grid())[0].run_config("x").to_dict()
+    cfg["algo"]["batch_size"] = 0  # invalid: RunConfig.from_dict refuses it
+    write_json(run_dir / "launch.json", {"config": cfg, "cores": [core], "plot": False})
+    out = subprocess.run([sys.executable, "-m", "services.experiment_run", str(run_dir)], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 1, out.stdout + out.stderr
+    assert f"pinned to cores [{core}]" in out.stdout and "Traceback" in out.stderr
+
+
+# --- the ledger ------------------------------------------------------------------------------
+
+
+def test_thin_indices_keep_first_last_and_even_spacing():
+    assert thin_indices(5, 300) == [0, 1, 2, 3, 4]
+    assert thin_indices(0, 300) == []
+    assert thin_indices(11, 3) == [0, 5, 10]
+    idx = thin_indices(10_000, 300)
+    assert len(idx) == 300 and idx[0] == 0 and idx[-1] == 9999
+    gaps = np.diff(idx)
+    assert gaps.min() >= 33 and gaps.max() <= 34
+
+
+def test_thin_jsonl_skips_corrupt_lines(tmp_path):
+    src = tmp_path / "a.jsonl"
+    src.write_text("".join(json.dumps({"i": i}) + "\n" for i in range(1000)) + "not json\n[1]\n")
+    kept, total = thin_jsonl(src, tmp_path / "b.jsonl", 100)
+    rows = [json.loads(line) for line in (tmp_path / "b.jsonl").read_text().splitlines()]
+    assert (kept, total) == (100, 1000) and len(rows) == 100
+    assert rows[0] == {"i": 0} and rows[-1] == {"i": 999}
+
+
+def test_finished_runs_go_to_the_ledger_and_a_fresh_clone_resumes_from_it(tmp_path):
+    specs = plan(small_grid())
+    exp, ledger = tmp_path / "exp", tmp_path / "ledger"
+    result = run_grid(specs[:2], exp, quiet(), launcher=FakeLauncher(), cores=[()], ledger=ledger,
+                      experiment="toy")
+    assert result.finished == specs[:2]
+    for spec in specs[:2]:
+        rec_dir = ledger / spec.path
+        names = {p.name for p in rec_dir.iterdir()}
+        assert names == {"config.json", "summary.json", "eval.jsonl", "learner.jsonl", "record.json"}
+        rows = (rec_dir / "learner.jsonl").read_text().splitlines()
+        assert len(rows) == LEARNER_ROWS and json.loads(rows[-1])["env_steps"] == 999
+        record = json.loads((rec_dir / "record.json").read_text())
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+        assert record["commit"] == head and isinstance(record["dirty"], bool)
+        assert record["exit_status"] == 0 and record["experiment"] == "toy"
+        assert record["spec"]["variant"] == spec.variant and record["spec"]["seed"] == spec.seed
+        assert record["learner_rows"] == {"kept": LEARNER_ROWS, "of": 1000}
+        assert record["files"]["learner.jsonl"] == (rec_dir / "learner.jsonl").stat().st_size
+        assert record["run_wall_s"] > 0 and "torch" in record["versions"]
+        assert (exp / spec.path / "record.json").is_file()  # and beside the run
+    # a fresh clone: no experiment directory, only the ledger
+    fresh = tmp_path / "fresh"
+    assert [run_state(s, fresh, ledger) for s in specs] == ["done", "done", "todo", "todo"]
+    check_resume(specs, fresh, ledger)
+    runner = FakeLauncher()
+    result = run_grid(specs, fresh, quiet(), launcher=runner, cores=[()], ledger=ledger)
+    assert result.skipped == specs[:2] and result.finished == specs[2:]
+    assert runner.calls == [fresh / s.path for s in specs[2:]]
+    assert all(in_ledger(s, ledger) for s in specs)
+    # the config check applies to ledger records too
+    other = plan(make_grid(envs="AppleCollect-v0", algos="ma-ddpg,ddpg", seeds="2", steps=600,
+                           flags={"hidden": "8,8", "batch_size": 8}))
+    with pytest.raises(GridError, match="different grid"):
+        check_resume(other, tmp_path / "another", ledger)
+
+
+def test_runs_finished_before_the_ledger_are_copied_to_it(tmp_path):
+    specs = plan(small_grid())[:1]
+    exp, ledger = tmp_path / "exp", tmp_path / "ledger"
+    finish_fake(specs[0], exp)
+    result = run_grid(specs, exp, quiet(), launcher=FakeLauncher(), cores=[()], ledger=ledger)
+    assert result.skipped == specs
+    record = json.loads((ledger / specs[0].path / "record.json").read_text())
+    assert record["backfilled"] is True and record["commit"]
+
+
+# --- named variants ----------------------------------------------------------------------------
+
+
+def test_named_variants_in_a_grid_file(tmp_path):
+    f = tmp_path / "g.toml"
+    f.write_text("""
+envs = ["Hopper-v5"]
+algos = ["td3"]
+seeds = 2
+steps = 5000
+[common]
+eval-every = 1000
+[algo.ma-td3]
+eliminate-at = 2000
+[variant.ma-td3-late]
+algo = "ma-td3"
+eliminate-at = 4000
+[variant.ma-td3-no-wt-early]
+algo = "ma-td3"
+no-wt = true
+eliminate_at = 1000
+[variant.ma-td3]
+algo = "ma-td3"
+""")
+    grid = make_grid(load_grid_file(f))
+    kept, aliases = variants(grid)
+    assert [v for v, _, _ in kept] == ["td3", "ma-td3-late", "ma-td3-no-wt-early", "ma-td3"]
+    specs = plan(grid)
+    assert len(specs) == 8 and specs[0].path == Path("Hopper-v5/td3/seed0")
+    cfg = {s.variant: s.run_config("t").algo for s in specs if s.seed == 1}
+    assert (cfg["ma-td3-late"].eliminate_at, cfg["ma-td3-late"].eval_every, cfg["ma-td3-late"].actors) == (
+        4000, 1000, 2)
+    assert cfg["ma-td3-no-wt-early"].effective_eta == 0.0 and cfg["ma-td3-no-wt-early"].eliminate_at == 1000
+    assert cfg["ma-td3"].eliminate_at == 2000  # [algo.ma-td3] reaches a variant of that algo
+    assert (cfg["td3"].actors, cfg["td3"].eval_every) == (1, 1000)
+    # the command line sits below the variant's own flags
+    grid = make_grid(load_grid_file(f), flags={"eliminate_at": 3000, "batch_size": 64})
+    cfg = {s.variant: s.run_config("t").algo for s in plan(grid)}
+    assert cfg["ma-td3-late"].eliminate_at == 4000 and cfg["ma-td3"].eliminate_at == 3000
+    assert cfg["ma-td3-late"].batch_size == 64
+    # --variants: a subset of the rows
+    grid = make_grid(load_grid_file(f), variants="td3,ma-td3-late")
+    assert {s.variant for s in plan(grid)} == {"td3", "ma-td3-late"}
+    assert grid.to_dict()["variants"]["ma-td3-late"] == {"algo": "ma-td3", "eliminate_at": 4000}
+
+
+def test_named_variant_errors(tmp_path):
+    base = 'envs = ["Hopper-v5"]\nsteps = 100\n'
+    for body, match in (('[variant.x]\neliminate-at = 5\n', "algo"),
+                        ('[variant.x]\nalgo = "sac"\n', "algo"),
+                        ('[variant.x]\nalgo = "ma-td3"\nbogus = 1\n', "bogus"),
+                        ('[variant."a b"]\nalgo = "td3"\n', "variant name"),
+                        ('algos = ["td3"]\n[variant.td3]\nalgo = "td3"\nbatch-size = 8\n', "already"),
+                        ('', "no algos")):
+        f = tmp_path / "g.toml"
+        f.write_text(base + body)
+        with pytest.raises(GridError, match=match):
+            make_grid(load_grid_file(f))
+    f.write_text(base + '[variant.x]\nalgo = "td3"\n')
+    with pytest.raises(GridError, match="unknown variant"):
+        make_grid(load_grid_file(f), variants="y")
+    # a variant whose options are invalid fails at planning
+    f.write_text(base + '[variant.x]\nalgo = "td3"\nbatch-size = 0\n')
+    with pytest.raises(GridError, match="variant x"):
+        plan(make_grid(load_grid_file(f)))
