@@ -227,14 +227,19 @@ def learner_contenders(shape: str, sizes: BenchSizes, device: str, seed: int = 0
 
     out: dict[str, Callable[[], Any]] = {"td3": td3_step}
     spec = EnvSpec(obs_dim, act_dim, (max_action,) * act_dim)
-    for k in sizes.learner_ks:
+    for k in sizes.learner_ks:  # one mini-batch per actor (Algorithm 1, the default)
         cfg = resolve("ma-td3", actors=k, hidden=sizes.hidden, batch_size=batch, seed=seed)
         agent = MultiActorAgent(cfg, spec, device)
-        out[f"k{k}"] = (lambda a=agent: a.update(buf.sample(batch)))
-    if 2 in sizes.learner_ks:  # the opt-in mixed precision (--precision bf16) against the same fp32 reference
+        out[f"k{k}"] = (lambda a=agent: a.update(buf.sample(batch, a.batch_groups)))
+    if 2 in sizes.learner_ks:
+        # --shared-batch: one mini-batch for all actors (Eq. 9's target pass then runs on B rows, not K·B)
+        cfg = resolve("ma-td3", actors=2, hidden=sizes.hidden, batch_size=batch, seed=seed, shared_batch=True)
+        agent = MultiActorAgent(cfg, spec, device)
+        out["k2_shared"] = (lambda a=agent: a.update(buf.sample(batch)))
+        # the opt-in mixed precision (--precision bf16) against the same fp32 reference
         cfg = resolve("ma-td3", actors=2, hidden=sizes.hidden, batch_size=batch, seed=seed, precision="bf16")
         agent = MultiActorAgent(cfg, spec, device)
-        out["k2_bf16"] = (lambda a=agent: a.update(buf.sample(batch)))
+        out["k2_bf16"] = (lambda a=agent: a.update(buf.sample(batch, a.batch_groups)))
     return out
 
 
@@ -285,6 +290,10 @@ def bench_learner(sizes: BenchSizes, device: str = "cpu", threads: int = 1, log:
             out[f"learner_{shape}_k{k}_updates_per_s"] = _median(wall[f"k{k}"])
             out[f"learner_{shape}_k{k}_vs_td3"] = ratio_of_medians_per_round(wall[f"k{k}"], wall["td3"])
             out[f"learner_{shape}_k{k}_vs_td3_cpu_time"] = ratio_of_medians_per_round(cpu[f"k{k}"], cpu["td3"])
+        if "k2_shared" in wall:
+            out[f"learner_{shape}_k2_shared_updates_per_s"] = _median(wall["k2_shared"])
+            out[f"learner_{shape}_k2_shared_vs_td3"] = ratio_of_medians_per_round(wall["k2_shared"], wall["td3"])
+            out[f"learner_{shape}_k2_per_actor_vs_shared"] = ratio_of_medians_per_round(wall["k2"], wall["k2_shared"])
         if "k2_bf16" in wall:
             out[f"learner_{shape}_k2_bf16_updates_per_s"] = _median(wall["k2_bf16"])
             out[f"learner_{shape}_k2_bf16_vs_td3"] = ratio_of_medians_per_round(wall["k2_bf16"], wall["td3"])
@@ -893,7 +902,9 @@ def _fmt(v: Any) -> str:
 
 
 ROWS: tuple[tuple[str, str], ...] = (
-    ("learner_k2_vs_td3", "MA-TD3 K=2 ÷ TD3 updates/s (HalfCheetah shapes)"),
+    ("learner_k2_vs_td3", "MA-TD3 K=2 ÷ TD3 updates/s (HalfCheetah shapes, a mini-batch per actor)"),
+    ("learner_halfcheetah_k2_shared_vs_td3", "  same, --shared-batch ÷ TD3"),
+    ("learner_halfcheetah_k2_per_actor_vs_shared", "  a mini-batch per actor ÷ --shared-batch"),
     ("learner_k2_bf16_vs_td3", "same, MA-TD3 with --precision bf16 ÷ TD3 (fp32)"),
     ("learner_humanoid_k2_bf16_vs_td3", "  bf16, Humanoid"),
     ("learner_halfcheetah_k1_vs_td3", "K=1 ÷ TD3, HalfCheetah"),

@@ -24,17 +24,17 @@ from mam_core.config import AFTER_ELIMINATION, ALGOS, SCHEDULES, AlgoConfig, res
 # -- algorithm flags (paper symbol in brackets), the same on every command that takes them ----
 Env = Annotated[Optional[str], typer.Option("--env", help="Gymnasium env id, e.g. HalfCheetah-v5 or AppleCollect-v0")]
 Algo = Annotated[Optional[str], typer.Option("--algo", help=f"one of {', '.join(ALGOS)}")]
-Steps = Annotated[Optional[int], typer.Option("--steps", help="budget: environment transitions received by the learner")]
+Steps = Annotated[Optional[int], typer.Option("--steps", help="[T] budget in schedule steps: iterations (--schedule paper) or transitions (equal-data)")]
 Actors = Annotated[Optional[int], typer.Option("--actors", help="[K] number of actors")]
 Workers = Annotated[Optional[int], typer.Option("--workers", help="[M] environment slots (worker processes)")]
-EliminateAt = Annotated[Optional[int], typer.Option("--eliminate-at", help="[C] env step of the elimination")]
-CompeteEvery = Annotated[Optional[int], typer.Option("--compete-every", help="[A] env steps between allocation rounds")]
+EliminateAt = Annotated[Optional[int], typer.Option("--eliminate-at", help="[C] schedule step (iteration or transition) of the elimination")]
+CompeteEvery = Annotated[Optional[int], typer.Option("--compete-every", help="[A] schedule steps between allocation rounds")]
 Eta = Annotated[Optional[float], typer.Option("--eta", help="[η] weight of the other actors' Q-values (Eq. 9)")]
 EvalEpisodes = Annotated[Optional[int], typer.Option("--eval-episodes", help="episodes per actor per evaluation")]
-EvalEvery = Annotated[Optional[int], typer.Option("--eval-every", help="env steps between evaluations after elimination")]
-StartSteps = Annotated[Optional[int], typer.Option("--start-steps", help="first transitions use uniform random actions")]
+EvalEvery = Annotated[Optional[int], typer.Option("--eval-every", help="schedule steps between evaluations after elimination")]
+StartSteps = Annotated[Optional[int], typer.Option("--start-steps", help="first schedule steps use uniform random actions (and no updates)")]
 BatchSize = Annotated[Optional[int], typer.Option("--batch-size", help="mini-batch size")]
-Utd = Annotated[Optional[float], typer.Option("--utd", help="gradient updates per received transition")]
+Utd = Annotated[Optional[float], typer.Option("--utd", help="gradient updates per schedule step (per iteration, or per transition)")]
 NoOt = Annotated[Optional[bool], typer.Option("--no-ot", help="ablation: uniform fixed allocation, no elimination")]
 NoWt = Annotated[Optional[bool], typer.Option("--no-wt", help="ablation: no Q-value weighting (η = 0)")]
 Seed = Annotated[Optional[int], typer.Option("--seed", help="random seed")]
@@ -43,7 +43,7 @@ Hidden = Annotated[Optional[str], typer.Option("--hidden", help="hidden layer si
 Precision = Annotated[Optional[str], typer.Option(
     "--precision", help="learner GEMMs: fp32, or bf16 (mixed precision: hidden-to-hidden layers in bfloat16)")]
 BiasEvery = Annotated[Optional[int], typer.Option(
-    "--bias-every", help="measure the Eq. 17 estimation bias every N transitions in the learner (0: off)")]
+    "--bias-every", help="measure the Eq. 17 estimation bias every N schedule steps in the learner (0: off)")]
 BiasRollouts = Annotated[Optional[int], typer.Option(
     "--bias-rollouts", help="Monte-Carlo rollouts per bias measurement (default 20, as in the paper)")]
 ConfigFile = Annotated[Optional[Path], typer.Option("--config", help="TOML file holding any of these options")]

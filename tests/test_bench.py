@@ -50,6 +50,7 @@ def test_learner_transport_and_weights_pieces() -> None:
     assert_positive(result, [
         "learner_k2_vs_td3", "learner_k2_bf16_vs_td3", "learner_halfcheetah_k1_vs_td3", "learner_halfcheetah_td3_updates_per_s",
         "learner_halfcheetah_k2_updates_per_s", "learner_halfcheetah_k2_vs_td3_cpu_time",
+        "learner_halfcheetah_k2_shared_vs_td3", "learner_halfcheetah_k2_per_actor_vs_shared",
         "transport_transitions_per_s", "transport_bytes_per_transition",
         "weights_latency_p99_ms", "weights_latency_p50_ms", "weights_humanoid_p99_ms", "weights_halfcheetah_bytes"])
     assert result["transport_lost"] == 0 and result["transport_received"] == result["transport_expected"]
