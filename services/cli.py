@@ -64,13 +64,17 @@ def watch(
 
 
 @app.command()
-def plot(run_dir: Path = typer.Argument(..., help="a run directory written by `mam run`")) -> None:
+def plot(run_dir: Path = typer.Argument(..., help="a run directory written by `mam run`"),
+         x: str = typer.Option("transitions", "--x", help="x-axis: transitions or iterations "
+                                                           "(iteration plots get an _iterations suffix)")) -> None:
     """Learning curves per actor, allocation over time, bias rate and learner curves as PNG."""
-    from services.plot import plot_command
+    from services.plot import X_AXES, plot_command
 
     if not run_dir.is_dir():
         raise typer.BadParameter(f"{run_dir} is not a directory")
-    plot_command(run_dir)
+    if x not in X_AXES:
+        raise typer.BadParameter(f"--x must be one of {', '.join(X_AXES)}")
+    plot_command(run_dir, x)
 
 
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True, "help_option_names": []})

@@ -174,7 +174,7 @@ def plot_learning_curves(
                 label=_actor_label(k, survivor))
         ax.fill_between(x, m - s, m + s, color=color, alpha=0.18, linewidth=0)
     _mark_elimination(ax, elimination)
-    ax.set_xlabel("env steps (transitions received by the learner)")
+    ax.set_xlabel(XLABEL)
     ax.set_ylabel("mean evaluation return")
     ax.set_title(f"Learning curves — {title}" if title else "Learning curves")
     ax.grid(alpha=0.3)
@@ -224,7 +224,7 @@ def plot_allocation(
     _mark_elimination(ax_p, elimination)
     ax_p.set_ylim(-0.02, 1.02)
     ax_p.set_ylabel("probability $P_k$ (Eq. 8)")
-    ax_p.set_xlabel("env steps")
+    ax_p.set_xlabel(XLABEL)
     ax_p.grid(alpha=0.3)
     ax_p.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small")
     return _save(fig, path)
@@ -254,7 +254,7 @@ def plot_bias(evals: list[dict[str, Any]], title: str, path: Path) -> Path | Non
     ax_rate.grid(alpha=0.3)
     ax_rate.legend(loc="best", fontsize="small")
     ax_q.set_ylabel("Q at start states")
-    ax_q.set_xlabel("env steps")
+    ax_q.set_xlabel(XLABEL)
     ax_q.grid(alpha=0.3)
     ax_q.legend(loc="best", fontsize="small")
     return _save(fig, path)
@@ -295,23 +295,45 @@ def plot_learner(learner: list[dict[str, Any]], target_utd: float | None, title:
         axes[3].legend(loc="best", fontsize="small")
     for ax in axes:
         ax.grid(alpha=0.3)
-    axes[-1].set_xlabel("env steps")
+    axes[-1].set_xlabel(XLABEL)
     return _save(fig, path)
 
 
 # --- entry points ---------------------------------------------------------------------------
 
 
-def plot_run(run_dir: Path) -> list[Path]:
-    """Write every plot whose data is present into `run_dir/plots/`; return the files written."""
+X_AXES = {"transitions": "env steps (transitions received by the learner)",
+          "iterations": "iterations (Algorithm 1: M transitions before C, one after)"}
+XLABEL = X_AXES["transitions"]
+
+
+def on_axis(rows: list[dict[str, Any]], x: str) -> list[dict[str, Any]]:
+    """Rows with `env_steps` holding the x-axis value: transitions as recorded, or the row's
+    `iterations` (rows without it, from runs before the schedules, keep their transitions)."""
+    if x == "transitions":
+        return rows
+    return [{**r, "env_steps": r["iterations"]} if isinstance(r.get("iterations"), (int, float)) else r
+            for r in rows]
+
+
+def plot_run(run_dir: Path, x: str = "transitions") -> list[Path]:
+    """Write every plot whose data is present into `run_dir/plots/`; return the files written.
+
+    `x`: "transitions" (env steps received by the learner) or "iterations" (schedule steps);
+    iteration plots get an `_iterations` suffix."""
+    global XLABEL
+    if x not in X_AXES:
+        raise ValueError(f"x must be one of {', '.join(X_AXES)}, not {x!r}")
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise FileNotFoundError(f"run directory not found: {run_dir}")
+    XLABEL = X_AXES[x]
     config = _read_json(run_dir / "config.json")
-    summary = _read_json(run_dir / "summary.json")
-    evals = read_jsonl(run_dir / "eval.jsonl")
-    allocation = read_jsonl(run_dir / "allocation.jsonl")
-    learner = read_jsonl(run_dir / "learner.jsonl")
+    summary = on_axis([_read_json(run_dir / "summary.json")], x)[0]
+    evals = on_axis(read_jsonl(run_dir / "eval.jsonl"), x)
+    allocation = on_axis(read_jsonl(run_dir / "allocation.jsonl"), x)
+    learner = on_axis(read_jsonl(run_dir / "learner.jsonl"), x)
+    suffix = "" if x == "transitions" else "_iterations"
 
     steps = [float(r["env_steps"]) for r in _rows_with_steps(evals + allocation + learner)]
     if isinstance(summary.get("env_steps"), (int, float)):
@@ -326,25 +348,25 @@ def plot_run(run_dir: Path) -> list[Path]:
     out = run_dir / PLOTS_DIR
     out.mkdir(exist_ok=True)
     written = [
-        plot_learning_curves(evals, survivor, elimination, title, out / "learning_curves.png"),
-        plot_allocation(allocation, last_step, survivor, elimination, title, out / "allocation.png"),
-        plot_bias(evals + read_jsonl(run_dir / "bias.jsonl"), title, out / "bias.png"),
-        plot_learner(learner, target_utd, title, out / "learner.png"),
+        plot_learning_curves(evals, survivor, elimination, title, out / f"learning_curves{suffix}.png"),
+        plot_allocation(allocation, last_step, survivor, elimination, title, out / f"allocation{suffix}.png"),
+        plot_bias(evals + on_axis(read_jsonl(run_dir / "bias.jsonl"), x), title, out / f"bias{suffix}.png"),
+        plot_learner(learner, target_utd, title, out / f"learner{suffix}.png"),
     ]
     return [p for p in written if p is not None]
 
 
-def main(run_dir: Path | str) -> list[Path]:
+def main(run_dir: Path | str, x: str = "transitions") -> list[Path]:
     """Plot a run directory; the files written."""
-    return plot_run(Path(run_dir))
+    return plot_run(Path(run_dir), x)
 
 
-def plot_command(run_dir: Path) -> None:
+def plot_command(run_dir: Path, x: str = "transitions") -> None:
     """Write PNG curves (learning curves, allocation, bias rate, learner) into RUN_DIR/plots."""
     from rich.console import Console
 
     console = Console()
-    files = main(run_dir)
+    files = main(run_dir, x)
     if not files:
         console.print(f"[yellow]no metrics to plot in {run_dir}[/yellow]")
         return

@@ -128,3 +128,16 @@ def test_missing_data_skips_plots(tmp_path):
 def test_missing_run_dir_raises(tmp_path):
     with pytest.raises(FileNotFoundError, match="run directory"):
         plot_run(tmp_path / "nope")
+
+
+def test_plot_run_on_the_iterations_axis(tmp_path):
+    from services.plot import on_axis
+
+    rows = [{"env_steps": 30, "iterations": 10}, {"env_steps": 7}]  # the second: a run before the schedules
+    assert on_axis(rows, "iterations") == [{"env_steps": 10, "iterations": 10}, {"env_steps": 7}]
+    assert on_axis(rows, "transitions") == rows
+    run = make_run(tmp_path / "run")
+    files = plot_run(run, x="iterations")
+    assert {p.name for p in files} >= {"learning_curves_iterations.png", "allocation_iterations.png"}
+    with pytest.raises(ValueError):
+        plot_run(run, x="seconds")
