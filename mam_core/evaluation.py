@@ -13,10 +13,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 
-import mam_core.envs  # noqa: F401  (registers AppleCollect-v0)
+from mam_core.envs import make_env  # registers AppleCollect-v0; imports `module:EnvId` modules
 
 Policy = Callable[[np.ndarray], np.ndarray]
 QFunction = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -32,6 +31,7 @@ class Rollouts:
     initial_actions: np.ndarray  # [episodes, act_dim] float32, π(s0) as applied
     returns: np.ndarray  # [episodes] undiscounted sum of rewards
     discounted_returns: np.ndarray  # [episodes] sum_t γ^t r_t
+    lengths: np.ndarray  # [episodes] steps until terminated or truncated
 
 
 def rollout(
@@ -51,7 +51,7 @@ def rollout(
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     width = max(1, min(max_envs, episodes))
-    envs = [gym.make(env_id, **(env_kwargs or {})) for _ in range(width)]
+    envs = [make_env(env_id, env_kwargs) for _ in range(width)]
     try:
         space = envs[0].action_space
         low, high = np.asarray(space.low, np.float32), np.asarray(space.high, np.float32)
@@ -59,6 +59,7 @@ def rollout(
         initial_obs, initial_actions = [], []
         returns = np.zeros(episodes)
         discounted = np.zeros(episodes)
+        lengths = np.zeros(episodes, np.int64)
         for first in range(0, episodes, width):
             ids = list(range(first, min(first + width, episodes)))
             obs = [np.asarray(envs[j].reset(seed=seed + i)[0], np.float32).reshape(-1) for j, i in enumerate(ids)]
@@ -79,6 +80,7 @@ def rollout(
                     returns[i] += float(reward)
                     discounted[i] += discount[j] * float(reward)
                     discount[j] *= gamma
+                    lengths[i] += 1
                     obs[j] = np.asarray(next_obs, np.float32).reshape(-1)
                     if not (terminated or truncated):
                         still.append(j)
@@ -92,7 +94,13 @@ def rollout(
         initial_actions=np.concatenate(initial_actions),
         returns=returns,
         discounted_returns=discounted,
+        lengths=lengths,
     )
+
+
+def eval_seed(run_seed: int, env_steps: int) -> int:
+    """Seed of the referee's evaluation at `env_steps` (episode i is reset with this + i)."""
+    return run_seed + 1_000_003 + env_steps
 
 
 def evaluate_policy(

@@ -1,10 +1,24 @@
-"""The project's own gymnasium environments; importing this package registers them."""
+"""The project's own gymnasium environments, and making any env by id.
+
+Importing this package registers AppleCollect-v0. `make_env` makes any registered id and
+gymnasium's `module.path:EnvId` form (the module registers the env when imported), with
+keyword arguments, and turns a module that does not import or an unknown id into an
+`EnvError` that says so.
+"""
 
 from __future__ import annotations
+
+import importlib
+from collections.abc import Mapping
+from typing import Any
 
 import gymnasium as gym
 
 APPLE_COLLECT_ID = "AppleCollect-v0"
+
+
+class EnvError(ValueError):
+    """An env that cannot be made, or that mam cannot train on."""
 
 
 def register_envs() -> None:
@@ -15,6 +29,31 @@ def register_envs() -> None:
             entry_point="mam_core.envs.apple_collect:AppleCollectEnv",
             max_episode_steps=100,
         )
+
+
+def import_env_module(env_id: str) -> None:
+    """Import the module of a `module.path:EnvId` id (no-op for a plain id)."""
+    if ":" not in env_id:
+        return
+    module = env_id.split(":", 1)[0]
+    try:
+        importlib.import_module(module)
+    except Exception as e:  # ImportError, or anything the module raises while importing
+        raise EnvError(
+            f"env {env_id!r}: module {module!r} does not import ({type(e).__name__}: {e}). It must be "
+            "importable on every host that runs a learner, referee, worker or `mam eval` "
+            "(installed, or on PYTHONPATH)") from e
+
+
+def make_env(env_id: str, env_kwargs: Mapping[str, Any] | None = None, **make_kwargs: Any) -> gym.Env:
+    """`gym.make(env_id, **env_kwargs, **make_kwargs)` with clear errors (`EnvError`)."""
+    import_env_module(env_id)
+    try:
+        return gym.make(env_id, **dict(env_kwargs or {}), **make_kwargs)
+    except gym.error.Error as e:
+        raise EnvError(f"env {env_id!r}: {e}") from e
+    except TypeError as e:  # a keyword the env's constructor does not take
+        raise EnvError(f"env {env_id!r} with kwargs {dict(env_kwargs or {})}: {e}") from e
 
 
 register_envs()

@@ -18,6 +18,9 @@ Choices the paper leaves open (also in docs/APPLECOLLECT.md):
 - Episode length 100 comes from gymnasium's TimeLimit (`max_episode_steps=100` at
   registration), which sets truncated=True; the class itself has no step limit.
 - Deterministic: no randomness in start or dynamics; `reset(seed=)` is accepted for the API.
+
+`render_mode="rgb_array"` draws a frame with numpy alone (no GL): the square, the apples (50:
+red, 10: green), the path walked this episode and the agent, 256×256 pixels by default.
 """
 
 from __future__ import annotations
@@ -37,10 +40,15 @@ APPLE_VALUES = np.array([50.0, 50.0, 10.0, 10.0])
 class AppleCollectEnv(gym.Env[np.ndarray, np.ndarray]):
     """Move from the centre to an apple; every step costs 0.01, an apple ends the episode."""
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
-    def __init__(self, render_mode: str | None = None) -> None:
+    def __init__(self, render_mode: str | None = None, render_size: int = 256) -> None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, not {render_mode!r}")
         self.render_mode = render_mode
+        self.render_size = int(render_size)
+        self._trail: list[np.ndarray] = [np.zeros(2)]
+        self._canvas: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.observation_space = gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
         self.action_space = gym.spaces.Box(-MAX_MOVE, MAX_MOVE, shape=(2,), dtype=np.float32)
         self._position = np.zeros(2)
@@ -50,6 +58,7 @@ class AppleCollectEnv(gym.Env[np.ndarray, np.ndarray]):
     ) -> tuple[np.ndarray, dict[str, Any]]:
         super().reset(seed=seed)
         self._position = np.zeros(2)
+        self._trail = [self._position]
         return self._position.astype(np.float32), {}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -59,12 +68,62 @@ class AppleCollectEnv(gym.Env[np.ndarray, np.ndarray]):
         start = self._position
         end = np.clip(start + move, -1.0, 1.0)
         self._position = end
+        self._trail.append(end)
         apple = _apple_on_segment(start, end)
         reward = STEP_REWARD
         if apple is not None:
             reward += float(APPLE_VALUES[apple])
         info = {"apple": 0.0 if apple is None else float(APPLE_VALUES[apple])}
         return end.astype(np.float32), reward, apple is not None, False, info
+
+
+    # -- rendering (numpy only) -----------------------------------------------------------------
+    def render(self) -> np.ndarray | None:
+        """An RGB frame [size, size, 3] uint8 of the current state (None without render_mode)."""
+        if self.render_mode != "rgb_array":
+            return None
+        wx, wy, frame = self._background()
+        frame = frame.copy()
+        px = 2.0 / (self.render_size - 1)  # world units per pixel (about)
+        trail = np.asarray(self._trail)
+        if len(trail) > 1:
+            near = np.zeros(wx.shape, bool)
+            for a, b in zip(trail[:-1], trail[1:]):
+                near |= _distance_to_segment(wx, wy, a, b) <= 1.5 * px
+            frame[near] = (90, 120, 235)
+        agent = (wx - self._position[0]) ** 2 + (wy - self._position[1]) ** 2
+        frame[agent <= (0.05 + px) ** 2] = (20, 30, 120)
+        frame[agent <= 0.04**2] = (40, 80, 230)
+        return frame
+
+    def _background(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World coordinates of every pixel and the static picture (square, apples), cached."""
+        if self._canvas is None:
+            n = self.render_size
+            # pixel centres to world: x right, y up, the square [-1, 1]^2 fills the frame with a border
+            margin = 1.06
+            grid = (np.arange(n) + 0.5) / n * 2 * margin - margin
+            wx, wy = np.meshgrid(grid, grid[::-1])
+            frame = np.full((n, n, 3), 200, np.uint8)
+            inside = (np.abs(wx) <= 1.0) & (np.abs(wy) <= 1.0)
+            frame[inside] = (246, 244, 236)
+            edge = inside & ((np.abs(wx) >= 1.0 - 2.5 / n) | (np.abs(wy) >= 1.0 - 2.5 / n))
+            frame[edge] = (60, 60, 60)
+            for (ax, ay), value in zip(APPLE_POSITIONS, APPLE_VALUES):
+                disk = (wx - ax) ** 2 + (wy - ay) ** 2 <= APPLE_RADIUS**2
+                frame[disk] = (215, 35, 35) if value >= 50 else (50, 165, 60)
+            self._canvas = (wx, wy, frame)
+        return self._canvas
+
+
+def _distance_to_segment(x: np.ndarray, y: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance of every point (x, y) to the segment a-b."""
+    d = b - a
+    length2 = float(d @ d)
+    if length2 == 0.0:
+        return np.hypot(x - a[0], y - a[1])
+    t = np.clip(((x - a[0]) * d[0] + (y - a[1]) * d[1]) / length2, 0.0, 1.0)
+    return np.hypot(x - (a[0] + t * d[0]), y - (a[1] + t * d[1]))
 
 
 def _apple_on_segment(start: np.ndarray, end: np.ndarray) -> int | None:
