@@ -196,3 +196,96 @@ def test_mam_eval_video_of_a_mujoco_task(tmp_path: Path):
     out = json.loads(mam("eval", str(tmp_path), "--episodes", "1", "--video", str(video), "--json").stdout)
     frames, shape = _playable(video)
     assert frames == out["frames"] == out["lengths"][0] + 1 and shape == (480, 480, 3)
+
+
+# -- after a real `mam run` ---------------------------------------------------------------------
+SMALL = ["--hidden", "32,32", "--batch-size", "32", "--eval-episodes", "3"]
+
+
+@pytest.mark.slow
+def test_after_a_short_run_tensorboard_mam_eval_video_and_load_policy(tmp_path: Path):
+    from tests.e2e import load, processes_of, unique_run
+    from tests.test_tb import scalars
+
+    run_name, run_dir = unique_run("e2e-use"), tmp_path / "run"
+    mam("run", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--actors", "2", "--workers", "2",
+        "--steps", "1600", "--start-steps", "400", "--compete-every", "400", "--eliminate-at", "800",
+        "--eval-every", "400", "--bias-every", "800", "--bias-rollouts", "3", "--seed", "2", *SMALL,
+        "--run", run_name, "--run-dir", str(run_dir), "--no-plot")
+    run = load(run_dir)
+    summary, last_eval = run["summary"], run["eval"][-1]
+    survivor = summary["survivor"]
+    assert survivor in (0, 1) and processes_of(run_name) == []
+
+    # TensorBoard: every tag, read back with TensorBoard's reader, equal to the JSONL rows.
+    learner, referee = scalars(run_dir / "tb" / "learner"), scalars(run_dir / "tb" / "referee")
+    for tag in ("loss/critic", "loss/actor", "q/actor0", "q/actor1", "learner/updates_per_s", "learner/utd",
+                "learner/replay_size", "learner/transitions_per_s", "learner/updates",
+                f"bias/rate/actor{survivor}", f"bias/q_estimate/actor{survivor}", f"bias/q_true/actor{survivor}"):
+        assert tag in learner, (tag, sorted(learner))
+    for tag in ("eval/return/actor0", "eval/return/actor1", "allocation/P/actor0", "allocation/P/actor1",
+                "allocation/I/actor0", "allocation/I/actor1", "allocation/survivor", "allocation/round",
+                "allocation/eliminated/actor0", "allocation/eliminated/actor1"):
+        assert tag in referee, (tag, sorted(referee))
+    rows = run["learner"]
+    assert learner["learner/replay_size"] == [(r["env_steps"], float(r["buffer"])) for r in rows]
+    assert learner["learner/updates"][-1] == (rows[-1]["env_steps"], float(rows[-1]["updates"]))
+    assert referee["allocation/survivor"][-1][1] == survivor
+    assert referee["allocation/survivor"][0][1] == -1.0  # none before the elimination
+    final = referee[f"eval/return/actor{survivor}"][-1]
+    assert final[0] == summary["env_steps"] and final[1] == pytest.approx(summary["final_returns"][survivor])
+    assert [s for s, _ in referee["allocation/P/actor0"]] == [r["env_steps"] for r in run["allocation"]]
+
+    # mam eval reproduces the final evaluation: same seed, same episodes, same returns.
+    out = json.loads(mam("eval", str(run_dir), "--episodes", "3", "--json").stdout)
+    assert out["actor"] == survivor and out["final_eval_weights"]
+    assert out["seed"] == summary["final_eval"]["seed"] == 2 + 1_000_003 + summary["env_steps"]
+    np.testing.assert_allclose(out["returns"], last_eval["returns"][survivor], rtol=0, atol=1e-9)
+    assert out["mean"] == pytest.approx(summary["final_returns"][survivor], abs=1e-9)
+    text = mam("eval", str(run_dir), "--episodes", "3").stdout
+    assert f"return {summary['final_returns'][survivor]:.3f} ± " in text
+
+    # load_policy computes the learner's actor, as restored from its torch checkpoint.
+    state = torch.load(run_dir / "checkpoints" / "learner.pt", weights_only=True)
+    cfg = RunConfig.from_dict(json.loads(state["config"]))
+    agent = MultiActorAgent(cfg.algo, EnvSpec.from_env_id(cfg.env_id))
+    agent.load_state_dict(state["agent"])
+    obs = np.random.default_rng(0).uniform(-1, 1, size=(16, 2)).astype(np.float32)
+    pi = load_policy(run_dir)
+    assert pi.actor == survivor
+    np.testing.assert_allclose(pi(obs), agent.act(obs, survivor), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(pi(obs[0]), agent.act(obs[:1], survivor)[0], rtol=1e-5, atol=1e-6)
+
+    # ... and a playable video of those episodes.
+    video = tmp_path / "apple.mp4"
+    rec = json.loads(mam("eval", str(run_dir), "--episodes", "3", "--video", str(video), "--json").stdout)
+    assert _playable(video) == (rec["frames"], (256, 256, 3))
+    np.testing.assert_allclose(rec["returns"], out["returns"], atol=1e-9)
+
+
+@pytest.mark.slow
+def test_a_custom_env_from_a_module_trains_end_to_end(tmp_path: Path):
+    """`mam run --env tests.envs.tiny:Tiny-v0 --env-kwargs ...`: learner, referee and workers all
+    import the module and make the env with the kwargs (the replay holds the goal of the kwargs)."""
+    from tests.e2e import assert_exactly_once, load, processes_of, unique_run
+
+    run_name, run_dir = unique_run("e2e-tiny"), tmp_path / "run"
+    mam("run", "--env", "tests.envs.tiny:Tiny-v0", "--env-kwargs", '{"goal": -0.5}', "--algo", "td3",
+        "--workers", "2", "--steps", "2000", "--start-steps", "300", "--eval-every", "500", "--seed", "3",
+        "--save-replay", *SMALL, "--run", run_name, "--run-dir", str(run_dir), "--no-plot")
+    run = load(run_dir)
+    assert_exactly_once(run)
+    assert run["config"]["env_id"] == "tests.envs.tiny:Tiny-v0" and run["config"]["env_kwargs"] == {"goal": -0.5}
+    assert run["summary"]["env_steps"] >= 2000 and run["learner"][-1]["updates"] > 1500
+    state = torch.load(run_dir / "checkpoints" / "learner.pt", weights_only=True)
+    replay = state["replay"]
+    n = int(replay["size"])
+    goals = replay["obs"][:, 1]
+    assert n >= 2000 and torch.all(goals == -0.5)  # every worker made the env with the kwargs
+    # It learned: better than standing still, on the final evaluation's episodes.
+    out = json.loads(mam("eval", str(run_dir), "--json").stdout)
+    assert out["mean"] == pytest.approx(run["summary"]["final_returns"][0], abs=1e-9)
+    still = evaluate_policy(lambda o: np.zeros((len(o), 1), np.float32), "tests.envs.tiny:Tiny-v0",
+                            out["episodes"], seed=out["seed"], env_kwargs={"goal": -0.5})
+    assert out["mean"] > still.mean() + 2.0, (out["mean"], still.mean())
+    assert processes_of(run_name) == []
