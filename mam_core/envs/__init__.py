@@ -9,6 +9,8 @@ keyword arguments, and turns a module that does not import or an unknown id into
 from __future__ import annotations
 
 import importlib
+import os
+import sys
 from collections.abc import Mapping
 from typing import Any
 
@@ -37,12 +39,27 @@ def import_env_module(env_id: str) -> None:
         return
     module = env_id.split(":", 1)[0]
     try:
-        importlib.import_module(module)
+        try:
+            importlib.import_module(module)
+        except ModuleNotFoundError as e:
+            # As `python -m` does: the current directory is searched too (last), so console
+            # scripts (`mam`, `mam-worker`) find a module next to where they are started.
+            cwd = os.getcwd()
+            top = module.split(".")[0]
+            if e.name != top or cwd in sys.path or "" in sys.path or not _has_module(cwd, top):
+                raise
+            sys.path.append(cwd)
+            importlib.import_module(module)
     except Exception as e:  # ImportError, or anything the module raises while importing
         raise EnvError(
             f"env {env_id!r}: module {module!r} does not import ({type(e).__name__}: {e}). It must be "
             "importable on every host that runs a learner, referee, worker or `mam eval` "
-            "(installed, or on PYTHONPATH)") from e
+            "(installed, on PYTHONPATH, or in the directory the command starts in)") from e
+
+
+def _has_module(directory: str, name: str) -> bool:
+    return os.path.isfile(os.path.join(directory, name + ".py")) or \
+        os.path.isfile(os.path.join(directory, name, "__init__.py"))
 
 
 def make_env(env_id: str, env_kwargs: Mapping[str, Any] | None = None, **make_kwargs: Any) -> gym.Env:

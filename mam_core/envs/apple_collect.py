@@ -49,6 +49,8 @@ class AppleCollectEnv(gym.Env[np.ndarray, np.ndarray]):
         self.render_size = int(render_size)
         self._trail: list[np.ndarray] = [np.zeros(2)]
         self._canvas: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._path: np.ndarray | None = None  # pixels of the path drawn so far (render)
+        self._path_points = 1  # trail points already in _path
         self.observation_space = gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
         self.action_space = gym.spaces.Box(-MAX_MOVE, MAX_MOVE, shape=(2,), dtype=np.float32)
         self._position = np.zeros(2)
@@ -59,6 +61,7 @@ class AppleCollectEnv(gym.Env[np.ndarray, np.ndarray]):
         super().reset(seed=seed)
         self._position = np.zeros(2)
         self._trail = [self._position]
+        self._path = None
         return self._position.astype(np.float32), {}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -85,12 +88,12 @@ class AppleCollectEnv(gym.Env[np.ndarray, np.ndarray]):
         wx, wy, frame = self._background()
         frame = frame.copy()
         px = 2.0 / (self.render_size - 1)  # world units per pixel (about)
-        trail = np.asarray(self._trail)
-        if len(trail) > 1:
-            near = np.zeros(wx.shape, bool)
-            for a, b in zip(trail[:-1], trail[1:]):
-                near |= _distance_to_segment(wx, wy, a, b) <= 1.5 * px
-            frame[near] = (90, 120, 235)
+        if self._path is None:
+            self._path, self._path_points = np.zeros(wx.shape, bool), 1
+        for a, b in zip(self._trail[self._path_points - 1:-1], self._trail[self._path_points:]):
+            self._path |= _distance_to_segment(wx, wy, a, b) <= 1.5 * px  # only the new segments
+        self._path_points = len(self._trail)
+        frame[self._path] = (90, 120, 235)
         agent = (wx - self._position[0]) ** 2 + (wy - self._position[1]) ** 2
         frame[agent <= (0.05 + px) ** 2] = (20, 30, 120)
         frame[agent <= 0.04**2] = (40, 80, 230)
