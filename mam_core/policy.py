@@ -43,7 +43,8 @@ class EnvSpec:
     def from_env(cls, env: Any) -> "EnvSpec":
         """The spec of a made env; `EnvError` for an env mam cannot train on.
 
-        mam needs a 1-D Box observation space and a 1-D Box action space with finite, symmetric bounds (actors end in max_action · tanh).
+        mam needs a 1-D Box observation space and a 1-D Box action space with finite, symmetric
+        bounds (actors end in max_action · tanh).
         """
         from gymnasium import spaces
 

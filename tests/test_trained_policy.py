@@ -289,3 +289,24 @@ def test_a_custom_env_from_a_module_trains_end_to_end(tmp_path: Path):
                             out["episodes"], seed=out["seed"], env_kwargs={"goal": -0.5})
     assert out["mean"] > still.mean() + 2.0, (out["mean"], still.mean())
     assert processes_of(run_name) == []
+
+
+@pytest.mark.slow
+def test_after_a_short_mujoco_run_mam_eval_matches_and_records_a_video(tmp_path: Path):
+    problem = offscreen_gl_problem()
+    from tests.e2e import load, unique_run
+
+    run_dir = tmp_path / "run"
+    mam("run", "--env", "InvertedPendulum-v5", "--algo", "td3", "--workers", "1", "--steps", "600",
+        "--start-steps", "300", "--seed", "5", *SMALL, "--run", unique_run("e2e-pend"), "--run-dir", str(run_dir),
+        "--no-plot")
+    summary = load(run_dir)["summary"]
+    out = json.loads(mam("eval", str(run_dir), "--json").stdout)
+    assert out["episodes"] == 3 and out["final_eval_weights"]
+    assert out["mean"] == pytest.approx(summary["final_returns"][0], abs=1e-9)
+    if problem:
+        pytest.skip(problem)
+    video = tmp_path / "pendulum.mp4"
+    rec = json.loads(mam("eval", str(run_dir), "--episodes", "1", "--video", str(video), "--json").stdout)
+    assert _playable(video) == (rec["frames"], (480, 480, 3)) and rec["frames"] == rec["lengths"][0] + 1
+    assert rec["returns"][0] == pytest.approx(out["returns"][0], abs=1e-6)
