@@ -13,10 +13,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 
-import mam_core.envs  # noqa: F401  (registers AppleCollect-v0)
+from mam_core.envs import make_env  # registers AppleCollect-v0; imports `module:EnvId` modules
 
 Policy = Callable[[np.ndarray], np.ndarray]
 QFunction = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -32,9 +31,10 @@ class Rollouts:
     initial_actions: np.ndarray  # [episodes, act_dim] float32, π(s0) as applied
     returns: np.ndarray  # [episodes] undiscounted sum of rewards
     discounted_returns: np.ndarray  # [episodes] sum_t γ^t r_t
-    final_obs: np.ndarray | None = None  # [episodes, obs_dim] s_T, the observation the episode ended on
-    truncated: np.ndarray | None = None  # [episodes] bool: ended by the time limit, not by termination
-    final_discount: np.ndarray | None = None  # [episodes] γ^T, T the episode's length
+    lengths: np.ndarray  # [episodes] steps until terminated or truncated
+    final_obs: np.ndarray  # [episodes, obs_dim] s_T, the observation the episode ended on
+    truncated: np.ndarray  # [episodes] bool: ended by the time limit, not by termination
+    final_discount: np.ndarray  # [episodes] γ^T, T the episode's length
 
 
 def rollout(
@@ -54,7 +54,7 @@ def rollout(
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     width = max(1, min(max_envs, episodes))
-    envs = [gym.make(env_id, **(env_kwargs or {})) for _ in range(width)]
+    envs = [make_env(env_id, env_kwargs) for _ in range(width)]
     try:
         space = envs[0].action_space
         low, high = np.asarray(space.low, np.float32), np.asarray(space.high, np.float32)
@@ -65,6 +65,7 @@ def rollout(
         final_obs = np.zeros((episodes, int(np.prod(envs[0].observation_space.shape))), np.float32)
         truncated_at_end = np.zeros(episodes, bool)
         final_discount = np.ones(episodes)
+        lengths = np.zeros(episodes, np.int64)
         for first in range(0, episodes, width):
             ids = list(range(first, min(first + width, episodes)))
             obs = [np.asarray(envs[j].reset(seed=seed + i)[0], np.float32).reshape(-1) for j, i in enumerate(ids)]
@@ -85,6 +86,7 @@ def rollout(
                     returns[i] += float(reward)
                     discounted[i] += discount[j] * float(reward)
                     discount[j] *= gamma
+                    lengths[i] += 1
                     obs[j] = np.asarray(next_obs, np.float32).reshape(-1)
                     if not (terminated or truncated):
                         still.append(j)
@@ -104,7 +106,13 @@ def rollout(
         final_obs=final_obs,
         truncated=truncated_at_end,
         final_discount=final_discount,
+        lengths=lengths,
     )
+
+
+def eval_seed(run_seed: int, env_steps: int) -> int:
+    """Seed of the referee's evaluation at `env_steps` (episode i is reset with this + i)."""
+    return run_seed + 1_000_003 + env_steps
 
 
 def evaluate_policy(

@@ -1,16 +1,29 @@
-"""Acting without torch: the env spec and the actors as numpy functions.
+"""Acting without torch: the env spec, the actors as numpy functions, trained policies on disk.
 
 Workers and the referee only run policies forward, one observation (or a few) at a time.
 For that, torch's per-op dispatch costs more than the arithmetic (docs/PERFORMANCE.md), and
 importing it costs seconds of start-up and a few hundred MB per process. This module holds
 what acting needs, with numpy alone; the learner's `ActorEnsemble` shares the parameter layout
 (`member_shapes`), and `tests/test_policy.py` checks that both compute the same function.
+
+A trained policy, three lines, numpy only (no torch, no Zenoh):
+
+    from mam_core.policy import load_policy
+    pi = load_policy("runs/NAME")        # the survivor; load_policy("runs/NAME", actor=1) for actor 1
+    action = pi(obs)                     # obs [obs_dim] -> [act_dim], or [B, obs_dim] -> [B, act_dim]
+
+It reads RUN_DIR/checkpoints/policy.npz, which the learner writes next to every checkpoint
+(`save_policy_file`; format in docs/DESIGN-DECISIONS.md, "Trained policies on disk").
 """
 
 from __future__ import annotations
 
+import json
+import os
+import zipfile
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,19 +41,38 @@ class EnvSpec:
 
     @classmethod
     def from_env(cls, env: Any) -> "EnvSpec":
-        space = env.action_space
-        if not np.allclose(space.low, -space.high):
-            raise ValueError("only symmetric action bounds (low == -high) are supported")
-        return cls(int(np.prod(env.observation_space.shape)), int(space.shape[0]),
-                   tuple(float(h) for h in space.high))
+        """The spec of a made env; `EnvError` for an env mam cannot train on.
+
+        mam needs a 1-D Box observation space and a 1-D Box action space with finite, symmetric
+        bounds (actors end in max_action · tanh).
+        """
+        from gymnasium import spaces
+
+        from mam_core.envs import EnvError
+
+        name = getattr(getattr(env, "spec", None), "id", None) or type(env).__name__
+        space, obs_space = env.action_space, env.observation_space
+        if not isinstance(space, spaces.Box):
+            raise EnvError(f"env {name!r}: the action space must be a gymnasium Box (continuous actions), "
+                           f"not {space}")
+        if len(space.shape) != 1:
+            raise EnvError(f"env {name!r}: the action space must be 1-D, not of shape {space.shape}")
+        if not (np.all(np.isfinite(space.low)) and np.all(np.isfinite(space.high))):
+            raise EnvError(f"env {name!r}: the action bounds must be finite (got low={space.low}, "
+                           f"high={space.high}); give the action space finite bounds")
+        if not np.allclose(space.low, -space.high) or np.any(space.high <= 0):
+            raise EnvError(f"env {name!r}: only symmetric action bounds (low == -high) are supported (got "
+                           f"low={space.low}, high={space.high}); wrap the env in gymnasium.wrappers.RescaleAction")
+        if not isinstance(obs_space, spaces.Box) or len(obs_space.shape) != 1:
+            raise EnvError(f"env {name!r}: the observation space must be a 1-D gymnasium Box, not {obs_space}; "
+                           "wrap the env in gymnasium.wrappers.FlattenObservation")
+        return cls(int(obs_space.shape[0]), int(space.shape[0]), tuple(float(h) for h in space.high))
 
     @classmethod
-    def from_env_id(cls, env_id: str) -> "EnvSpec":
-        import gymnasium as gym
+    def from_env_id(cls, env_id: str, env_kwargs: Mapping[str, Any] | None = None) -> "EnvSpec":
+        from mam_core.envs import make_env  # registers AppleCollect-v0, imports `module:EnvId` modules
 
-        import mam_core.envs  # noqa: F401  (registers AppleCollect-v0)
-
-        env = gym.make(env_id)
+        env = make_env(env_id, env_kwargs)
         try:
             return cls.from_env(env)
         finally:
@@ -107,3 +139,167 @@ class NumpyActors:
 
     def policy(self, k: int) -> Policy:
         return self._policies[k]
+
+
+# -- trained policies on disk -------------------------------------------------------------------
+POLICY_FILE = "policy.npz"  # in RUN_DIR/checkpoints/, next to learner.pt
+POLICY_FORMAT = 1
+_META_KEY = "meta"
+_REQUIRED_META = ("format", "env_id", "obs_dim", "act_dim", "max_action", "hidden", "actors")
+
+
+class PolicyFileError(ValueError):
+    """A policy file that is corrupt, incomplete or does not match what it claims."""
+
+
+def save_policy_file(path: Path, params: Sequence[Mapping[str, np.ndarray]], meta: Mapping[str, Any]) -> Path:
+    """Write K actors' parameters and a JSON `meta` to an .npz atomically (no pickle anywhere).
+
+    Arrays are named `actor{k}.{w0,b0,w1,...}` in the wire layout of `member_shapes`; `meta`
+    is stored as UTF-8 JSON bytes in the uint8 array `meta`.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"format": POLICY_FORMAT, **meta, "actors": len(params)}
+    arrays: dict[str, np.ndarray] = {_META_KEY: np.frombuffer(json.dumps(meta).encode(), np.uint8)}
+    for k, member in enumerate(params):
+        for name, value in member.items():
+            arrays[f"actor{k}.{name}"] = np.ascontiguousarray(value, np.float32)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+    os.replace(tmp, path)
+    return path
+
+
+def policy_path(run: str | os.PathLike[str]) -> Path:
+    """RUN_DIR -> RUN_DIR/checkpoints/policy.npz; a path to an .npz file is kept as it is."""
+    p = Path(run)
+    return p if p.suffix == ".npz" else p / "checkpoints" / POLICY_FILE
+
+
+def read_policy_file(path: str | os.PathLike[str]) -> tuple[dict[str, Any], list[dict[str, np.ndarray]]]:
+    """(meta, [actor k's parameters]) from a policy file, checked; FileNotFoundError or PolicyFileError."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no trained policy at {path} (the learner writes it at every checkpoint and at "
+                                "the end of a run)")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {name: data[name] for name in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as e:
+        raise PolicyFileError(f"{path} is not a readable policy file ({type(e).__name__}: {e})") from e
+    try:
+        meta = json.loads(arrays.pop(_META_KEY).tobytes().decode())
+        missing = [k for k in _REQUIRED_META if k not in meta]
+        if missing:
+            raise PolicyFileError(f"missing {missing} in its meta")
+        if meta["format"] != POLICY_FORMAT:
+            raise PolicyFileError(f"format {meta['format']}, this mam reads format {POLICY_FORMAT}")
+        obs_dim, act_dim, n = int(meta["obs_dim"]), int(meta["act_dim"]), int(meta["actors"])
+        if len(meta["max_action"]) != act_dim or n < 1:
+            raise PolicyFileError("max_action does not have act_dim entries, or no actors")
+        shapes = member_shapes(obs_dim, [int(h) for h in meta["hidden"]], act_dim)
+        params = []
+        for k in range(n):
+            member = {}
+            for name, shape in shapes.items():
+                value = arrays[f"actor{k}.{name}"]
+                if value.shape != shape or value.dtype != np.float32:
+                    raise PolicyFileError(f"actor{k}.{name}: {value.dtype}{list(value.shape)}, expected "
+                                          f"float32{list(shape)}")
+                if not np.all(np.isfinite(value)):
+                    raise PolicyFileError(f"actor{k}.{name} holds non-finite values")
+                member[name] = value
+            params.append(member)
+    except PolicyFileError as e:
+        raise PolicyFileError(f"{path}: {e}") from None
+    except (KeyError, ValueError, TypeError, UnicodeDecodeError) as e:
+        raise PolicyFileError(f"{path}: corrupt policy file ({type(e).__name__}: {e})") from e
+    return meta, params
+
+
+class TrainedPolicy:
+    """One actor of a finished (or running) run as a numpy function, with what it was trained on.
+
+    `pi(obs)` maps [obs_dim] -> [act_dim] or [B, obs_dim] -> [B, act_dim] (float32,
+    deterministic: max_action · tanh(MLP(obs)), the function the learner's actor computes).
+    """
+
+    def __init__(self, meta: Mapping[str, Any], params: Mapping[str, np.ndarray], actor: int,
+                 source: Path | None = None) -> None:
+        self.meta = dict(meta)
+        self.actor = actor
+        self.source = source
+        self.spec = EnvSpec(int(meta["obs_dim"]), int(meta["act_dim"]), tuple(float(x) for x in meta["max_action"]))
+        self.env_id: str = str(meta["env_id"])
+        self.env_kwargs: dict[str, Any] = dict(meta.get("env_kwargs") or {})
+        self.hidden = tuple(int(h) for h in meta["hidden"])
+        self.max_action = np.asarray(self.spec.max_action, np.float32)
+        n_layers = len(params) // 2
+        self._layers = [(np.asarray(params[f"w{i}"], np.float32), np.asarray(params[f"b{i}"], np.float32).reshape(-1))
+                        for i in range(n_layers)]
+        self._policy = mlp_policy(self._layers, self.max_action)
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        obs = np.asarray(obs, np.float32)
+        if obs.ndim not in (1, 2) or obs.shape[-1] != self.spec.obs_dim:
+            raise ValueError(f"observation of shape {obs.shape}: this policy takes [{self.spec.obs_dim}] or "
+                             f"[B, {self.spec.obs_dim}] ({self.env_id})")
+        return self._policy(obs)
+
+    def __repr__(self) -> str:
+        return (f"TrainedPolicy(actor={self.actor}, env={self.env_id!r}, obs_dim={self.spec.obs_dim}, "
+                f"act_dim={self.spec.act_dim}, hidden={list(self.hidden)}, env_steps={self.meta.get('env_steps')})")
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def default_actor(meta: Mapping[str, Any], run_dir: Path | None) -> int:
+    """The survivor; before an elimination, the best actor of the run's last evaluation
+    (summary.json's final returns, else the last row of eval.jsonl); actor 0 when K = 1."""
+    n = int(meta["actors"])
+    if meta.get("survivor") is not None:
+        return int(meta["survivor"])
+    if n == 1:
+        return 0
+    if run_dir is not None:
+        summary = _read_json(run_dir / "summary.json") or {}
+        if summary.get("survivor") is not None:
+            return int(summary["survivor"])
+        means = summary.get("final_returns")
+        if not means and (run_dir / "eval.jsonl").is_file():
+            rows = [line for line in (run_dir / "eval.jsonl").read_text().splitlines() if line.strip()]
+            try:
+                means = json.loads(rows[-1]).get("mean") if rows else None
+            except ValueError:
+                means = None
+        known = [(m, k) for k, m in enumerate(means or []) if m is not None and k < n]
+        if known:
+            return max(known, key=lambda mk: (mk[0], -mk[1]))[1]  # ties: the lowest index, as argmax
+    raise PolicyFileError(f"{n} actors, no survivor and no evaluation yet: choose one with actor=0..{n - 1}")
+
+
+def load_policy(run: str | os.PathLike[str], actor: int | str = "survivor") -> TrainedPolicy:
+    """The trained policy of a run directory (or of a policy .npz file), numpy only.
+
+    `actor` is an index 0..K-1 or "survivor" (see `default_actor`).
+    """
+    path = policy_path(run)
+    meta, params = read_policy_file(path)
+    run_dir = path.parent.parent if path.name == POLICY_FILE and path.parent.name == "checkpoints" else None
+    if actor == "survivor":
+        k = default_actor(meta, run_dir)
+    else:
+        try:
+            k = int(actor)
+        except (TypeError, ValueError):
+            raise ValueError(f"actor must be an index or 'survivor', not {actor!r}") from None
+    if not 0 <= k < len(params):
+        raise ValueError(f"actor {k} out of range: this run has {len(params)} actor(s)")
+    return TrainedPolicy(meta, params[k], k, path)

@@ -16,6 +16,7 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
 @app.command()
 def run(
     env: options.Env = None, algo: options.Algo = None, steps: options.Steps = None,
+    env_kwargs: options.EnvKwargs = None,
     actors: options.Actors = None, workers: options.Workers = None, eliminate_at: options.EliminateAt = None,
     compete_every: options.CompeteEvery = None, eta: options.Eta = None, eval_episodes: options.EvalEpisodes = None,
     eval_every: options.EvalEvery = None, start_steps: options.StartSteps = None, batch_size: options.BatchSize = None,
@@ -37,6 +38,7 @@ def run(
     logging.basicConfig(level=logging.WARNING)
     cfg = options.build_run_config(dict(
         env=env, algo=algo, steps=steps, actors=actors, workers=workers, eliminate_at=eliminate_at,
+        env_kwargs=env_kwargs,
         compete_every=compete_every, eta=eta, eval_episodes=eval_episodes, eval_every=eval_every,
         start_steps=start_steps, batch_size=batch_size, utd=utd, no_ot=no_ot, no_wt=no_wt, seed=seed,
         device=device, hidden=hidden, single_env_after_elimination=single_env_after_elimination,
@@ -95,6 +97,16 @@ def _register_harness() -> None:
 
 
 _register_harness()
+
+
+def _register_eval() -> None:
+    """`mam eval RUN_DIR`: a trained actor's returns and video, numpy only (services/eval_command.py)."""
+    from services.eval_command import eval_command
+
+    app.command("eval")(eval_command)
+
+
+_register_eval()
 
 
 def _role(name: str):

@@ -25,10 +25,11 @@ from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
 from mam_core.evaluation import estimation_bias
 from mam_core.replay import ReplayBuffer
 from mam_core.schedule import Schedule
-from services import bus, keys, options
+from services import bus, keys, options, tb
 from services.codec import (Allocation, Done, LearnerStats, MessageError, TransitionBatch, TransitionSpec,
                             Weights, decode, encode)
 from services.options import JsonlWriter, RunConfig, write_json
+from services.policy_export import write_policy
 
 log = logging.getLogger("mam.learner")
 
@@ -67,7 +68,7 @@ class Learner:
         self.run_dir = run_dir
         self.id = f"{socket.gethostname()}-{os.getpid()}"
         self.incarnation = uuid.uuid4().hex[:12]
-        self.spec = EnvSpec.from_env_id(cfg.env_id)
+        self.spec = EnvSpec.from_env_id(cfg.env_id, cfg.env_kwargs)
         self.device = pick_device(self.algo.device)
         torch.manual_seed(self.algo.seed)
         if cfg.learner_threads > 0:
@@ -129,8 +130,10 @@ class Learner:
         self.referees = bus.watch_alive(s, run, "referee")
         self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
         self.inbox = bus.Inbox(maxsize=8192).subscribe(s, keys.transitions_all(run))
-        self.log_writer = JsonlWriter(self.run_dir / "learner.jsonl")
-        self.bias_writer = JsonlWriter(self.run_dir / "bias.jsonl") if self.cfg.bias_every else None
+        self.board = tb.RunBoard(self.run_dir, "learner")  # RUN_DIR/tb/learner: the JSONL rows' scalars
+        self.log_writer = self.board.tee(JsonlWriter(self.run_dir / "learner.jsonl"), tb.learner_scalars)
+        self.bias_writer = (self.board.tee(JsonlWriter(self.run_dir / "bias.jsonl"), tb.bias_scalars)
+                            if self.cfg.bias_every else None)
         self.seq = 0
         self.publish_config()
         try:
@@ -143,6 +146,7 @@ class Learner:
             self.log_writer.close()
             if self.bias_writer is not None:
                 self.bias_writer.close()
+            self.board.close()
 
     # -- the loop -----------------------------------------------------------------------------
     def _loop(self) -> None:
@@ -384,7 +388,7 @@ class Learner:
                 result = estimation_bias(lambda obs, k=k: self.agent.act(obs, k),
                                          lambda obs, act, k=k: self.agent.q_value(obs, act, k),
                                          self.cfg.env_id, self.cfg.bias_rollouts, self.algo.gamma, seed,
-                                         horizon=self.cfg.bias_horizon)
+                                         self.cfg.env_kwargs, horizon=self.cfg.bias_horizon)
             except Exception:  # a diagnostic never stops the training
                 log.exception("bias measurement at %d transitions failed (actor %d)", point, k)
                 continue
@@ -397,6 +401,7 @@ class Learner:
     def checkpoint(self) -> None:
         counters = {"env_steps": self.env_steps, "per_worker": json.dumps(self.tracker.per_sender())}
         path = save_checkpoint(self.run_dir, self.agent, self.buffer, counters, self.cfg)
+        write_policy(self.run_dir, self.cfg, self.agent, self.env_steps, self.survivor)  # policy.npz (numpy)
         log.info("checkpoint %s at %d updates", path, self.agent.updates)
 
     def finish(self) -> None:
@@ -453,6 +458,7 @@ app = typer.Typer(add_completion=False, help=__doc__)
 @app.command()
 def learner_command(
     env: options.Env = None, algo: options.Algo = None, steps: options.Steps = None,
+    env_kwargs: options.EnvKwargs = None,
     actors: options.Actors = None, workers: options.Workers = None, eliminate_at: options.EliminateAt = None,
     compete_every: options.CompeteEvery = None, eta: options.Eta = None, eval_episodes: options.EvalEpisodes = None,
     eval_every: options.EvalEvery = None, start_steps: options.StartSteps = None, batch_size: options.BatchSize = None,
@@ -483,6 +489,7 @@ def learner_command(
     else:
         cfg = options.build_run_config(dict(
             env=env, algo=algo, steps=steps, actors=actors, workers=workers, eliminate_at=eliminate_at,
+            env_kwargs=env_kwargs,
             compete_every=compete_every, eta=eta, eval_episodes=eval_episodes, eval_every=eval_every,
             start_steps=start_steps, batch_size=batch_size, utd=utd, no_ot=no_ot, no_wt=no_wt, seed=seed,
             device=device, hidden=hidden, single_env_after_elimination=single_env_after_elimination, run=run,

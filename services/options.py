@@ -22,7 +22,11 @@ import typer
 from mam_core.config import AFTER_ELIMINATION, ALGOS, SCHEDULES, AlgoConfig, resolve
 
 # -- algorithm flags (paper symbol in brackets), the same on every command that takes them ----
-Env = Annotated[Optional[str], typer.Option("--env", help="Gymnasium env id, e.g. HalfCheetah-v5 or AppleCollect-v0")]
+Env = Annotated[Optional[str], typer.Option(
+    "--env", help="Gymnasium env id, e.g. HalfCheetah-v5 or AppleCollect-v0, or module.path:EnvId (the module "
+    "registers the env when imported; it must import on every host)")]
+EnvKwargs = Annotated[Optional[str], typer.Option(
+    "--env-kwargs", help='JSON object of keyword arguments for gym.make, e.g. \'{"ctrl_cost_weight": 0.05}\'')]
 Algo = Annotated[Optional[str], typer.Option("--algo", help=f"one of {', '.join(ALGOS)}")]
 Steps = Annotated[Optional[int], typer.Option("--steps", help="[T] budget in schedule steps: iterations (--schedule paper) or transitions (equal-data)")]
 Actors = Annotated[Optional[int], typer.Option("--actors", help="[K] number of actors")]
@@ -95,6 +99,7 @@ class RunConfig:
     bias_every: int = 0  # Eq. 17 estimation bias every N transitions, measured by the learner (0: off)
     bias_rollouts: int = 20  # Monte-Carlo rollouts per bias point (the paper: 20)
     bias_horizon: str = "critic"  # critic: MC return + bootstrap tail at a time limit; episode: cut there
+    env_kwargs: dict[str, Any] = field(default_factory=dict)  # gym.make(env_id, **env_kwargs) everywhere
 
     @property
     def tolerance(self) -> int:
@@ -116,6 +121,7 @@ class RunConfig:
         if unknown:
             raise ValueError(f"unknown run config keys: {sorted(unknown)}")
         d["algo"] = AlgoConfig.from_dict(d["algo"])
+        d["env_kwargs"] = check_env_kwargs(d.get("env_kwargs") or {})
         cfg = cls(**d)
         check_run_name(cfg.run)
         if cfg.steps < 1:
@@ -133,8 +139,23 @@ def check_run_name(name: str) -> str:
     return name
 
 
+def check_env_kwargs(value: Any) -> dict[str, Any]:
+    """env kwargs: a JSON object (a dict with string keys and JSON values), or a JSON string of one."""
+    if isinstance(value, str):
+        try:
+            value = json.loads(value)
+        except ValueError as e:
+            raise ValueError(f"env kwargs {value!r} are not valid JSON: {e}") from None
+    if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
+        raise ValueError(f"env kwargs must be a JSON object with string keys, not {value!r}")
+    try:
+        return json.loads(json.dumps(value, allow_nan=False))  # plain JSON types only (they go on the wire)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"env kwargs must hold JSON values only: {e}") from None
+
+
 def default_run_name(env_id: str, algo: str) -> str:
-    env = re.sub(r"[^A-Za-z0-9]+", "", env_id.split("-")[0]).lower()
+    env = re.sub(r"[^A-Za-z0-9]+", "", env_id.split(":")[-1].split("-")[0]).lower()
     return f"{algo}-{env}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid() % 10000}"
 
 
@@ -150,7 +171,9 @@ def load_toml(path: Path | None) -> dict[str, Any]:
         raise typer.BadParameter(f"{path}: {e}") from e
     flat: dict[str, Any] = {}
     for key, value in data.items():
-        if isinstance(value, dict):  # sections (e.g. [obsolescence]) only group options
+        if key.replace("-", "_") == "env_kwargs":  # a table of gym.make arguments, not a section
+            flat["env_kwargs"] = value
+        elif isinstance(value, dict):  # sections (e.g. [obsolescence]) only group options
             flat.update({k.replace("-", "_"): v for k, v in value.items()})
         else:
             flat[key.replace("-", "_")] = value
@@ -158,7 +181,8 @@ def load_toml(path: Path | None) -> dict[str, Any]:
 
 
 _RUN_FIELDS = {"run", "env_id", "env", "steps", "algo", "sync_every", "checkpoint_every", "send_batch",
-               "band", "save_replay", "learner_threads", "bias_every", "bias_rollouts", "bias_horizon"}
+               "band", "save_replay", "learner_threads", "bias_every", "bias_rollouts", "bias_horizon",
+               "env_kwargs"}
 
 
 def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig:
@@ -170,7 +194,13 @@ def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig
     env_id = merged.pop("env_id", None)
     if not env_id:
         raise typer.BadParameter("--env is required (in a flag or the --config file)")
-    check_env_id(env_id)
+    try:
+        env_kwargs = check_env_kwargs(merged.pop("env_kwargs", None) or {})
+    except ValueError as e:
+        raise typer.BadParameter(f"--env-kwargs: {e}") from None
+    check_env_id(env_id, env_kwargs)
+    if env_kwargs:
+        merged["env_kwargs"] = env_kwargs
     algo_name = merged.pop("algo", None) or "ma-td3"
     if algo_name not in ALGOS:
         raise typer.BadParameter(f"--algo must be one of {', '.join(ALGOS)}, not {algo_name!r}")
@@ -196,16 +226,17 @@ def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig
         raise typer.BadParameter(str(e)) from e
 
 
-def check_env_id(env_id: str) -> None:
-    """A clear error for an unknown env id, before any process starts."""
-    import gymnasium as gym
-
-    import mam_core.envs  # noqa: F401
+def check_env_id(env_id: str, env_kwargs: dict[str, Any] | None = None) -> None:
+    """A clear error before any process starts: an unknown id, a module that does not import,
+    kwargs the env does not take, an action space mam cannot train on (not a Box, unbounded,
+    asymmetric) or observations that are not a 1-D Box. Makes the env once to find out."""
+    from mam_core.envs import EnvError
+    from mam_core.policy import EnvSpec
 
     try:
-        gym.spec(env_id)
-    except gym.error.Error as e:
-        raise typer.BadParameter(f"--env {env_id!r}: {e}") from None
+        EnvSpec.from_env_id(env_id, env_kwargs)
+    except EnvError as e:
+        raise typer.BadParameter(f"--env: {e}") from None
 
 
 def write_json(path: Path, data: Any) -> None:

@@ -23,11 +23,11 @@ import numpy as np
 import typer
 
 import mam_core.envs  # noqa: F401
-from mam_core.evaluation import evaluate_policy
+from mam_core.evaluation import eval_seed, evaluate_policy
 from mam_core.obsolescence import Obsolescence, best_actors, counts, obsolescence_for
 from mam_core.policy import EnvSpec, NumpyActors, Policy
 from mam_core.schedule import Schedule
-from services import bus, keys, options
+from services import bus, keys, options, tb
 from services.codec import Allocation, Eval, LearnerStats, MessageError, Weights, encode
 from services.options import JsonlWriter, RunConfig, write_json
 from services.worker import REPORT_EVERY_S, fetch_config, plausible_version
@@ -46,7 +46,7 @@ class Referee:
         self.run_dir = run_dir
         self.id = f"{socket.gethostname()}-{os.getpid()}"
         self.rejects = bus.RejectLog(log, "message")
-        self.spec = EnvSpec.from_env_id(cfg.env_id)
+        self.spec = EnvSpec.from_env_id(cfg.env_id, cfg.env_kwargs)
         self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden)  # acting only: no torch
         self.shapes = self.actors.shapes
         self.versions = [-1] * self.algo.actors
@@ -97,8 +97,9 @@ class Referee:
         self.token = bus.declare_alive(s, run, "referee", self.id)
         self.report_pub = bus.declare_reliable_publisher(s, keys.role_stats(run, "referee", self.id))
         self.last_report = 0.0
-        self.alloc_log = JsonlWriter(self.run_dir / "allocation.jsonl")
-        self.eval_log = JsonlWriter(self.run_dir / "eval.jsonl")
+        self.board = tb.RunBoard(self.run_dir, "referee")  # RUN_DIR/tb/referee: the JSONL rows' scalars
+        self.alloc_log = self.board.tee(JsonlWriter(self.run_dir / "allocation.jsonl"), tb.allocation_scalars)
+        self.eval_log = self.board.tee(JsonlWriter(self.run_dir / "eval.jsonl"), tb.eval_scalars)
         try:
             self._loop()
         finally:
@@ -107,6 +108,7 @@ class Referee:
                 sub.close()
             self.alloc_log.close()
             self.eval_log.close()
+            self.board.close()
 
     def _loop(self) -> None:
         self.publish_allocation("initial" if not self.slots else "recovered", returns=None)
@@ -165,7 +167,7 @@ class Referee:
                 returns.append([])
                 continue
             r = evaluate_policy(self.policy(k), self.cfg.env_id, self.algo.eval_episodes,
-                                seed=self.algo.seed + 1_000_003 + steps)
+                                seed=eval_seed(self.algo.seed, steps), env_kwargs=self.cfg.env_kwargs)
             returns.append([float(x) for x in r])
         means = [float(np.mean(r)) if r else None for r in returns]
         self.eval_round += 1
@@ -250,6 +252,8 @@ class Referee:
             "run": self.cfg.run, "env_id": self.cfg.env_id, "algo": self.algo.algo,
             "final_returns": means, "survivor": survivor, "env_steps": steps,
             "iterations": self.clock.units_at(steps), "schedule": self.algo.schedule,
+            "final_eval": {"seed": eval_seed(self.algo.seed, steps), "episodes": self.algo.eval_episodes,
+                           "versions": list(self.versions)},  # `mam eval` reproduces it from these
             "updates": self.stats.updates if self.stats else 0,
             "wall_time_s": round(time.monotonic() - self.started, 2),
             "rounds": self.schedule.round, "probabilities": self.schedule.probabilities.tolist(),

@@ -19,11 +19,10 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import typer
 
-import mam_core.envs  # noqa: F401  (registers AppleCollect-v0)
+from mam_core.envs import make_env  # registers AppleCollect-v0; imports `module:EnvId` modules
 from mam_core.policy import EnvSpec, NumpyActors
 from mam_core.schedule import Schedule
 from services import bus, keys, options
@@ -80,7 +79,7 @@ class Worker:
         self.id = worker_id
         self.incarnation = uuid.uuid4().hex[:12]
         self.rejects = bus.RejectLog(log, "message")
-        self.env = gym.make(cfg.env_id)
+        self.env = make_env(cfg.env_id, cfg.env_kwargs)
         self.spec = EnvSpec.from_env(self.env)
         self.max_action = np.asarray(self.spec.max_action, np.float32)
         seed = self.algo.seed * 7919 + slot_index * 104_729 + int(self.incarnation[:6], 16) % 1000

@@ -125,3 +125,32 @@ def test_registration_is_idempotent_and_env_checker_passes():
     mam_core.envs.register_envs()
     check_env(_make().unwrapped, skip_render_check=True)
     check_env(AppleCollectEnv(), skip_render_check=True)
+
+
+def test_rgb_array_render_draws_square_apples_trail_and_agent_with_numpy():
+    env = gym.make("AppleCollect-v0", render_mode="rgb_array")
+    env.reset(seed=0)
+    first = env.render()
+    assert first.shape == (256, 256, 3) and first.dtype == np.uint8
+    n = 256
+
+    def pixel(x: float, y: float) -> tuple[int, ...]:  # world -> pixel (y up, the square fills the frame)
+        col = int((x + 1.06) / 2.12 * n)
+        row = int((1.06 - y) / 2.12 * n)
+        return tuple(int(v) for v in env.render()[row, col])
+
+    assert pixel(0.8, 0.8) == (215, 35, 35) and pixel(-0.8, -0.8) == (215, 35, 35)  # 50 apples: red
+    assert pixel(0.5, -0.5) == (50, 165, 60) and pixel(-0.5, 0.5) == (50, 165, 60)  # 10 apples: green
+    assert pixel(0.0, 0.0) == (40, 80, 230)  # the agent at the start
+    assert pixel(0.3, -0.3) == (246, 244, 236)  # empty floor
+    assert pixel(-1.04, 0.0) == (200, 200, 200)  # outside the square
+    for _ in range(3):
+        env.step(np.array([0.2, 0.0], np.float32))
+    assert pixel(0.6, 0.0) == (40, 80, 230)  # the agent moved
+    assert pixel(0.3, 0.0) == (90, 120, 235)  # the path it walked
+    assert pixel(0.0, 0.0) == (90, 120, 235)
+    env.reset(seed=0)
+    np.testing.assert_array_equal(env.render(), first)  # reset clears the trail
+    assert gym.make("AppleCollect-v0").unwrapped.render() is None  # no render_mode: no frame
+    with pytest.raises(ValueError, match="render_mode"):
+        AppleCollectEnv(render_mode="human")

@@ -24,6 +24,9 @@ uniform random policy rarely finds a 50 apple, so a single actor can settle for 
 the move is bounded as a radius (|move| <= 0.2), apples have radius 0.04, and leaving the
 square ends the episode with the step costs it forfeits (the return is -1.0, as for wandering
 until the time limit). docs/APPLECOLLECT.md has the measured hit rates of both versions.
+
+`render_mode="rgb_array"` draws a frame with numpy alone (no GL): the square, the apples (50:
+red, 10: green), the path walked this episode and the agent, 256×256 pixels by default.
 """
 
 from __future__ import annotations
@@ -51,18 +54,25 @@ class AppleCollectEnv(gym.Env[np.ndarray, np.ndarray]):
     v1: `move_bound="radius"`, `apple_radius=0.04`, `leave_ends=True`.
     """
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(self, render_mode: str | None = None, move_bound: str = "axis", apple_radius: float = APPLE_RADIUS,
-                 leave_ends: bool = False) -> None:
+                 leave_ends: bool = False, render_size: int = 256) -> None:
         if move_bound not in MOVE_BOUNDS:
             raise ValueError(f"move_bound must be one of {MOVE_BOUNDS}, not {move_bound!r}")
         if not 0.0 < apple_radius < 0.5:
             raise ValueError(f"apple_radius must be in (0, 0.5), got {apple_radius}")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, not {render_mode!r}")
         self.render_mode = render_mode
         self.move_bound = move_bound
         self.apple_radius = float(apple_radius)
         self.leave_ends = bool(leave_ends)
+        self.render_size = int(render_size)
+        self._trail: list[np.ndarray] = [np.zeros(2)]
+        self._canvas: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._path: np.ndarray | None = None  # pixels of the path drawn so far (render)
+        self._path_points = 1  # trail points already in _path
         self.observation_space = gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
         self.action_space = gym.spaces.Box(-MAX_MOVE, MAX_MOVE, shape=(2,), dtype=np.float32)
         self._position = np.zeros(2)
@@ -74,6 +84,8 @@ class AppleCollectEnv(gym.Env[np.ndarray, np.ndarray]):
         super().reset(seed=seed)
         self._position = np.zeros(2)
         self._steps = 0
+        self._trail = [self._position]
+        self._path = None
         return self._position.astype(np.float32), {}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -90,6 +102,7 @@ class AppleCollectEnv(gym.Env[np.ndarray, np.ndarray]):
         left = self.leave_ends and bool(np.any(np.abs(unclipped) > 1.0))
         end = np.clip(unclipped, -1.0, 1.0)
         self._position = end
+        self._trail.append(end)
         apple = _apple_on_segment(start, end, self.apple_radius)
         reward = STEP_REWARD
         if apple is not None:
@@ -98,6 +111,54 @@ class AppleCollectEnv(gym.Env[np.ndarray, np.ndarray]):
             reward = STEP_REWARD * max(EPISODE_STEPS - self._steps + 1, 1)
         info = {"apple": 0.0 if apple is None else float(APPLE_VALUES[apple]), "left": left and apple is None}
         return end.astype(np.float32), reward, apple is not None or left, False, info
+
+    # -- rendering (numpy only) -----------------------------------------------------------------
+    def render(self) -> np.ndarray | None:
+        """An RGB frame [size, size, 3] uint8 of the current state (None without render_mode)."""
+        if self.render_mode != "rgb_array":
+            return None
+        wx, wy, frame = self._background()
+        frame = frame.copy()
+        px = 2.0 / (self.render_size - 1)  # world units per pixel (about)
+        if self._path is None:
+            self._path, self._path_points = np.zeros(wx.shape, bool), 1
+        for a, b in zip(self._trail[self._path_points - 1:-1], self._trail[self._path_points:]):
+            self._path |= _distance_to_segment(wx, wy, a, b) <= 1.5 * px  # only the new segments
+        self._path_points = len(self._trail)
+        frame[self._path] = (90, 120, 235)
+        agent = (wx - self._position[0]) ** 2 + (wy - self._position[1]) ** 2
+        frame[agent <= (0.05 + px) ** 2] = (20, 30, 120)
+        frame[agent <= 0.04**2] = (40, 80, 230)
+        return frame
+
+    def _background(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World coordinates of every pixel and the static picture (square, apples), cached."""
+        if self._canvas is None:
+            n = self.render_size
+            # pixel centres to world: x right, y up, the square [-1, 1]^2 fills the frame with a border
+            margin = 1.06
+            grid = (np.arange(n) + 0.5) / n * 2 * margin - margin
+            wx, wy = np.meshgrid(grid, grid[::-1])
+            frame = np.full((n, n, 3), 200, np.uint8)
+            inside = (np.abs(wx) <= 1.0) & (np.abs(wy) <= 1.0)
+            frame[inside] = (246, 244, 236)
+            edge = inside & ((np.abs(wx) >= 1.0 - 2.5 / n) | (np.abs(wy) >= 1.0 - 2.5 / n))
+            frame[edge] = (60, 60, 60)
+            for (ax, ay), value in zip(APPLE_POSITIONS, APPLE_VALUES):
+                disk = (wx - ax) ** 2 + (wy - ay) ** 2 <= max(self.apple_radius, 0.05) ** 2  # visible at 256 px
+                frame[disk] = (215, 35, 35) if value >= 50 else (50, 165, 60)
+            self._canvas = (wx, wy, frame)
+        return self._canvas
+
+
+def _distance_to_segment(x: np.ndarray, y: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance of every point (x, y) to the segment a-b."""
+    d = b - a
+    length2 = float(d @ d)
+    if length2 == 0.0:
+        return np.hypot(x - a[0], y - a[1])
+    t = np.clip(((x - a[0]) * d[0] + (y - a[1]) * d[1]) / length2, 0.0, 1.0)
+    return np.hypot(x - (a[0] + t * d[0]), y - (a[1] + t * d[1]))
 
 
 def _apple_on_segment(start: np.ndarray, end: np.ndarray, radius: float = APPLE_RADIUS) -> int | None:
