@@ -88,6 +88,14 @@ def bench(ctx: typer.Context) -> None:
     bench_app(ctx.args, prog_name="mam bench", standalone_mode=True)
 
 
+@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True, "help_option_names": []})
+def chaos(ctx: typer.Context) -> None:
+    """A `mam run` while random children are killed with SIGKILL; checks it still finishes (see --help)."""
+    from services.chaos import app as chaos_app
+
+    chaos_app(ctx.args, prog_name="mam chaos", standalone_mode=True)
+
+
 def _register_harness() -> None:
     """`mam experiment` and `mam report` (their modules import matplotlib)."""
     from services.experiment import experiment_command

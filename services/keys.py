@@ -100,7 +100,7 @@ def done(run: str) -> str:
 
 def role_stats_all(run: str, role: str) -> str:
     """The counters of every process of one role (the learner waits for the referee's final one)."""
-    return f"{_base(run)}/stats/{check_name(role, 'role')}-*"
+    return f"{_base(run)}/stats/{check_name(role, 'role')}-$*"  # $* : within one chunk
 
 
 def alive(run: str, role: str, id: str) -> str:  # noqa: A002

@@ -195,9 +195,14 @@ def check_env_id(env_id: str) -> None:
 
     import mam_core.envs  # noqa: F401
 
+    module, _, name = env_id.rpartition(":")  # gymnasium's "module:EnvId" form registers on import
     try:
-        gym.spec(env_id)
-    except gym.error.Error as e:
+        if module:
+            import importlib
+
+            importlib.import_module(module)
+        gym.spec(name)
+    except (gym.error.Error, ImportError) as e:
         raise typer.BadParameter(f"--env {env_id!r}: {e}") from None
 
 
