@@ -145,8 +145,21 @@ class ReplayBuffer:
         self._mirror_rows(slice(0, n))
 
     # -- incremental persistence: the rows in insertion order -----------------------------------
+    def _spans(self, start: int, stop: int) -> list[tuple[slice, slice]]:
+        """(ring slice, offset slice) pairs covering insertion indices [start, stop): at most two."""
+        n = stop - start
+        if n > self.capacity:
+            raise ValueError(f"{n} rows do not fit in a ring of {self.capacity}")
+        pos = start % self.capacity
+        first = min(n, self.capacity - pos)
+        spans = [(slice(pos, pos + first), slice(0, first))]
+        if n > first:
+            spans.append((slice(0, n - first), slice(first, n)))
+        return spans
+
     def rows_between(self, start: int, stop: int) -> dict[str, np.ndarray]:
-        """Copies of the rows inserted as the `start`-th up to the `stop`-th (exclusive).
+        """The rows inserted as the `start`-th up to the `stop`-th (exclusive): views of the
+        ring when they do not wrap around its end, else copies. Use them before inserting more.
 
         Insertion index i lives at ring position i % capacity while it is among the newest
         `size` rows; older ones have been overwritten and cannot be asked for.
@@ -154,20 +167,21 @@ class ReplayBuffer:
         oldest = self.inserted - self.size
         if not oldest <= start <= stop <= self.inserted:
             raise ValueError(f"rows [{start}, {stop}) not held (held: [{oldest}, {self.inserted}))")
-        idx = np.arange(start, stop, dtype=np.int64) % self.capacity
-        return {name: getattr(self, name)[idx] for name in PERSISTED}
+        spans = self._spans(start, stop)
+        out = {}
+        for name in PERSISTED:
+            a = getattr(self, name)
+            out[name] = a[spans[0][0]] if len(spans) == 1 else np.concatenate([a[ring] for ring, _ in spans])
+        return out
 
     def place_rows(self, first: int, rows: dict[str, np.ndarray]) -> None:
         """Put rows with insertion indices first, first+1, ... at their ring positions
         (the inverse of `rows_between`); the caller sets `inserted`/`size`/`pos` afterwards."""
         n = len(rows["reward"])
-        idx = np.arange(first, first + n, dtype=np.int64) % self.capacity
-        for name in PERSISTED:
-            getattr(self, name)[idx] = rows[name]
-        if self._mirror:
-            i = torch.from_numpy(idx).to(self.device)
-            for name, dst in self._mirror.items():
-                dst.index_copy_(0, i, torch.from_numpy(np.ascontiguousarray(rows[name])).to(self.device))
+        for ring, part in self._spans(first, first + n):
+            for name in PERSISTED:
+                getattr(self, name)[ring] = rows[name][part]
+            self._mirror_rows(ring)
 
 
 PERSISTED = ("obs", "action", "reward", "next_obs", "not_done", "actor", "version")

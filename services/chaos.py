@@ -1,6 +1,6 @@
 """`mam chaos`: a `mam run` while a driver SIGKILLs one of its children at random every 20–40 s.
 
-    mam chaos [--kill-every 20,40] [--seed 0] [--roles learner,referee,worker] [--out FILE] -- MAM RUN FLAGS
+    mam chaos [--kill-every 20,40] [--chaos-seed 0] [--roles learner,referee,worker] [--out FILE] -- MAM RUN FLAGS
 
 Runs `mam run MAM RUN FLAGS --no-plot` (a `--run-dir` is required), and until it exits kills a
 random live child (the learner included) with SIGKILL after a uniformly drawn 20–40 s. Then it
@@ -168,7 +168,7 @@ app = typer.Typer(add_completion=False, help=__doc__)
 def chaos_command(
     ctx: typer.Context,
     kill_every: str = typer.Option("20,40", help="seconds between kills, drawn uniformly from MIN,MAX"),
-    seed: int = typer.Option(0, help="seed of the kill schedule and of the victims"),
+    seed: int = typer.Option(0, "--chaos-seed", help="seed of the kill schedule and of the victims"),
     roles: str = typer.Option(",".join(ROLES), help="roles that may be killed"),
     out: Path = typer.Option(None, help="write the figures here (default RUN_DIR/chaos.json)"),
 ) -> None:

@@ -15,6 +15,7 @@ import torch
 
 from mam_core.agent import EnvSpec, MultiActorAgent
 from mam_core.config import AlgoConfig
+from services.chaos import children_of
 from services.learner import load_replay
 from services.plot import read_jsonl
 from tests.e2e import ROOT, assert_exactly_once, load, processes_of, unique_run
@@ -34,13 +35,13 @@ def start_mam_run(run: str, run_dir: Path, *args: str) -> tuple[subprocess.Popen
     return proc, out
 
 
-def child_pid(run: str, module: str, *must: str) -> int:
-    """The pid of the live `services.<module>` child of this run (with `must` in its command line)."""
-    for line in processes_of(run):
-        pid, _, args = line.strip().partition(" ")
-        if f"services.{module}" in args and all(m in args.split() for m in must):
-            return int(pid)
-    raise AssertionError(f"no live {module} {must} of {run}: {processes_of(run)}")
+def child_pid(proc: subprocess.Popen, module: str, *must: str) -> int:
+    """The pid of the live `services.<module>` child of `mam run` (with `must` in its command line)."""
+    for pid, role in children_of(proc.pid):
+        args = Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace").split("\0")
+        if role == module and all(m in args for m in must):
+            return pid
+    raise AssertionError(f"no live {module} {must} among {children_of(proc.pid)}")
 
 
 def learner_steps(run_dir: Path) -> int:
@@ -64,13 +65,13 @@ def test_kill_9_of_a_worker_the_referee_and_the_learner_and_the_run_finishes(tmp
                               "--eliminate-at", "6000", "--checkpoint-seconds", "3", *SMALL)
     try:
         wait_until(lambda: learner_steps(run_dir) > 1500, 180, "1500 steps", proc)
-        os.kill(child_pid(run, "worker", "w1"), signal.SIGKILL)
+        os.kill(child_pid(proc, "worker", "w1"), signal.SIGKILL)
         wait_until(lambda: learner_steps(run_dir) > 3000, 180, "3000 steps", proc)
-        os.kill(child_pid(run, "referee"), signal.SIGKILL)
+        os.kill(child_pid(proc, "referee"), signal.SIGKILL)
         wait_until(lambda: learner_steps(run_dir) > 4500 and (run_dir / "checkpoints" / "learner.pt").is_file(),
                    180, "4500 steps and a checkpoint", proc)
         killed_learner_at = learner_steps(run_dir)
-        os.kill(child_pid(run, "learner"), signal.SIGKILL)
+        os.kill(child_pid(proc, "learner"), signal.SIGKILL)
         proc.wait(400)
     finally:
         if proc.poll() is None:
