@@ -642,7 +642,10 @@ class LearnerStats:
     non-finite on purpose (a diverging run must stay visible).
 
     ``per_worker[w]`` holds at least ``received`` and ``last_seq``; the learner may add
-    more plain scalars (incarnation, rows, actor, lag, rate). ``live[k]`` is false for an
+    more plain scalars (incarnation, rows, actor, lag, rate). With the replay persisted it also
+    holds ``acked_incarnation`` and ``acked_seq`` (validated): every batch of that worker
+    incarnation up to ``acked_seq`` is in the learner's last checkpoint, so the worker may stop
+    keeping it for a resend. ``live[k]`` is false for an
     eliminated actor, ``workers`` the number of live workers, ``steps`` the run's budget.
     """
 

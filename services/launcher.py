@@ -2,9 +2,12 @@
 
 The learner listens on a free loopback port; the referee and workers connect to it as clients
 (multicast scouting off, a unique run name). The launcher itself is one more client: it shows
-a progress bar of env steps with the current allocation, stops every child on Ctrl-C or at the
-end of the budget, and draws the plots. Children are started with `subprocess` (Zenoh sessions
-do not survive `fork`), each logging to RUN_DIR/logs/<role>.log.
+a progress bar of env steps with the current allocation, supervises the children (one that
+dies is restarted with backoff, the learner with `--resume`; see RestartPolicy and
+docs/DESIGN-DECISIONS.md), stops every child on Ctrl-C or at the end of the budget, reconciles
+what the workers sent with what the replay holds (`audit_transport`), and draws the plots.
+Children are started with `subprocess` (Zenoh sessions do not survive `fork`), each logging to
+RUN_DIR/logs/<role>.log (a restarted child appends to the same log).
 """
 
 from __future__ import annotations
