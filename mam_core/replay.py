@@ -1,5 +1,9 @@
 """Replay buffer: float32 numpy ring with batched O(1) insert and uniform sampling.
 
+Row number i ever inserted sits at ring position i % capacity; `ReplayLog` writes the rows new
+since the last checkpoint as an append-only chunk file and restores exactly the rows a checkpoint
+counts (no pickle: `np.savez` / `np.load(allow_pickle=False)`).
+
 Each row carries the id of the actor that produced it and that actor's policy version, so
 off-policy lag and the share of experience per actor can be measured.
 
@@ -11,6 +15,8 @@ truth (checkpoints, statistics); sampling draws the same indices either way.
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -63,6 +69,7 @@ class ReplayBuffer:
             actor = actor[cut:] if isinstance(actor, np.ndarray) else actor
             version = version[cut:] if isinstance(version, np.ndarray) else version
             self.inserted += cut
+            self.pos = (self.pos + cut) % self.capacity  # row i stays at i % capacity (the replay log)
             n = self.capacity
         first = min(n, self.capacity - self.pos)
         for dst, src in ((slice(self.pos, self.pos + first), slice(0, first)),
@@ -142,3 +149,155 @@ class ReplayBuffer:
         self.pos, self.size, self.inserted = int(state["pos"]), n, int(state["inserted"])
         self.rng.bit_generator.state = state["rng"]
         self._mirror_rows(slice(0, n))
+
+    # -- incremental persistence: the rows in insertion order -----------------------------------
+    def _spans(self, start: int, stop: int) -> list[tuple[slice, slice]]:
+        """(ring slice, offset slice) pairs covering insertion indices [start, stop): at most two."""
+        n = stop - start
+        if n > self.capacity:
+            raise ValueError(f"{n} rows do not fit in a ring of {self.capacity}")
+        pos = start % self.capacity
+        first = min(n, self.capacity - pos)
+        spans = [(slice(pos, pos + first), slice(0, first))]
+        if n > first:
+            spans.append((slice(0, n - first), slice(first, n)))
+        return spans
+
+    def rows_between(self, start: int, stop: int) -> dict[str, np.ndarray]:
+        """The rows inserted as the `start`-th up to the `stop`-th (exclusive): views of the
+        ring when they do not wrap around its end, else copies. Use them before inserting more.
+
+        Insertion index i lives at ring position i % capacity while it is among the newest
+        `size` rows; older ones have been overwritten and cannot be asked for.
+        """
+        oldest = self.inserted - self.size
+        if not oldest <= start <= stop <= self.inserted:
+            raise ValueError(f"rows [{start}, {stop}) not held (held: [{oldest}, {self.inserted}))")
+        spans = self._spans(start, stop)
+        out = {}
+        for name in PERSISTED:
+            a = getattr(self, name)
+            out[name] = a[spans[0][0]] if len(spans) == 1 else np.concatenate([a[ring] for ring, _ in spans])
+        return out
+
+    def place_rows(self, first: int, rows: dict[str, np.ndarray]) -> None:
+        """Put rows with insertion indices first, first+1, ... at their ring positions
+        (the inverse of `rows_between`); the caller sets `inserted`/`size`/`pos` afterwards."""
+        n = len(rows["reward"])
+        for ring, part in self._spans(first, first + n):
+            for name in PERSISTED:
+                getattr(self, name)[ring] = rows[name][part]
+            self._mirror_rows(ring)
+
+
+PERSISTED = ("obs", "action", "reward", "next_obs", "not_done", "actor", "version")
+CHUNK_PREFIX = "chunk-"
+
+
+class ReplayLog:
+    """The replay buffer on disk as append-only chunk files, one per checkpoint.
+
+    A chunk holds the rows inserted between two checkpoints, in insertion order, as an
+    uncompressed `.npz` of plain arrays (written with `np.savez`, read with
+    `np.load(allow_pickle=False)`: nothing is unpickled). Its name carries the insertion
+    index of its first row and its row count (`chunk-<first>-<rows>.npz`). A checkpoint writes
+    only the rows new since the previous one, and its manifest (a list of `[first, rows]`,
+    stored in the checkpoint itself) names the chunks that hold the rows it counts: a chunk
+    written by a checkpoint that never completed is not in any manifest and is ignored, then
+    deleted. Once the ring has wrapped, chunks entirely older than the newest `capacity` rows
+    leave the manifest and are deleted, so the directory holds at most about one buffer and
+    one checkpoint interval of rows.
+    """
+
+    def __init__(self, directory: str | os.PathLike) -> None:
+        self.directory = Path(directory)
+        self.manifest: list[list[int]] = []
+        self.persisted = 0  # rows ever inserted that a chunk in the manifest covers
+
+    def path(self, first: int, rows: int) -> Path:
+        return self.directory / f"{CHUNK_PREFIX}{first:012d}-{rows}.npz"
+
+    def append(self, buffer: ReplayBuffer) -> list[list[int]]:
+        """Write the rows inserted since the last call as one chunk; returns the new manifest.
+
+        Rows that were inserted and already overwritten since the last call (the ring wrapped
+        more than once between two checkpoints) cannot be written; they would not be in the
+        buffer anyway, and the manifest starts after them.
+        """
+        self.directory.mkdir(parents=True, exist_ok=True)
+        start = max(self.persisted, buffer.inserted - buffer.size)
+        stop = buffer.inserted
+        if stop > start:
+            rows = buffer.rows_between(start, stop)
+            path = self.path(start, stop - start)
+            tmp = path.with_name(path.name + ".tmp")
+            with open(tmp, "wb") as f:
+                np.savez(f, **rows)
+            os.replace(tmp, path)
+            self.manifest.append([start, stop - start])
+        self.persisted = stop
+        oldest = stop - buffer.capacity  # rows before this are no longer in the buffer
+        self.manifest = [[f, n] for f, n in self.manifest if f + n > oldest]
+        return [list(c) for c in self.manifest]
+
+    def prune(self) -> int:
+        """Delete chunk files that the current manifest does not name (call after the
+        checkpoint that holds the manifest is on disk). Returns how many were deleted."""
+        keep = {self.path(f, n).name for f, n in self.manifest}
+        deleted = 0
+        if not self.directory.is_dir():
+            return 0
+        for p in self.directory.iterdir():
+            if p.name.startswith(CHUNK_PREFIX) and p.name not in keep:
+                p.unlink(missing_ok=True)
+                deleted += 1
+        return deleted
+
+    def restore(self, buffer: ReplayBuffer, manifest: list[list[int]], inserted: int,
+                rng_state: dict[str, Any] | None = None) -> int:
+        """Refill an empty `buffer` with the newest min(capacity, inserted) rows that
+        `manifest` names, at the ring positions they had; returns the rows loaded.
+
+        Raises ValueError if a chunk is missing, malformed, or the manifest does not cover
+        those rows contiguously: a resumed learner must have every row its checkpoint counted.
+        """
+        want_from = max(0, inserted - buffer.capacity)
+        chunks = sorted((int(f), int(n)) for f, n in manifest)
+        expected = want_from
+        loaded = 0
+        for first, n in chunks:
+            if first + n <= want_from:
+                continue
+            if first > expected or first + n > inserted:
+                raise ValueError(f"replay chunks do not cover rows [{want_from}, {inserted}): "
+                                 f"chunk [{first}, {first + n}) after row {expected}")
+            rows = self._read(self.path(first, n), n, buffer)
+            skip = max(0, want_from - first)
+            if skip:
+                rows = {k: v[skip:] for k, v in rows.items()}
+            buffer.place_rows(first + skip, rows)
+            loaded += n - skip
+            expected = first + n
+        if expected != inserted and inserted > want_from:
+            raise ValueError(f"replay chunks end at row {expected}, the checkpoint counts {inserted}")
+        buffer.inserted = inserted
+        buffer.size = min(inserted, buffer.capacity)
+        buffer.pos = inserted % buffer.capacity
+        if rng_state is not None:
+            buffer.rng.bit_generator.state = rng_state
+        self.manifest = [[f, n] for f, n in chunks if f + n > want_from]
+        self.persisted = inserted
+        return loaded
+
+    @staticmethod
+    def _read(path: Path, n: int, buffer: ReplayBuffer) -> dict[str, np.ndarray]:
+        if not path.is_file():
+            raise ValueError(f"replay chunk {path} is missing")
+        with np.load(path, allow_pickle=False) as z:
+            rows = {name: z[name] for name in PERSISTED}
+        for name in PERSISTED:
+            ref = getattr(buffer, name)
+            a = rows[name]
+            if a.dtype != ref.dtype or a.shape != (n, *ref.shape[1:]):
+                raise ValueError(f"{path}: {name} is {a.dtype}{list(a.shape)}, want {ref.dtype}{[n, *ref.shape[1:]]}")
+        return rows

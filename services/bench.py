@@ -48,6 +48,8 @@ from typing import Any, Callable
 import numpy as np
 import typer
 
+from services import options
+
 # Targets of the issue: (comparison, value). "ge": the figure must be >= value.
 TARGETS: dict[str, tuple[str, float]] = {
     "learner_k2_vs_td3": ("ge", 0.8),  # 0.95 on CUDA, see target_for()
@@ -349,8 +351,8 @@ def single_process_td3(env_id: str, steps: int, start_steps: int, sizes: BenchSi
     return time.perf_counter() - t0
 
 
-def _child_env() -> dict[str, str]:
-    return dict(os.environ, PYTHONWARNINGS="ignore", COLUMNS="160")
+def _child_env(**extra: str) -> dict[str, str]:
+    return dict(os.environ, PYTHONWARNINGS="ignore", COLUMNS="160", **extra)
 
 
 def _stop(procs: list[subprocess.Popen], grace: float = 10.0) -> None:
@@ -415,7 +417,9 @@ def distributed_run(env_id: str, steps: int, start_steps: int, sizes: BenchSizes
     t0 = time.monotonic()
     log_path = work_dir / f"{run}.out"
     with open(log_path, "wb") as out:
-        proc = subprocess.Popen(cmd, cwd=ROOT, env=_child_env(), stdout=out, stderr=subprocess.STDOUT,
+        # bf16 is measured even on a CPU without native bf16, where `mam run` refuses it by default
+        env = _child_env(**({options.ALLOW_SLOW_BF16: "1"} if precision == "bf16" else {}))
+        proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, start_new_session=True)
     marks: dict[str, float] = {}
     try:
@@ -461,6 +465,7 @@ def bench_e2e(sizes: BenchSizes, device: str = "cpu", threads: int = 1, log: Cal
         bf16 = distributed_run(sizes.e2e_env, n, start, sizes, device, work, precision="bf16")
     return {
         "e2e_bf16_vs_single_process": bf16["to_done_s"] / single, "e2e_bf16_mam_run_to_done_s": bf16["to_done_s"],
+        "bf16_native_cpu": options.native_bf16_cpu(),
         "e2e_env": sizes.e2e_env, "e2e_steps": n, "e2e_start_steps": start,
         "e2e_single_process_s": single,
         "e2e_mam_run_to_done_s": dist["to_done_s"], "e2e_mam_run_wall_s": dist["wall_s"],
@@ -861,14 +866,77 @@ def profile_worker_step(env_id: str = "HalfCheetah-v5", steps: int = 2000, hidde
 
 
 PIECES = ("learner", "e2e", "transport", "weights", "collection")
+EXTRA_PIECES = ("replay",)  # only when asked for: --only replay
+
+
+def bench_replay(rows: int = 1_000_000, obs_dim: int = 17, act_dim: int = 6, increment: int = 20_000,
+                 log: Callable[[str], None] = print, work_dir: Path | None = None) -> dict[str, Any]:
+    """Checkpoint time and disk size of a full replay buffer (default: 1M HalfCheetah rows).
+
+    Times, on the same random buffer: the chunk log's first checkpoint (every row new), one
+    incremental checkpoint (`increment` new rows, the default `checkpoint_rows`), restoring the
+    whole buffer from its chunks, and for comparison the previous format (the whole buffer in
+    the torch checkpoint, rewritten every time). The page cache is warm: these are the costs of
+    serialising and writing, not of a cold disk.
+    """
+    import torch
+
+    from mam_core.replay import ReplayBuffer, ReplayLog
+
+    def fill(buf: ReplayBuffer, n: int, rng: np.random.Generator) -> None:
+        for start in range(0, n, 100_000):
+            k = min(100_000, n - start)
+            buf.add_batch(rng.standard_normal((k, obs_dim), np.float32), rng.uniform(-1, 1, (k, act_dim)).astype(np.float32),
+                          rng.standard_normal(k).astype(np.float32), rng.standard_normal((k, obs_dim), np.float32),
+                          rng.random(k) < 0.001, actor=start % 2, version=start)
+
+    def du(path: Path) -> int:
+        return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+    rng = np.random.default_rng(0)
+    log(f"replay: {rows:,} rows (obs {obs_dim}, act {act_dim}) as chunks, +{increment:,} rows, restore; "
+        f"and the whole buffer in the torch checkpoint")
+    with tempfile.TemporaryDirectory(prefix="mam-bench-replay-") as tmp:
+        work = Path(work_dir or tmp)
+        buf = ReplayBuffer(rows, obs_dim, act_dim)
+        fill(buf, rows, rng)
+        chunks = ReplayLog(work / "replay")
+        t0 = time.perf_counter()
+        manifest = chunks.append(buf)
+        full_s = time.perf_counter() - t0
+        full_bytes = du(work / "replay")
+        fill(buf, increment, rng)  # the ring wraps: the oldest rows leave the manifest
+        t0 = time.perf_counter()
+        manifest = chunks.append(buf)
+        chunks.prune()
+        inc_s = time.perf_counter() - t0
+        disk_bytes = du(work / "replay")
+        again = ReplayBuffer(rows, obs_dim, act_dim)
+        t0 = time.perf_counter()
+        ReplayLog(work / "replay").restore(again, manifest, buf.inserted)
+        restore_s = time.perf_counter() - t0
+        assert np.array_equal(again.obs, buf.obs) and np.array_equal(again.version, buf.version)
+        t0 = time.perf_counter()
+        torch.save({"replay": buf.state_dict()}, work / "old.pt")
+        old_s = time.perf_counter() - t0
+        old_bytes = (work / "old.pt").stat().st_size
+        t0 = time.perf_counter()
+        ReplayBuffer(rows, obs_dim, act_dim).load_state_dict(torch.load(work / "old.pt", weights_only=True)["replay"])
+        old_restore_s = time.perf_counter() - t0
+    row_bytes = 4 * (2 * obs_dim + act_dim + 2) + 2 + 4
+    return {"replay_rows": rows, "replay_row_bytes": row_bytes, "replay_increment_rows": increment,
+            "replay_full_checkpoint_s": full_s, "replay_full_checkpoint_bytes": full_bytes,
+            "replay_incremental_checkpoint_s": inc_s, "replay_disk_bytes_after_wrap": disk_bytes,
+            "replay_restore_s": restore_s, "replay_torch_checkpoint_s": old_s,
+            "replay_torch_checkpoint_bytes": old_bytes, "replay_torch_restore_s": old_restore_s}
 
 
 def run_bench(sizes: BenchSizes, pieces: tuple[str, ...] = PIECES, device: str = "auto", threads: int = 1,
               log: Callable[[str], None] = print, profile: bool = False) -> dict[str, Any]:
     """Every selected piece; one flat dict (the `--json` object)."""
-    unknown = set(pieces) - set(PIECES)
+    unknown = set(pieces) - set(PIECES) - set(EXTRA_PIECES)
     if unknown:
-        raise ValueError(f"unknown bench piece(s) {sorted(unknown)}; choose from {PIECES}")
+        raise ValueError(f"unknown bench piece(s) {sorted(unknown)}; choose from {PIECES + EXTRA_PIECES}")
     device = resolve_device(device)
     started = time.perf_counter()
     result: dict[str, Any] = {"device": device, "torch_threads": threads, "versions": versions(),
@@ -883,6 +951,8 @@ def run_bench(sizes: BenchSizes, pieces: tuple[str, ...] = PIECES, device: str =
         result.update(bench_weights(sizes, log))
     if "collection" in pieces:
         result.update(bench_collection(sizes, log))
+    if "replay" in pieces:
+        result.update(bench_replay(log=log))
     if profile:
         log("profiles: one learner update step, one worker step")
         result["profile_learner_ms"] = profile_learner_step(device=device, threads=threads, sizes=sizes)
@@ -978,7 +1048,8 @@ def bench_command(
     full: bool = typer.Option(False, "--full/--quick",
                               help="--quick (default): a few minutes on 2 cores; --full: longer, steadier figures"),
     json_out: bool = typer.Option(False, "--json", help="also print all figures as one JSON object on the last line"),
-    only: str = typer.Option(",".join(PIECES), "--only", help=f"comma-separated pieces among {','.join(PIECES)}"),
+    only: str = typer.Option(",".join(PIECES), "--only", help=f"comma-separated pieces among {','.join(PIECES + EXTRA_PIECES)} "
+                                                            "(replay: checkpoint of a 1M-row buffer, only when named)"),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda: the learner's device"),
     threads: int = typer.Option(1, "--threads", help="torch threads of the learner bench (the learner's default: 1)"),
     profile: bool = typer.Option(False, "--profile", help="also profile one learner update and one worker step"),

@@ -29,11 +29,18 @@ def run(
     bias_horizon: options.BiasHorizon = None,
     run_name: options.Run = None, run_dir: options.RunDir = None,
     sync_every: int = typer.Option(None, help="publish actor weights every N updates (default 100)"),
-    save_replay: bool = typer.Option(None, help="include the replay buffer in checkpoints"),
+    save_replay: bool = typer.Option(None, "--save-replay/--no-save-replay",
+                                     help="persist the replay buffer beside the checkpoint (default: on)"),
+    checkpoint_every: int = typer.Option(None, help="checkpoint every N updates (default 50000) ..."),
+    checkpoint_rows: int = typer.Option(None, help="... or N transitions (default 20000) ..."),
+    checkpoint_seconds: float = typer.Option(None, help="... or N seconds (default 60)"),
+    max_restarts: int = typer.Option(5, help="a child that dies more often than this within --restart-window "
+                                             "stops the run"),
+    restart_window: float = typer.Option(300.0, help="seconds over which --max-restarts counts"),
     no_plot: bool = typer.Option(False, "--no-plot", help="skip the PNG plots at the end"),
 ) -> None:
     """Train on this box: learner + referee + M workers over an embedded loopback Zenoh."""
-    from services.launcher import run_local
+    from services.launcher import RestartPolicy, run_local
 
     logging.basicConfig(level=logging.WARNING)
     cfg = options.build_run_config(dict(
@@ -44,8 +51,12 @@ def run(
         device=device, hidden=hidden, single_env_after_elimination=single_env_after_elimination,
         run=run_name, sync_every=sync_every, save_replay=save_replay, bias_every=bias_every,
         bias_rollouts=bias_rollouts, precision=precision, schedule=schedule, shared_batch=shared_batch,
-        after_elimination=after_elimination, skip_random_rounds=skip_random_rounds, bias_horizon=bias_horizon), config)
-    summary = run_local(cfg, run_dir or Path("runs") / cfg.run, plot=not no_plot)
+        after_elimination=after_elimination, skip_random_rounds=skip_random_rounds, bias_horizon=bias_horizon,
+        checkpoint_every=checkpoint_every, checkpoint_rows=checkpoint_rows, checkpoint_seconds=checkpoint_seconds),
+        config)
+    options.check_precision(cfg)
+    summary = run_local(cfg, run_dir or Path("runs") / cfg.run, plot=not no_plot,
+                        policy=RestartPolicy(max_restarts=max_restarts, window_s=restart_window))
     if not summary:
         raise typer.Exit(1)
 
@@ -85,6 +96,14 @@ def bench(ctx: typer.Context) -> None:
     from services.bench import app as bench_app
 
     bench_app(ctx.args, prog_name="mam bench", standalone_mode=True)
+
+
+@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True, "help_option_names": []})
+def chaos(ctx: typer.Context) -> None:
+    """A `mam run` while random children are killed with SIGKILL; checks it still finishes (see --help)."""
+    from services.chaos import app as chaos_app
+
+    chaos_app(ctx.args, prog_name="mam chaos", standalone_mode=True)
 
 
 def _register_harness() -> None:

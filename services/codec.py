@@ -338,6 +338,7 @@ class TransitionBatch:
     next_obs: np.ndarray
     terminated: np.ndarray
     episode_return: tuple[float, ...] | None = None
+    resend: bool = False  # sent again to a restarted learner (the tracker de-duplicates it)
 
     @property
     def rows(self) -> int:
@@ -359,6 +360,8 @@ class TransitionBatch:
             if self.episode_return is None
             else [float(x) for x in self.episode_return],
         }
+        if self.resend:
+            body["resend"] = True
         return encode(
             self.KIND,
             body,
@@ -403,8 +406,9 @@ class TransitionBatch:
             episode_return = _floats(msg, "episode_return")
             if len(episode_return) > spec.max_rows:
                 raise MessageError("range:episode_return", "more episodes than rows")
+        resend = _bool(msg, "resend") if "resend" in msg else False
         return cls(worker, incarnation, batch_seq, actor, version, obs, action, reward,
-                   next_obs, term, episode_return)
+                   next_obs, term, episode_return, resend)
 
     @classmethod
     def from_bytes(cls, payload: bytes, spec: TransitionSpec, *, max_bytes: int = MAX_MESSAGE_BYTES) -> "TransitionBatch":
@@ -638,7 +642,10 @@ class LearnerStats:
     non-finite on purpose (a diverging run must stay visible).
 
     ``per_worker[w]`` holds at least ``received`` and ``last_seq``; the learner may add
-    more plain scalars (incarnation, rows, actor, lag, rate). ``live[k]`` is false for an
+    more plain scalars (incarnation, rows, actor, lag, rate). With the replay persisted it also
+    holds ``acked_incarnation`` and ``acked_seq`` (validated): every batch of that worker
+    incarnation up to ``acked_seq`` is in the learner's last checkpoint, so the worker may stop
+    keeping it for a resend. ``live[k]`` is false for an
     eliminated actor, ``workers`` the number of live workers, ``steps`` the run's budget.
     """
 
@@ -693,6 +700,9 @@ class LearnerStats:
             d = _str_map({"per_worker": d}, "per_worker")
             _int(d, "received", lo=0)
             _int(d, "last_seq", lo=-1)
+            if "acked_seq" in d or "acked_incarnation" in d:  # the checkpointed prefix of its stream
+                _int(d, "acked_seq", lo=-1)
+                _id(d, "acked_incarnation")
             for v in d.values():
                 if isinstance(v, list):
                     raise MessageError("type:per_worker", f"{w}: values must be scalars")

@@ -1166,6 +1166,9 @@ def experiment_command(
         grid = make_grid(file, envs=envs, algos=algos, seeds=seeds, steps=steps, ablations=ablations, etas=etas,
                          name=name, flags=flags, variants=variants_opt)
         specs = plan(grid)
+        for spec in specs:  # before anything starts: bf16 where it would only be slower
+            if dict(spec.flags).get("precision") == "bf16":
+                options.check_precision(spec.run_config("check"))
         _, aliases = variants(grid)
         if exp_dir is None:
             if file.get("exp_dir"):

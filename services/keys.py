@@ -98,6 +98,11 @@ def done(run: str) -> str:
     return f"{_base(run)}/done"
 
 
+def role_stats_all(run: str, role: str) -> str:
+    """The counters of every process of one role (the learner waits for the referee's final one)."""
+    return f"{_base(run)}/stats/{check_name(role, 'role')}-$*"  # $* : within one chunk
+
+
 def alive(run: str, role: str, id: str) -> str:  # noqa: A002
     return f"{_base(run)}/alive/{check_name(role, 'role')}/{check_name(id, 'id')}"
 

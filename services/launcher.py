@@ -2,13 +2,17 @@
 
 The learner listens on a free loopback port; the referee and workers connect to it as clients
 (multicast scouting off, a unique run name). The launcher itself is one more client: it shows
-a progress bar of env steps with the current allocation, stops every child on Ctrl-C or at the
-end of the budget, and draws the plots. Children are started with `subprocess` (Zenoh sessions
-do not survive `fork`), each logging to RUN_DIR/logs/<role>.log.
+a progress bar of env steps with the current allocation, supervises the children (one that
+dies is restarted with backoff, the learner with `--resume`; see RestartPolicy and
+docs/DESIGN-DECISIONS.md), stops every child on Ctrl-C or at the end of the budget, reconciles
+what the workers sent with what the replay holds (`audit_transport`), and draws the plots.
+Children are started with `subprocess` (Zenoh sessions do not survive `fork`), each logging to
+RUN_DIR/logs/<role>.log (a restarted child appends to the same log).
 """
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import sys
@@ -25,6 +29,7 @@ from services.codec import Allocation, Eval, LearnerStats, MessageError
 from services.options import RunConfig, write_json
 
 STOP_GRACE_S = 15.0
+CHECKPOINT_FILE = "learner.pt"  # services.learner.CHECKPOINT_FILE (not imported here: it pulls in torch)
 PR_SET_PDEATHSIG = 1
 
 
@@ -47,20 +52,71 @@ def _raise_interrupted(signum: int, _frame: Any) -> None:
 
 
 @dataclass
+class RestartPolicy:
+    """When and how often `mam run` restarts a child that died.
+
+    A child that exits abnormally is started again after a backoff (backoff_s, doubling with
+    each recent restart, at most backoff_max_s). More than `max_restarts` restarts of the
+    same child within `window_s` seconds stop the run.
+    """
+
+    max_restarts: int = 5
+    window_s: float = 300.0
+    backoff_s: float = 1.0
+    backoff_max_s: float = 15.0
+
+    def __post_init__(self) -> None:
+        if self.max_restarts < 0 or self.window_s <= 0:
+            raise ValueError("max_restarts must be >= 0 and the restart window > 0")
+
+
+class RoleKeepsDying(Exception):
+    """A child died more often than the restart policy allows."""
+
+    def __init__(self, child: "Child", restarts: int, window_s: float) -> None:
+        super().__init__(f"{child.role} keeps dying: exited with {describe_exit(child.proc.returncode)}, "
+                         f"{restarts} restarts within {window_s:.0f} s; see {child.log}")
+        self.child = child
+
+
+def describe_exit(rc: int | None) -> str:
+    if rc is None:
+        return "nothing (running)"
+    if rc < 0:
+        try:
+            return f"{rc} ({signal.Signals(-rc).name})"
+        except ValueError:
+            return str(rc)
+    return str(rc)
+
+
+@dataclass
 class Child:
     role: str
     proc: subprocess.Popen
     log: Path
+    args: list[str] = field(default_factory=list)
+    started: float = field(default_factory=time.monotonic)
 
 
 @dataclass
 class LocalCluster:
-    """Child processes of one local run; `stop()` leaves nothing running."""
+    """Child processes of one local run, supervised; `stop()` leaves nothing running.
+
+    `children` holds the current incarnation of every role (learner, referee, worker-i);
+    `supervise()` restarts those that died (see RestartPolicy) until the run is done or stopping.
+    """
 
     cfg: RunConfig
     run_dir: Path
     endpoint: str
     children: list[Child] = field(default_factory=list)
+    policy: RestartPolicy = field(default_factory=RestartPolicy)
+    console: Console | None = None
+    restarts: dict[str, list[float]] = field(default_factory=dict)  # role -> restart times
+    pending: dict[str, tuple[float, Child]] = field(default_factory=dict)  # role -> (due, dead child)
+    stopping: bool = False
+    done: bool = False  # the learner reported the budget reached
 
     def spawn(self, role: str, args: list[str]) -> Child:
         log_path = self.run_dir / "logs" / f"{role}.log"
@@ -69,14 +125,20 @@ class LocalCluster:
             proc = subprocess.Popen([sys.executable, "-m", f"services.{role.split('-')[0]}", *args],
                                     stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                     start_new_session=True, preexec_fn=_die_with_parent)
-        child = Child(role, proc, log_path)
-        self.children.append(child)
+        child = Child(role, proc, log_path, list(args))
+        self.children = [c for c in self.children if c.role != role] + [child]
         return child
+
+    def learner_args(self) -> list[str]:
+        rd = str(self.run_dir)
+        if (self.run_dir / "checkpoints" / CHECKPOINT_FILE).is_file():
+            # Its endpoint is in config.json: it listens where the clients reconnect.
+            return ["--resume", rd]
+        return ["--run-config", str(self.run_dir / "config.json"), "--listen", self.endpoint, "--run-dir", rd]
 
     def start_learner_and_referee(self) -> None:
         run, rd = self.cfg.run, str(self.run_dir)
-        self.spawn("learner", ["--run-config", str(self.run_dir / "config.json"), "--listen", self.endpoint,
-                               "--run-dir", rd])
+        self.spawn("learner", self.learner_args())
         self.spawn("referee", ["--run", run, "--connect", self.endpoint, "--run-dir", rd])
 
     def start_workers(self) -> None:
@@ -86,6 +148,64 @@ class LocalCluster:
             self.spawn(f"worker-{i}", ["--run", run, "--connect", self.endpoint, "--id", f"w{i}", "--slot", str(i),
                                          "--run-dir", rd])
 
+    def child(self, role: str) -> Child | None:
+        return next((c for c in self.children if c.role == role), None)
+
+    def finished(self) -> bool:
+        """The learner has written its last checkpoint and transport.json and exited 0."""
+        learner = self.child("learner")
+        return (learner is not None and learner.proc.poll() == 0 and "learner" not in self.pending
+                and (self.run_dir / "transport.json").is_file())
+
+    def needs_restart(self, c: Child) -> bool:
+        rc = c.proc.returncode
+        if self.stopping or rc is None:
+            return False
+        if c.role != "learner" and self.finished():  # nothing left for it to do
+            return False
+        if c.role == "learner":  # exits 0 only when done (or stopped by the launcher)
+            return rc != 0 or not (self.run_dir / "transport.json").is_file()
+        if rc == 0 or rc == -signal.SIGTERM:
+            return False
+        if c.role == "referee":
+            return not (self.run_dir / "summary.json").is_file()
+        return not self.done  # a worker after done has nothing left to do
+
+    def supervise(self) -> None:
+        """Restart children that died (after their backoff). Raises RoleKeepsDying."""
+        now = time.monotonic()
+        for c in list(self.children):
+            if c.role in self.pending or c.proc.poll() is None or not self.needs_restart(c):
+                continue
+            recent = [t for t in self.restarts.get(c.role, []) if now - t <= self.policy.window_s]
+            if len(recent) >= self.policy.max_restarts:
+                raise RoleKeepsDying(c, len(recent), self.policy.window_s)
+            delay = min(self.policy.backoff_s * 2 ** len(recent), self.policy.backoff_max_s)
+            self.pending[c.role] = (now + delay, c)
+            self._print(f"[yellow]{c.role} exited with {describe_exit(c.proc.returncode)}[/] after "
+                        f"{now - c.started:.0f} s: restarting in {delay:.1f} s (see {c.log})")
+        for role, (due, dead) in list(self.pending.items()):
+            if now < due or self.stopping:
+                continue
+            del self.pending[role]
+            if not self.needs_restart(dead):  # e.g. the run finished meanwhile
+                continue
+            self.restarts.setdefault(role, []).append(now)
+            with open(dead.log, "ab") as out:
+                out.write(f"\n--- mam run: {role} exited with {describe_exit(dead.proc.returncode)}; "
+                          f"restart {len(self.restarts[role])} ---\n".encode())
+            args = self.learner_args() if role == "learner" else dead.args
+            new = self.spawn(role, args)
+            what = " (resuming from its checkpoint)" if role == "learner" and "--resume" in args else ""
+            self._print(f"[yellow]restarted[/] {role}{what}: pid {new.proc.pid}, "
+                        f"restart {len(self.restarts[role])} of this run")
+
+    def restart_counts(self) -> dict[str, int]:
+        return {c.role: len(self.restarts.get(c.role, [])) for c in self.children}
+
+    def _print(self, text: str) -> None:
+        (self.console or Console()).print(text)
+
     def failed(self) -> list[Child]:
         """Children that exited with an error."""
         return [c for c in self.children if c.proc.poll() not in (None, 0)]
@@ -93,14 +213,19 @@ class LocalCluster:
     def running(self) -> list[Child]:
         return [c for c in self.children if c.proc.poll() is None]
 
-    def wait(self, timeout: float) -> bool:
+    def wait(self, timeout: float, supervise: bool = False) -> bool:
         deadline = time.monotonic() + timeout
-        while self.running() and time.monotonic() < deadline:
+        while (self.running() or (supervise and self.pending)) and time.monotonic() < deadline:
+            if supervise:
+                self.supervise()
             time.sleep(0.1)
         return not self.running()
 
     def stop(self, grace: float = STOP_GRACE_S) -> None:
-        """SIGTERM (the learner checkpoints), then SIGKILL what is still up after `grace`."""
+        """SIGTERM (the learner checkpoints), then SIGKILL what is still up after `grace`.
+        Nothing is restarted from now on."""
+        self.stopping = True
+        self.pending.clear()
         for c in self.running():
             c.proc.send_signal(signal.SIGTERM)
         if not self.wait(grace):
@@ -110,8 +235,9 @@ class LocalCluster:
 
 
 def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plot: bool = True,
-              outcome: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Train `cfg` on this box; returns summary.json's content (empty if the run was stopped).
+              outcome: dict[str, Any] | None = None, policy: RestartPolicy | None = None) -> dict[str, Any]:
+    """Train `cfg` on this box; returns summary.json's content (empty if the run was stopped
+    or did not finish). Children that die are restarted (`policy`).
 
     `outcome`, when given, gets "interrupted": whether SIGINT / SIGTERM stopped the run."""
     console = console or Console()
@@ -120,19 +246,22 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
     endpoint = bus.loopback_endpoint(port)
     cfg = RunConfig.from_dict({**cfg.to_dict(), "endpoint": endpoint})
     write_json(run_dir / "config.json", cfg.to_dict())
-    cluster = LocalCluster(cfg, run_dir, endpoint)
+    cluster = LocalCluster(cfg, run_dir, endpoint, policy=policy or RestartPolicy(), console=console)
     console.print(f"[bold]run[/] {cfg.run}  [bold]env[/] {cfg.env_id}  [bold]algo[/] {cfg.algo.algo} "
                   f"K={cfg.algo.actors} M={cfg.algo.workers}  budget {cfg.steps:,} transitions")
     console.print(f"run dir {run_dir}   watch live: [cyan]mam watch --run {cfg.run} --connect {endpoint}[/]")
     started = time.monotonic()
     interrupted = False
+    gave_up: RoleKeepsDying | None = None
     previous = {sig: signal.signal(sig, _raise_interrupted) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         cluster.start_learner_and_referee()
         try:
-            finished = follow(cfg, endpoint, cluster, console)
-            if finished:
-                cluster.wait(60.0)  # learner, referee (final evaluation) and workers exit on their own
+            if follow(cfg, endpoint, cluster, console):
+                cluster.wait(60.0, supervise=True)  # referee (final evaluation) and workers exit on their own
+        except RoleKeepsDying as e:
+            gave_up = e
+            console.print(f"[red]stopping the run: {e}[/]")
         except (Interrupted, KeyboardInterrupt):
             interrupted = True
             console.print("[yellow]interrupted: stopping all processes (the learner writes a checkpoint)[/]")
@@ -146,22 +275,74 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
         outcome["interrupted"] = interrupted
     failed = [c for c in cluster.children if c.proc.returncode not in (0, -signal.SIGTERM, None)]
     for c in failed:
-        console.print(f"[red]{c.role} exited with {c.proc.returncode}[/]: see {c.log}")
+        console.print(f"[red]{c.role} exited with {describe_exit(c.proc.returncode)}[/]: see {c.log}")
+    restarts = cluster.restart_counts()
     summary_path = run_dir / "summary.json"
     summary: dict[str, Any] = {}
-    if summary_path.is_file():
-        import json
+    finished = cluster.finished() and gave_up is None and not interrupted
+    if summary_path.is_file() and finished:
         summary = json.loads(summary_path.read_text())
         summary["launcher_wall_time_s"] = round(time.monotonic() - started, 2)
+        summary["restarts"] = restarts
+        summary["restarts_total"] = sum(restarts.values())
+        audit = audit_transport(run_dir)
+        if audit:
+            summary["transport"] = {k: v for k, v in audit.items() if k != "per_stream"}
         write_json(summary_path, summary)
-    if plot and not interrupted:
+    elif finished:
+        console.print(f"[red]the run reached its budget but the referee wrote no summary.json[/]: see "
+                      f"{run_dir / 'logs' / 'referee.log'}")
+    if plot and summary:
         from services.plot import plot_run
         for p in plot_run(run_dir):
             console.print(f"plot {p}")
     if summary:
+        total = summary["restarts_total"]
+        text = ", ".join(f"{r} {n}" for r, n in restarts.items() if n) if total else "none"
         console.print(f"[bold green]done[/] in {summary['launcher_wall_time_s']:.0f} s: final returns "
-                      f"{summary.get('final_returns')}, survivor {summary.get('survivor')}")
+                      f"{summary.get('final_returns')}, survivor {summary.get('survivor')}; restarts: {text}")
+        if "transport" in summary:
+            t = summary["transport"]
+            console.print(f"transport: {t['sent_rows']:,} rows sent, {t['replay_rows']:,} in the replay, "
+                          f"{t['lost_rows']} lost, {t['duplicated_rows']} duplicated")
     return summary
+
+
+def audit_transport(run_dir: Path) -> dict[str, Any]:
+    """Every row a worker sent against the rows the learner counted into its replay, per
+    worker incarnation and over all learner incarnations; written into transport.json (`audit`).
+
+    Sent rows come from `workers/<id>-<incarnation>.batches` (one line per batch, written
+    before the batch is put, so a killed worker's log holds everything it sent); rows in the
+    replay from transport.json's `rows_per_stream` (carried over learner restarts through the
+    checkpoints). `lost_rows`: sent and not in the replay; `duplicated_rows`: in the replay more
+    often than sent. Empty if the run has no transport.json.
+    """
+    path = run_dir / "transport.json"
+    if not path.is_file():
+        return {}
+    transport = json.loads(path.read_text())
+    in_replay: dict[str, int] = {k: int(v) for k, v in transport.get("rows_per_stream", {}).items()}
+    sent: dict[str, int] = {}
+    for log_path in sorted((run_dir / "workers").glob("*.batches")):
+        worker, _, incarnation = log_path.stem.rpartition("-")
+        seen: dict[int, int] = {}
+        for line in log_path.read_text(errors="replace").splitlines():
+            parts = line.split()
+            if len(parts) == 2 and parts[0].isdigit() and parts[1].isdigit():
+                seen.setdefault(int(parts[0]), int(parts[1]))
+        sent[f"{worker}/{incarnation}"] = sum(seen.values())
+    per_stream = {s: {"sent": sent.get(s, 0), "in_replay": in_replay.get(s, 0)} for s in sorted(set(sent) | set(in_replay))}
+    audit = {
+        "sent_rows": sum(sent.values()), "replay_rows": sum(in_replay.values()),
+        "lost_rows": sum(max(d["sent"] - d["in_replay"], 0) for d in per_stream.values()),
+        "duplicated_rows": sum(max(d["in_replay"] - d["sent"], 0) for d in per_stream.values()),
+        "streams": len(per_stream), "streams_without_log": sorted(s for s in in_replay if s not in sent),
+        "per_stream": per_stream,
+    }
+    transport["audit"] = audit
+    write_json(path, transport)
+    return audit
 
 
 def describe_allocation(alloc: Allocation | None) -> str:
@@ -176,7 +357,11 @@ def describe_allocation(alloc: Allocation | None) -> str:
 
 
 def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Console) -> bool:
-    """Progress bar until the learner says done (True) or a child fails (False)."""
+    """Progress bar and supervision until the learner has finished the run (True).
+
+    Children that die meanwhile are restarted (`LocalCluster.supervise`, which raises
+    RoleKeepsDying when one dies too often).
+    """
     conf = bus.make_config(connect=[endpoint])
     with bus.session_scope(conf, retry_for=60.0) as session:
         stats = bus.Latest.subscribe(session, keys.learner_stats(cfg.run))
@@ -185,8 +370,7 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
         roles = bus.watch_alive(session, cfg.run)
         with console.status("starting learner and referee"):
             while not {"learner", "referee"} <= {role for role, _ in roles.members()}:
-                if cluster.failed():
-                    return False
+                cluster.supervise()
                 time.sleep(0.1)
         roles.close()
         cluster.start_workers()
@@ -196,10 +380,12 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                    TimeRemainingColumn(), TextColumn("{task.fields[info]}"))
         try:
             with Progress(*columns, console=console, transient=False) as progress:
+                cluster.console = progress.console
                 task = progress.add_task("train", total=cfg.steps, info="starting")
                 while True:
-                    if cluster.failed():
-                        return False
+                    cluster.supervise()
+                    if cluster.finished():
+                        return True
                     item = allocation.fresh().get(keys.allocation(cfg.run))
                     if item is not None:
                         try:
@@ -217,17 +403,20 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                             last_eval = "R=[" + " ".join("-" if m is None else f"{m:.1f}" for m in ev.mean) + "]"
                         except MessageError:
                             pass
-                    item = stats.get(keys.learner_stats(cfg.run))
+                    item = stats.fresh().get(keys.learner_stats(cfg.run))
                     if item is not None:
                         try:
                             st = LearnerStats.from_bytes(item.payload)
                             info = f"upd {st.updates:,}  I={list(alloc.counts) if alloc else '-'}  {last_eval}"
                             progress.update(task, completed=min(st.env_steps, cfg.steps), info=info)
-                            if st.done:
-                                return True
+                            if st.done and not cluster.done:
+                                cluster.done = True
+                                info = "done: final evaluation"
+                                progress.update(task, info=info)
                         except MessageError:
                             pass
                     time.sleep(0.2)
         finally:
+            cluster.console = console
             for sub in (stats, allocation, evals):
                 sub.close()

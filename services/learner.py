@@ -23,7 +23,7 @@ import typer
 
 from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
 from mam_core.evaluation import estimation_bias
-from mam_core.replay import ReplayBuffer
+from mam_core.replay import ReplayBuffer, ReplayLog
 from mam_core.schedule import Schedule
 from services import bus, keys, options, tb
 from services.codec import (Allocation, Done, LearnerStats, MessageError, TransitionBatch, TransitionSpec,
@@ -37,20 +37,49 @@ STATS_PERIOD_S = 0.1
 LOG_PERIOD_S = 1.0
 HEARTBEAT_S = 2.0  # config re-published this often
 CHECKPOINT_FILE = "learner.pt"
+REPLAY_DIR = "replay"  # RUN_DIR/checkpoints/replay/chunk-<first>-<rows>.npz
+REFEREE_GRACE_S = 20.0  # after done: how long to wait for a referee that is gone (a restart) ...
+REFEREE_WAIT_S = 120.0  # ... and at most, in all, for its final evaluation
+
+
+def replay_dir(run_dir: Path) -> Path:
+    return run_dir / "checkpoints" / REPLAY_DIR
 
 
 def save_checkpoint(run_dir: Path, agent: MultiActorAgent, buffer: ReplayBuffer, counters: dict[str, Any],
-                    cfg: RunConfig) -> Path:
-    """Atomic, pickle-free checkpoint (tensors and plain containers; load with weights_only=True)."""
+                    cfg: RunConfig, replay_log: ReplayLog | None = None) -> Path:
+    """Atomic, pickle-free checkpoint (tensors and plain containers; load with weights_only=True).
+
+    With a `replay_log` the rows inserted since the previous checkpoint are appended as one
+    chunk file first; the checkpoint then names the chunks that hold every row it counts
+    (`replay_log`: inserted, manifest, sampling rng). Chunks no checkpoint names any more are
+    deleted only once this checkpoint is in place.
+    """
     path = run_dir / "checkpoints" / CHECKPOINT_FILE
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {"agent": agent.state_dict(), "counters": counters, "config": json.dumps(cfg.to_dict())}
-    if cfg.save_replay:
-        state["replay"] = buffer.state_dict()
+    if replay_log is not None:
+        manifest = replay_log.append(buffer)
+        state["replay_log"] = {"inserted": buffer.inserted, "manifest": manifest,
+                               "rng": json.dumps(buffer.rng.bit_generator.state)}
     tmp = path.with_suffix(".tmp")
     torch.save(state, tmp)
     os.replace(tmp, path)
+    if replay_log is not None:
+        replay_log.prune()
     return path
+
+
+def load_replay(run_dir: Path, capacity: int | None = None, state: dict[str, Any] | None = None) -> ReplayBuffer:
+    """The replay buffer a checkpoint counts (for tests and tools): every row, in a new buffer."""
+    state = state if state is not None else load_checkpoint(run_dir)
+    meta = state["replay_log"]
+    cfg = RunConfig.from_dict(json.loads(state["config"]))
+    spec = EnvSpec.from_env_id(cfg.env_id)
+    inserted = int(meta["inserted"])
+    buffer = ReplayBuffer(capacity or max(inserted, 1), spec.obs_dim, spec.act_dim)
+    ReplayLog(replay_dir(run_dir)).restore(buffer, meta["manifest"], inserted, json.loads(meta["rng"]))
+    return buffer
 
 
 def load_checkpoint(run_dir: Path) -> dict[str, Any]:
@@ -82,6 +111,12 @@ class Learner:
         rows = self.transition_spec.max_rows
         self.max_message = rows * (2 * self.spec.obs_dim + self.spec.act_dim + 2) * 4 + (1 << 16)
         self.tracker = bus.SequenceTracker()
+        self.replay_log = ReplayLog(replay_dir(run_dir)) if cfg.save_replay else None
+        # Per worker: (incarnation, seq) such that all its batches up to seq are in the last
+        # checkpoint (with the replay). Workers keep the batches after it and resend them to a
+        # restarted learner (exactly once, with the tracker de-duplicating).
+        self.acked: dict[str, tuple[str, int]] = {}
+        self.referee_seen = False
         self.rejects = bus.RejectLog(log, "transitions")
         self.other_rejects = bus.RejectLog(log, "message")  # allocation topic
         self.per_worker: dict[str, dict[str, Any]] = {}
@@ -102,10 +137,19 @@ class Learner:
         self.agent.load_state_dict(state["agent"])
         c = state["counters"]
         self.env_steps = int(c["env_steps"])
-        if "replay" in state:
+        if "replay" in state:  # checkpoints written before the chunked replay log
             self.buffer.load_state_dict(state["replay"])
-        # Sequence numbers go on from the checkpoint: a gap then counts what died with the old learner.
+        if "replay_log" in state and self.replay_log is not None:
+            meta = state["replay_log"]
+            self.replay_log.restore(self.buffer, meta["manifest"], int(meta["inserted"]), json.loads(meta["rng"]))
+            if self.buffer.inserted != self.env_steps:
+                raise ValueError(f"checkpoint counts {self.env_steps} transitions, its replay {self.buffer.inserted}")
+        self.stream_rows = {k: int(v) for k, v in json.loads(c.get("stream_rows", "{}")).items()}
+        # Sequence numbers go on from the checkpoint: a gap then counts what died with the old
+        # learner, until the workers' resends fill it.
         self.tracker.restore(json.loads(c.get("per_worker", "{}")))
+        if self.replay_log is not None:
+            self.acked = self._checkpointed_prefixes()
         # Policy versions jump past anything the dead incarnation can have published after this
         # checkpoint (at most checkpoint_every updates, one actor step per policy_delay of them).
         # Otherwise workers keep its newer-numbered weights, tag their transitions with versions
@@ -152,7 +196,7 @@ class Learner:
     def _loop(self) -> None:
         self.publish_weights(all_actors=True)
         last_stats = last_log = last_heartbeat = 0.0
-        last_checkpoint_updates = self.agent.updates
+        self.last_checkpoint = (self.agent.updates, self.env_steps, time.monotonic())
         last_sync = self.agent.updates
         last_log_steps, last_log_updates, last_log_t = self.env_steps, self.agent.updates, time.monotonic()
         self.rates = (0.0, 0.0)
@@ -180,9 +224,10 @@ class Learner:
                 last_log_steps, last_log_updates, last_log_t = self.env_steps, self.agent.updates, now
                 self.write_log()
                 last_log = now
-            if self.agent.updates - last_checkpoint_updates >= self.cfg.checkpoint_every:
+            if self.checkpoint_due(now):
                 self.checkpoint()
-                last_checkpoint_updates = self.agent.updates
+            if not self.referee_seen and self.referees.live():
+                self.referee_seen = True
             if budget_done and self.agent.updates >= self.updates_allowed():
                 self.finish()
                 return
@@ -193,6 +238,18 @@ class Learner:
         # Stopped by a signal: keep a usable checkpoint; the run is not done.
         self.write_log()
         self.checkpoint()
+
+    def checkpoint_due(self, now: float) -> bool:
+        """Every `checkpoint_every` updates, `checkpoint_rows` transitions or `checkpoint_seconds`
+        (whichever comes first; the time only when something changed). The rows bound also
+        bounds what workers keep for a resend (docs/DESIGN-DECISIONS.md, "Supervision")."""
+        updates, steps, t = self.last_checkpoint
+        if self.agent.updates - updates >= self.cfg.checkpoint_every:
+            return True
+        if self.env_steps - steps >= self.cfg.checkpoint_rows:
+            return True
+        changed = self.agent.updates != updates or self.env_steps != steps
+        return changed and now - t >= self.cfg.checkpoint_seconds
 
     def updates_allowed(self) -> int:
         """Rate limiter: utd updates per schedule step (iteration or transition) past the start."""
@@ -243,28 +300,45 @@ class Learner:
             except MessageError as e:
                 self.rejects.reject(sender, e)
                 continue
-            status = self.tracker.observe(batch.worker, batch.incarnation, batch.batch_seq)
+            status = self.tracker.observe(batch.worker, batch.incarnation, batch.batch_seq, resend=batch.resend)
             if status == bus.DUPLICATE:
                 self.rejects.reject(sender, "duplicate")
+                continue
+            w = self._worker_entry(batch)
+            if status == bus.REDUNDANT:  # a resend of what this learner already has: dropped
+                w["redundant_rows"] += batch.rows
                 continue
             self.buffer.add_batch(batch.obs, batch.action, batch.reward, batch.next_obs, batch.terminated,
                                   actor=batch.actor, version=batch.version)
             self.env_steps += batch.rows
             stream = f"{batch.worker}/{batch.incarnation}"
             self.stream_rows[stream] = self.stream_rows.get(stream, 0) + batch.rows
-            w = self.per_worker.setdefault(batch.worker, {"received": 0, "rows_since": 0, "t_since": time.monotonic(),
-                                                          "rate": 0.0})
-            if w.get("incarnation") != batch.incarnation:
-                w["incarnation"], w["incarnation_rows"] = batch.incarnation, 0
             w["received"] += batch.rows
             w["incarnation_rows"] += batch.rows
-            w["last_seq"] = batch.batch_seq
+            w["last_seq"] = max(w["last_seq"], batch.batch_seq)
             w["actor"] = batch.actor
             w["lag"] = self.agent.versions[batch.actor] - batch.version if batch.version >= 0 else 0
             w["last_seen"] = time.monotonic()
             w["rows_since"] += batch.rows
             if batch.episode_return:
                 self.episode_returns.extend(batch.episode_return)
+
+    def _worker_entry(self, batch: TransitionBatch) -> dict[str, Any]:
+        w = self.per_worker.setdefault(batch.worker, {"received": 0, "rows_since": 0, "t_since": time.monotonic(),
+                                                      "rate": 0.0, "last_seq": -1, "actor": batch.actor, "lag": 0,
+                                                      "last_seen": time.monotonic()})
+        if w.get("incarnation") != batch.incarnation:
+            w["incarnation"], w["incarnation_rows"], w["redundant_rows"] = batch.incarnation, 0, 0
+            w["last_seq"] = -1
+        return w
+
+    def _checkpointed_prefixes(self) -> dict[str, tuple[str, int]]:
+        out = {}
+        for sender in self.tracker.per_sender():
+            prefix = self.tracker.contiguous(sender)
+            if prefix is not None:
+                out[sender] = prefix
+        return out
 
     def follow_allocation(self) -> None:
         """Lift the round barrier once the referee has published the round; train only the
@@ -311,7 +385,11 @@ class Learner:
                 w["rate"], w["rows_since"], w["t_since"] = w["rows_since"] / dt, 0, now
             per_worker[wid] = {"received": w["received"], "last_seq": w["last_seq"],
                                "incarnation": w["incarnation"], "incarnation_rows": w["incarnation_rows"],
+                               "redundant_rows": w["redundant_rows"],
                                "actor": w["actor"], "lag": w["lag"], "rate": round(w["rate"], 2)}
+        for wid, (incarnation, seq) in self.acked.items():  # what workers may stop keeping for a resend
+            entry = per_worker.setdefault(wid, {"received": 0, "last_seq": -1})
+            entry["acked_incarnation"], entry["acked_seq"] = incarnation, seq
         losses = {k.split("/", 1)[1]: v for k, v in self.metrics.items() if k.startswith("loss/")}
         q_means = [self.metrics.get(f"q/actor{k}", float("nan")) for k in range(self.algo.actors)]
         return LearnerStats(
@@ -399,10 +477,16 @@ class Learner:
         log.info("bias at %d transitions measured in %.1f s", self.env_steps, time.monotonic() - started)
 
     def checkpoint(self) -> None:
-        counters = {"env_steps": self.env_steps, "per_worker": json.dumps(self.tracker.per_sender())}
-        path = save_checkpoint(self.run_dir, self.agent, self.buffer, counters, self.cfg)
+        started = time.monotonic()
+        counters = {"env_steps": self.env_steps, "per_worker": json.dumps(self.tracker.per_sender()),
+                    "stream_rows": json.dumps(self.stream_rows)}
+        path = save_checkpoint(self.run_dir, self.agent, self.buffer, counters, self.cfg, self.replay_log)
+        self.last_checkpoint = (self.agent.updates, self.env_steps, time.monotonic())
+        if self.replay_log is not None:  # only now on disk: workers may drop what it holds
+            self.acked = self._checkpointed_prefixes()
         write_policy(self.run_dir, self.cfg, self.agent, self.env_steps, self.survivor)  # policy.npz (numpy)
-        log.info("checkpoint %s at %d updates", path, self.agent.updates)
+        log.info("checkpoint %s at %d updates, %d transitions (%.2f s)", path, self.agent.updates, self.env_steps,
+                 time.monotonic() - started)
 
     def finish(self) -> None:
         """Budget reached: final weights, checkpoint, then tell everyone until they have left."""
@@ -424,15 +508,65 @@ class Learner:
             time.sleep(0.1)
         self.inbox.close()
         self.ingest(self.inbox.drain())
+        self.checkpoint()  # with the rows that came in after done: the replay holds every counted row
+        self.wait_for_referee(msg)
         write_json(self.run_dir / "transport.json", {
             "env_steps": self.env_steps, "iterations": self.iterations, "updates": self.agent.updates, "lost": self.tracker.lost,
             "duplicates": self.tracker.duplicates, "rejected": self.rejected(),
+            "recovered": self.tracker.recovered, "redundant": self.tracker.redundant,
+            "replay_rows": self.buffer.inserted if self.replay_log is not None else None,
             "per_worker": {w: {k: v for k, v in d.items() if k in ("received", "incarnation", "last_seq")}
                            for w, d in self.per_worker.items()},
             "rows_per_stream": dict(self.stream_rows), "streams": self.tracker.per_sender(),
             "inbox_dropped": self.inbox.dropped})  # shed before decoding when the inbox overflowed
         log.info("done: %d transitions, %d updates, lost %d, duplicates %d, rejected %d", self.env_steps,
                  self.agent.updates, self.tracker.lost, self.tracker.duplicates, self.rejects.total)
+
+
+    def wait_for_referee(self, msg: Done) -> None:
+        """Stay up (repeating done) until the referee has written its final evaluation.
+
+        A referee that dies now is restarted (`mam run`) and needs this learner's config,
+        done notice and final weights. Waits while a referee was seen during the run and has
+        not reported `final`: up to REFEREE_GRACE_S without any referee alive, and at most
+        REFEREE_WAIT_S in all.
+        """
+        if not self.referee_seen:
+            return
+        sub = bus.Latest(late_join=False).subscribe(self.session, keys.role_stats_all(self.cfg.run, "referee"))
+        deadline = time.monotonic() + REFEREE_WAIT_S
+        gone_since: float | None = None
+        last_put = 0.0
+        try:
+            while time.monotonic() < deadline and not self.stop_requested:
+                if any(self._is_final(item) for item in sub.snapshot().values()):
+                    return
+                now = time.monotonic()
+                if self.referees.live():
+                    gone_since = None
+                elif gone_since is None:
+                    gone_since = now
+                elif now - gone_since > REFEREE_GRACE_S:
+                    log.warning("no referee for %.0f s after done: not waiting for its final evaluation",
+                                REFEREE_GRACE_S)
+                    return
+                if now - last_put >= 1.0:  # a restarted referee needs these (the caches serve them too)
+                    self.done_pub.put(msg.to_bytes(self.id, self._next_seq()))
+                    self.publish_stats(done=True)
+                    self.publish_config()
+                    self.publish_weights(all_actors=True)
+                    last_put = now
+                time.sleep(0.1)
+            log.warning("the referee did not report its final evaluation within %.0f s", REFEREE_WAIT_S)
+        finally:
+            sub.close()
+
+    @staticmethod
+    def _is_final(item: bus.Received) -> bool:
+        try:
+            return decode(item.payload).get("final") is True
+        except MessageError:
+            return False
 
 
 def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None:
@@ -473,7 +607,10 @@ def learner_command(
     zenoh_config: options.ZenohConfig = None, run_dir: options.RunDir = None,
     sync_every: int = typer.Option(100, help="publish actor weights every N updates"),
     checkpoint_every: int = typer.Option(50_000, help="updates between checkpoints"),
-    save_replay: bool = typer.Option(False, help="include the replay buffer in checkpoints"),
+    checkpoint_rows: int = typer.Option(20_000, help="... or transitions between checkpoints"),
+    checkpoint_seconds: float = typer.Option(60.0, help="... or seconds between checkpoints"),
+    save_replay: bool = typer.Option(True, "--save-replay/--no-save-replay",
+                                     help="persist the replay buffer beside the checkpoint (append-only chunks)"),
     resume: Path = typer.Option(None, help="resume the run in this run directory from its checkpoint"),
     run_config: Path = typer.Option(None, help="a resolved config.json (written by `mam run`)"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
@@ -493,12 +630,14 @@ def learner_command(
             compete_every=compete_every, eta=eta, eval_episodes=eval_episodes, eval_every=eval_every,
             start_steps=start_steps, batch_size=batch_size, utd=utd, no_ot=no_ot, no_wt=no_wt, seed=seed,
             device=device, hidden=hidden, single_env_after_elimination=single_env_after_elimination, run=run,
-            sync_every=sync_every, checkpoint_every=checkpoint_every, save_replay=save_replay,
+            sync_every=sync_every, checkpoint_every=checkpoint_every, checkpoint_rows=checkpoint_rows,
+            checkpoint_seconds=checkpoint_seconds, save_replay=save_replay,
             bias_every=bias_every, bias_rollouts=bias_rollouts, precision=precision, schedule=schedule,
             shared_batch=shared_batch, after_elimination=after_elimination, skip_random_rounds=skip_random_rounds,
             bias_horizon=bias_horizon), config)
     if steps is not None and (run_config is not None or resume is not None):
         cfg = RunConfig.from_dict({**cfg.to_dict(), "steps": steps})
+    options.check_precision(cfg)
     if not listen and not connect and cfg.endpoint:
         listen = [cfg.endpoint]  # a resumed or launched learner comes back where its clients look
     listen = listen or ([] if connect or zenoh_config else ["tcp/0.0.0.0:7447"])

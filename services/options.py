@@ -89,10 +89,12 @@ class RunConfig:
     steps: int
     algo: AlgoConfig
     sync_every: int = 100  # publish actor weights every N updates
-    checkpoint_every: int = 50_000  # updates between checkpoints (and on exit)
+    checkpoint_every: int = 50_000  # updates between checkpoints (and on exit) ...
+    checkpoint_rows: int = 20_000  # ... or transitions received (bounds what workers keep for a resend) ...
+    checkpoint_seconds: float = 60.0  # ... or seconds, whichever comes first
     send_batch: int = 32  # transitions per message from a worker
     band: int = 0  # rate limiter tolerance in transitions (0: automatic)
-    save_replay: bool = False
+    save_replay: bool = True  # the replay buffer as append-only chunks beside the checkpoint
     learner_threads: int = 1  # torch threads of the learner (0: torch's default); 1 avoids
     # OpenMP spin contention with the workers on a small box
     endpoint: str = ""  # where clients connect (written to config.json)
@@ -107,6 +109,13 @@ class RunConfig:
         if self.band > 0:
             return self.band
         return max(4 * self.algo.workers * self.send_batch, 256)
+
+    @property
+    def resend_rows(self) -> int:
+        """Most rows a worker keeps for a resend to a restarted learner: what it sent since the
+        learner's last checkpoint is at most `checkpoint_rows` plus one drain of the inbox and the
+        time the acknowledgement takes to come back; twice that plus the credit band leaves room."""
+        return 2 * self.checkpoint_rows + 4 * self.tolerance
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -130,6 +139,8 @@ class RunConfig:
             raise ValueError("bias_every must be >= 0 and bias_rollouts >= 1")
         if cfg.bias_horizon not in BIAS_HORIZONS:
             raise ValueError(f"bias_horizon must be one of {', '.join(BIAS_HORIZONS)}")
+        if cfg.checkpoint_every < 1 or cfg.checkpoint_rows < 1 or not cfg.checkpoint_seconds > 0:
+            raise ValueError("checkpoint_every, checkpoint_rows and checkpoint_seconds must be positive")
         return cfg
 
 
@@ -180,9 +191,9 @@ def load_toml(path: Path | None) -> dict[str, Any]:
     return flat
 
 
-_RUN_FIELDS = {"run", "env_id", "env", "steps", "algo", "sync_every", "checkpoint_every", "send_batch",
-               "band", "save_replay", "learner_threads", "bias_every", "bias_rollouts", "bias_horizon",
-               "env_kwargs"}
+_RUN_FIELDS = {"run", "env_id", "env", "steps", "algo", "sync_every", "checkpoint_every", "checkpoint_rows",
+               "checkpoint_seconds", "send_batch", "band", "save_replay", "learner_threads", "bias_every",
+               "bias_rollouts", "bias_horizon", "env_kwargs"}
 
 
 def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig:
@@ -259,3 +270,60 @@ class JsonlWriter:
 
     def close(self) -> None:
         self._f.close()
+
+
+# -- bf16 guard ----------------------------------------------------------------------------------
+ALLOW_SLOW_BF16 = "MAM_ALLOW_SLOW_BF16"  # set to 1: run --precision bf16 even without native bf16 GEMMs
+CPUINFO = "MAM_CPUINFO"  # read this file instead of /proc/cpuinfo (tests; a CPU you plan to run on)
+BF16_CPU_FLAGS = ("avx512_bf16", "amx_bf16", "bf16")  # x86 AVX512-BF16, x86 AMX, aarch64 BF16
+
+
+def cpu_flags(cpuinfo: str | None = None) -> set[str]:
+    """The CPU feature flags of /proc/cpuinfo (x86 `flags`, aarch64 `Features`); empty if unknown."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path(os.environ.get(CPUINFO) or "/proc/cpuinfo").read_text(errors="replace")
+        except OSError:
+            return set()
+    flags: set[str] = set()
+    for line in cpuinfo.splitlines():
+        key, sep, value = line.partition(":")
+        if sep and key.strip().lower() in ("flags", "features"):
+            flags.update(value.split())
+    return flags
+
+
+def native_bf16_cpu(cpuinfo: str | None = None) -> bool:
+    """True if this CPU computes bf16 GEMMs natively (AVX512-BF16, AMX-BF16 or Arm BF16).
+
+    Without them oneDNN emulates bf16 with fp32 conversions: the K=2 update measured 16×
+    slower than in fp32 on such a CPU (docs/PERFORMANCE.md).
+    """
+    return bool(cpu_flags(cpuinfo) & set(BF16_CPU_FLAGS))
+
+
+def check_precision(cfg: RunConfig) -> None:
+    """Refuse `--precision bf16` where it would only be slower (typer.BadParameter).
+
+    A CPU learner needs native bf16 GEMMs, a CUDA learner a GPU with bf16 support. The
+    environment variable MAM_ALLOW_SLOW_BF16=1 runs it anyway (to measure it, or in tests).
+    """
+    if cfg.algo.precision != "bf16" or os.environ.get(ALLOW_SLOW_BF16) == "1":
+        return
+    device = cfg.algo.device
+    if device in ("auto", "cuda"):
+        import torch
+
+        if torch.cuda.is_available():
+            if torch.cuda.is_bf16_supported():
+                return
+            raise typer.BadParameter(
+                "--precision bf16: this GPU has no native bf16 support; use --precision fp32 "
+                f"(or set {ALLOW_SLOW_BF16}=1 to run it anyway)")
+    if native_bf16_cpu():
+        return
+    raise typer.BadParameter(
+        "--precision bf16: this CPU has no native bf16 GEMMs (no avx512_bf16, amx_bf16 or Arm bf16 in "
+        "/proc/cpuinfo), where bf16 updates run ~16x slower than fp32 instead of ~1.5x faster. "
+        f"Use --precision fp32 (the default), or set {ALLOW_SLOW_BF16}=1 to run it anyway "
+        "(docs/PERFORMANCE.md lists which CPUs benefit).")

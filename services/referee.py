@@ -258,6 +258,12 @@ class Referee:
             "wall_time_s": round(time.monotonic() - self.started, 2),
             "rounds": self.schedule.round, "probabilities": self.schedule.probabilities.tolist(),
             "rejected": self.rejects.counts()})
+        # The learner stays up until it sees this (a restarted referee still needs its caches).
+        body = {"role": "referee", "id": self.id, "round": self.schedule.round, "rejected": self.rejects.counts(),
+                "final": True}
+        for _ in range(3):  # the last put before close can be lost
+            self.report_pub.put(encode("role_stats", body, sender=self.id, seq=self._next_seq()))
+            time.sleep(0.1)
 
     def _next_seq(self) -> int:
         self.seq += 1

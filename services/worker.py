@@ -9,13 +9,16 @@ pauses when the learner's credit is used up, and exits when the run is done.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
+import math
 import os
 import signal
 import socket
 import time
 import uuid
+from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +38,17 @@ CONFIG_WAIT_S = 600.0  # how long a worker waits for a learner to appear
 MAX_BATCH_AGE_S = 0.05  # a partial batch is sent after this long
 STATUS_EVERY_S = 10.0
 REPORT_EVERY_S = 1.0
+ENV_RETRIES = 10  # consecutive failed resets before the env is made anew; as many again: the worker exits
+FAULTS = ("step_exception", "reset_exception", "nonfinite_obs", "nonfinite_reward")
+
+
+class EnvFault(Exception):
+    """The simulator raised or returned something unusable (counted by kind)."""
+
+    def __init__(self, kind: str, detail: str = "") -> None:
+        super().__init__(f"{kind}: {detail}")
+        self.kind = kind
+        self.detail = detail
 
 
 def fetch_config(session: Any, run: str, rejects: bus.RejectLog, timeout: float = CONFIG_WAIT_S) -> RunConfig:
@@ -85,7 +99,22 @@ class Worker:
         seed = self.algo.seed * 7919 + slot_index * 104_729 + int(self.incarnation[:6], 16) % 1000
         self.rng = np.random.default_rng(seed)
         self.env.action_space.seed(seed)
-        self.obs, _ = self.env.reset(seed=seed)
+        # Simulator faults: the episode is dropped, the env reset, the fault counted (by kind).
+        self.faults = {kind: 0 for kind in FAULTS}
+        self.dropped_rows = 0  # unsent rows of faulty episodes
+        self.dropped_episodes = 0
+        self.env_remade = 0
+        self.obs = self.reset_env(seed=seed)
+        # Exactly once across a learner restart: batches the learner has not yet checkpointed
+        # are kept and resent to its next incarnation (bounded by cfg.resend_rows).
+        self.retain = cfg.save_replay
+        self.unacked: deque[TransitionBatch] = deque()
+        self.unacked_rows = 0
+        self.unacked_dropped_rows = 0  # over the bound: not kept (if then lost, a counted gap)
+        self.resent_rows = 0
+        self.resends = 0
+        self.put_rows = 0  # rows put on the wire, resends included (in-flight accounting)
+        self.batch_log = None
         # numpy forwards, no torch in a worker: a one-row torch forward costs ~100 µs of dispatch
         # between env steps, this ~14 µs, and importing torch ~3 s and ~180 MB (docs/PERFORMANCE.md)
         self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden)
@@ -114,6 +143,7 @@ class Worker:
         self.p_next = np.empty((n, o), np.float32)
         self.p_term = np.empty(n, np.bool_)
         self.p_n = 0
+        self.p_episode = 0  # pending rows before this index belong to finished episodes
         self.p_actor = -1
         self.p_version = -1
         self.p_started = time.monotonic()
@@ -129,6 +159,10 @@ class Worker:
         self.stats_sub = bus.Latest.subscribe(s, keys.learner_stats(run))
         self.done = bus.Latest.subscribe(s, keys.done(run))
         self.token = bus.declare_alive(s, run, "worker", self.id)
+        if self.run_dir is not None:  # one line per batch, before it is put: what a killed worker had sent
+            path = self.run_dir / "workers" / f"{self.id}-{self.incarnation}.batches"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self.batch_log = open(path, "a", buffering=1)
         log.info("worker %s (incarnation %s) on %s, run %s", self.id, self.incarnation, self.cfg.env_id, run)
         try:
             self._loop()
@@ -136,6 +170,8 @@ class Worker:
             self.flush()
             self.publish_report(force=True)
             self.write_report()
+            if self.batch_log is not None:
+                self.batch_log.close()
             self.token.undeclare()
             for sub in (self.weights, self.allocation, self.stats_sub, self.done):
                 sub.close()
@@ -174,7 +210,8 @@ class Worker:
         now = time.monotonic()
         if force or now - self.last_report >= REPORT_EVERY_S:
             body = {"role": "worker", "id": self.id, "incarnation": self.incarnation, "sent_rows": self.sent_rows,
-                    "batches": self.batch_seq, "actor": self.actor, "rejected": self.rejects.counts()}
+                    "batches": self.batch_seq, "actor": self.actor, "rejected": self.rejects.counts(),
+                    **self.fault_counters()}
             self.report_pub.put(encode("role_stats", body, sender=self.id, seq=self.batch_seq))
             self.last_report = now
 
@@ -184,7 +221,14 @@ class Worker:
             return
         write_json(self.run_dir / "workers" / f"{self.id}-{self.incarnation}.json", {
             "worker": self.id, "incarnation": self.incarnation, "sent_rows": self.sent_rows,
-            "batches": self.batch_seq, "rejected": self.rejects.counts()})
+            "batches": self.batch_seq, "rejected": self.rejects.counts(), **self.fault_counters()})
+
+    def fault_counters(self) -> dict[str, Any]:
+        """Simulator faults and resends (role_stats topic and workers/*.json)."""
+        return {"env_faults": dict(self.faults), "dropped_rows": self.dropped_rows,
+                "dropped_episodes": self.dropped_episodes, "env_remade": self.env_remade,
+                "resent_rows": self.resent_rows, "resends": self.resends, "unacked_rows": self.unacked_rows,
+                "unacked_dropped_rows": self.unacked_dropped_rows}
 
     def refresh(self) -> None:
         for key, item in self.weights.fresh().items():
@@ -217,22 +261,53 @@ class Worker:
                 self.stats = LearnerStats.from_bytes(item.payload)
             except MessageError as e:
                 self.rejects.reject("learner", e)
+            else:
+                self.on_stats(self.stats)
+
+    def on_stats(self, st: LearnerStats) -> None:
+        """Drop what the learner has checkpointed; on a new learner incarnation resend the rest."""
+        self.trim_acked(st)
+        if st.incarnation != self.learner_incarnation:
+            first = self.learner_incarnation is None
+            self.learner_incarnation = st.incarnation
+            self.sent_base = self.put_rows  # a new learner: the in-flight count starts again
+            if self.unacked and not first:
+                self.resend()
+            log.info("learner %s is up: sending again", self.learner_incarnation or "?")
+
+    def trim_acked(self, st: LearnerStats) -> None:
+        mine = st.per_worker.get(self.id)
+        if not mine or mine.get("acked_incarnation") != self.incarnation:
+            return
+        acked = mine.get("acked_seq", -1)
+        while self.unacked and self.unacked[0].batch_seq <= acked:
+            self.unacked_rows -= self.unacked.popleft().rows
+
+    def resend(self) -> None:
+        """Every kept batch again, in order, flagged: the learner keeps those it has not got."""
+        n = 0
+        for batch in self.unacked:
+            self.pub.put(dataclasses.replace(batch, resend=True).to_bytes())
+            n += batch.rows
+        self.resent_rows += n
+        self.resends += 1
+        self.put_rows += n
+        log.info("resent %d rows in %d batches (seq %d..%d) to the new learner", n, len(self.unacked),
+                 self.unacked[0].batch_seq, self.unacked[-1].batch_seq)
 
     def in_flight(self) -> int:
-        """Rows sent to the current learner by this incarnation that it has not reported yet.
+        """Rows put for the current learner incarnation that it has not reported yet.
 
         A restarted learner (new incarnation) starts the count again: what was sent to the old
-        one was either received by it or died with it.
+        one was received by it, is resent (kept batches), or died with it.
         """
         if self.stats is None:
-            return self.sent_rows - self.sent_base
-        if self.stats.incarnation != self.learner_incarnation:
-            self.learner_incarnation = self.stats.incarnation
-            self.sent_base = self.sent_rows
-            log.info("learner %s is up: sending again", self.learner_incarnation or "?")
+            return self.put_rows - self.sent_base
         mine = self.stats.per_worker.get(self.id)
-        seen = mine["incarnation_rows"] if mine and mine.get("incarnation") == self.incarnation else 0
-        return max(self.sent_rows - self.sent_base - seen, 0)
+        seen = 0
+        if mine and mine.get("incarnation") == self.incarnation:
+            seen = mine.get("incarnation_rows", 0) + mine.get("redundant_rows", 0)
+        return max(self.put_rows - self.sent_base - seen, 0)
 
     def may_send(self) -> bool:
         """Rate limiter: keep this worker's unreported rows within its share of the learner's credit."""
@@ -261,7 +336,11 @@ class Worker:
             action = np.clip(action + noise * self.max_action, -self.max_action, self.max_action)
         if self.p_n and (actor != self.p_actor or version != self.p_version):
             self.flush()  # a batch carries one actor and one policy version
-        next_obs, reward, terminated, truncated, _ = self.env.step(action)
+        try:
+            next_obs, reward, terminated, truncated = self.env_step(action)
+        except EnvFault as fault:
+            self.env_fault(fault)
+            return
         i = self.p_n
         self.p_obs[i] = self.obs
         self.p_action[i] = action
@@ -272,28 +351,95 @@ class Worker:
         if self.p_n == 0:
             self.p_started = time.monotonic()
         self.p_n += 1
-        self.episode_return += float(reward)
+        self.episode_return += reward
         if terminated or truncated:
             self.finished_returns.append(self.episode_return)
             self.episode_return = 0.0
-            self.obs, _ = self.env.reset()
+            self.p_episode = self.p_n
+            self.obs = self.reset_env()
         else:
             self.obs = next_obs
         if self.p_n >= self.cfg.send_batch or time.monotonic() - self.p_started > MAX_BATCH_AGE_S:
             self.flush()
 
+    # -- the simulator, guarded ------------------------------------------------------------------
+    def env_step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
+        """env.step, or EnvFault if it raises or returns a non-finite observation or reward."""
+        try:
+            next_obs, reward, terminated, truncated, _ = self.env.step(action)
+            next_obs = np.asarray(next_obs, np.float32)
+            reward = float(reward)
+        except Exception as e:  # anything the simulator throws: this episode is lost, not the worker
+            raise EnvFault("step_exception", f"{type(e).__name__}: {e}") from e
+        if next_obs.shape != (self.spec.obs_dim,) or not np.isfinite(next_obs).all():
+            raise EnvFault("nonfinite_obs", f"shape {next_obs.shape}")
+        if not math.isfinite(reward):
+            raise EnvFault("nonfinite_reward", repr(reward))
+        return next_obs, reward, bool(terminated), bool(truncated)
+
+    def reset_env(self, seed: int | None = None) -> np.ndarray:
+        """A finite first observation: retries a failing reset, then makes the env anew,
+        and gives up (the worker exits, its supervisor restarts it) if that fails too."""
+        for attempt in range(2 * ENV_RETRIES):
+            if attempt == ENV_RETRIES:
+                log.warning("env reset failed %d times in a row: making %s anew", ENV_RETRIES, self.cfg.env_id)
+                try:
+                    self.env.close()
+                except Exception:
+                    pass
+                self.env = make_env(self.cfg.env_id, self.cfg.env_kwargs)
+                self.env_remade += 1
+            try:
+                obs, _ = self.env.reset(seed=seed) if seed is not None and attempt == 0 else self.env.reset()
+                obs = np.asarray(obs, np.float32)
+            except Exception as e:
+                self.count_fault(EnvFault("reset_exception", f"{type(e).__name__}: {e}"))
+                continue
+            if obs.shape != (self.spec.obs_dim,) or not np.isfinite(obs).all():
+                self.count_fault(EnvFault("nonfinite_obs", "after reset"))
+                continue
+            return obs
+        raise RuntimeError(f"{self.cfg.env_id}: no usable reset in {2 * ENV_RETRIES} tries")
+
+    def count_fault(self, fault: EnvFault) -> None:
+        self.faults[fault.kind] += 1
+        if self.faults[fault.kind] <= 3 or self.faults[fault.kind] % 100 == 0:
+            log.warning("env fault %s (%d so far): %s", fault.kind, self.faults[fault.kind], fault.detail[:300])
+
+    def env_fault(self, fault: EnvFault) -> None:
+        """Drop the episode's rows that are not sent yet, reset, go on."""
+        self.count_fault(fault)
+        self.dropped_rows += self.p_n - self.p_episode
+        self.dropped_episodes += 1
+        self.p_n = self.p_episode
+        self.episode_return = 0.0
+        self.obs = self.reset_env()
+
     def flush(self) -> None:
         if self.p_n == 0:
             return
         n = self.p_n
+        rows = (self.p_obs[:n], self.p_action[:n], self.p_reward[:n], self.p_next[:n], self.p_term[:n])
+        if self.retain:  # kept for a resend: the pending arrays are reused
+            rows = tuple(a.copy() for a in rows)
         batch = TransitionBatch(self.id, self.incarnation, self.batch_seq, self.p_actor, self.p_version,
-                                self.p_obs[:n], self.p_action[:n], self.p_reward[:n], self.p_next[:n],
-                                self.p_term[:n], tuple(self.finished_returns) or None)
+                                *rows, tuple(self.finished_returns) or None)
+        if self.batch_log is not None:
+            self.batch_log.write(f"{self.batch_seq} {n}\n")
         self.pub.put(batch.to_bytes())
+        if self.retain:
+            self.unacked.append(batch)
+            self.unacked_rows += n
+            while self.unacked_rows > self.cfg.resend_rows and len(self.unacked) > 1:
+                dropped = self.unacked.popleft()
+                self.unacked_rows -= dropped.rows
+                self.unacked_dropped_rows += dropped.rows
         self.batch_seq += 1
         self.sent_rows += n
+        self.put_rows += n
         self.finished_returns = []
         self.p_n = 0
+        self.p_episode = 0
 
 
 def main(run: str, conf: Any, worker_id: str, slot_index: int = 0, run_dir: Path | None = None) -> None:

@@ -470,3 +470,31 @@ def test_keys_reject_bad_actor_and_foreign_keys():
             keys.parse_actor(key)
     with pytest.raises(ValueError):
         keys.parse_last("other")
+
+
+def test_sequence_tracker_resends_fill_gaps_exactly_once():
+    from services.bus import RECOVERED, REDUNDANT
+
+    t = SequenceTracker()
+    assert [t.observe("w0", "i0", s) for s in (0, 1)] == [IN_ORDER] * 2
+    assert t.observe("w0", "i0", 5) == GAP and t.lost == 3  # 2, 3, 4 died with a learner
+    assert t.contiguous("w0") == ("i0", 1)  # what a checkpoint now may acknowledge
+    # The worker resends everything after its acknowledged prefix, 2..5, flagged as resent.
+    assert [t.observe("w0", "i0", s, resend=True) for s in (2, 3, 4, 5)] == [RECOVERED] * 3 + [REDUNDANT]
+    assert (t.lost, t.recovered, t.redundant, t.duplicates) == (0, 3, 1, 0)
+    assert t.contiguous("w0") == ("i0", 5)
+    assert t.observe("w0", "i0", 3, resend=True) == REDUNDANT  # a hole is filled once only
+    assert t.observe("w0", "i0", 3) == DUPLICATE  # not flagged: a real duplicate, as before
+    # A checkpoint's per_sender() carries the holes: a resumed learner lets a resend fill them.
+    t.observe("w0", "i0", 9)
+    saved = t.per_sender()
+    assert saved["w0"]["holes"] == [[6, 9]] and saved["w0"]["lost"] == 3
+    resumed = SequenceTracker()
+    resumed.restore(saved)
+    assert resumed.lost == 3 and resumed.contiguous("w0") == ("i0", 5)
+    assert [resumed.observe("w0", "i0", s, resend=True) for s in (6, 7, 8, 9, 10)] == \
+        [RECOVERED] * 3 + [REDUNDANT, IN_ORDER]
+    assert resumed.lost == 0 and resumed.expected("w0", "i0") == 11
+    # A forged huge seq costs one interval, not memory per missing number.
+    resumed.observe("w1", "i0", 2**62)
+    assert resumed.per_sender()["w1"]["holes"] == [[0, 2**62]]

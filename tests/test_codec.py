@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import random
 import struct
@@ -450,3 +451,29 @@ def test_fuzz_only_message_errors():
 def test_codec_does_not_import_zenoh():
     code = "import sys, services.codec, services.keys; assert 'zenoh' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_resend_flag_and_acknowledgements_are_validated():
+    from services.codec import LearnerStats, TransitionBatch, TransitionSpec, encode
+
+    spec = TransitionSpec(3, 2, 2, max_rows=8, max_action=1.0)
+    z = np.zeros
+    batch = TransitionBatch("w0", "inc0", 4, 1, 7, z((2, 3), np.float32), z((2, 2), np.float32),
+                            z(2, np.float32), z((2, 3), np.float32), z(2, np.bool_))
+    assert not TransitionBatch.from_bytes(batch.to_bytes(), spec).resend
+    again = TransitionBatch.from_bytes(dataclasses.replace(batch, resend=True).to_bytes(), spec)
+    assert again.resend and again.batch_seq == 4
+    msg = msgpack.unpackb(batch.to_bytes(), raw=False)
+    msg["resend"] = 1  # not a bool
+    with pytest.raises(MessageError, match="resend"):
+        TransitionBatch.from_bytes(msgpack.packb(msg, use_bin_type=True), spec)
+    ok = {"received": 3, "last_seq": 2, "acked_seq": 1, "acked_incarnation": "inc0"}
+    body = {"env_steps": 1, "updates": 0, "accept_until": 5, "utd": 0.0, "losses": {}, "q_means": [],
+            "versions": [0, 0], "per_worker": {"w0": ok}, "rejected": {}, "done": False}
+    st = LearnerStats.from_bytes(encode("learner_stats", body, sender="l", seq=1))
+    assert st.per_worker["w0"]["acked_seq"] == 1
+    for bad in ({"acked_seq": -2, "acked_incarnation": "inc0"}, {"acked_seq": 1},
+                {"acked_seq": 1, "acked_incarnation": "../x"}, {"acked_seq": "1", "acked_incarnation": "i"}):
+        body["per_worker"] = {"w0": {"received": 3, "last_seq": 2, **bad}}
+        with pytest.raises(MessageError):
+            LearnerStats.from_bytes(encode("learner_stats", body, sender="l", seq=1))

@@ -17,6 +17,7 @@ from mam_core.agent import EnvSpec, MultiActorAgent
 from mam_core.config import AlgoConfig
 from services import bus, keys
 from services.codec import Allocation, LearnerStats
+from services.learner import load_replay
 from services.plot import read_jsonl
 from tests.e2e import ROOT, assert_exactly_once, load, processes_of, spawn, stop, unique_run
 
@@ -169,7 +170,10 @@ def test_learner_killed_and_resumed(tmp_path: Path) -> None:
             assert cpu_seconds(p.pid) - cpu0[w] < 0.9, f"{w} spins while the learner is gone"
         checkpoint = torch.load(tmp_path / "checkpoints" / "learner.pt", weights_only=True)
         saved_updates = checkpoint["agent"]["updates"]
-        assert saved_updates > 0 and len(checkpoint["replay"]["obs"]) > 0
+        saved_rows = checkpoint["counters"]["env_steps"]
+        # The replay is on disk as chunks beside the checkpoint: every row the checkpoint counts.
+        replay = load_replay(tmp_path, state=checkpoint)
+        assert saved_updates > 0 and len(replay) == saved_rows > 0
         learner = spawn("learner", "--resume", str(tmp_path), "--listen", endpoint, log=tmp_path / "learner-again.log")
         wait_for_file(tmp_path / "transport.json")
         for p in ws.values():
@@ -182,7 +186,17 @@ def test_learner_killed_and_resumed(tmp_path: Path) -> None:
     assert resumed and rows[-1]["env_steps"] >= 4000  # the run went on to the same budget
     transport = json.loads((tmp_path / "transport.json").read_text())
     assert transport["duplicates"] == 0 and transport["rejected"] == {}
-    assert "resumed at" in (tmp_path / "learner-again.log").read_text()
+    again = (tmp_path / "learner-again.log").read_text()
+    assert "resumed at" in again
+    # The resumed learner trains on the replay it had ...
+    assert f"resumed at {saved_rows} transitions, {saved_updates} updates (replay rows: {saved_rows})" in again
+    # ... and the workers resent what it had not checkpointed: every row sent is in it exactly once.
+    reports = [json.loads(p.read_text()) for p in (tmp_path / "workers").glob("*.json")]
+    assert sum(r["resent_rows"] for r in reports) > 0
+    assert transport["lost"] == 0
+    assert {f"{r['worker']}/{r['incarnation']}": r["sent_rows"] for r in reports} == transport["rows_per_stream"]
+    assert sum(transport["rows_per_stream"].values()) == transport["env_steps"] == transport["replay_rows"]
+    assert len(load_replay(tmp_path)) == transport["env_steps"]
     assert processes_of(run) == []
 
 

@@ -1,0 +1,196 @@
+"""`mam chaos`: a `mam run` while a driver SIGKILLs one of its children at random every 20–40 s.
+
+    mam chaos [--kill-every 20,40] [--chaos-seed 0] [--roles learner,referee,worker] [--out FILE] -- MAM RUN FLAGS
+
+Runs `mam run MAM RUN FLAGS --no-plot` (a `--run-dir` is required), and until it exits kills a
+random live child (the learner included) with SIGKILL after a uniformly drawn 20–40 s. Then it
+checks what `mam run` promises (docs/RELIABILITY.md): exit status 0, the budget reached,
+every transition a worker sent in the replay exactly once over all incarnations (transport.json's
+`audit`: lost and duplicated rows), the run directory complete, the final checkpoint and its
+replay loadable. Prints the figures as JSON and writes them to RUN_DIR/chaos.json (or --out).
+Exit status 0 if every check passed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import typer
+
+ROOT = Path(__file__).resolve().parents[1]
+ROLES = ("learner", "referee", "worker")
+RUN_FILES = ("config.json", "learner.jsonl", "eval.jsonl", "allocation.jsonl", "summary.json", "transport.json",
+             "referee_state.json", "checkpoints/learner.pt", "logs/learner.log", "logs/referee.log")
+
+
+def children_of(pid: int) -> list[tuple[int, str]]:
+    """(pid, role) of the live `services.<role>` processes whose parent is `pid`."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            ppid = int(stat.rsplit(")", 1)[1].split()[1])
+            state = stat.rsplit(")", 1)[1].split()[0]
+            if ppid != pid or state == "Z":
+                continue
+            args = (entry / "cmdline").read_bytes().split(b"\0")
+        except (OSError, ValueError, IndexError):
+            continue
+        for a in args:
+            name = a.decode(errors="replace")
+            if name.startswith("services.") and name.split(".", 1)[1] in ROLES:
+                out.append((int(entry.name), name.split(".", 1)[1]))
+    return out
+
+
+def verify(run_dir: Path, returncode: int) -> dict[str, Any]:
+    """The figures of a finished (or failed) run and the list of checks that failed."""
+    problems: list[str] = []
+    figures: dict[str, Any] = {"exit_status": returncode}
+    if returncode != 0:
+        problems.append(f"mam run exited with {returncode}")
+    missing = [name for name in RUN_FILES if not (run_dir / name).is_file()]
+    if missing:
+        problems.append(f"run directory incomplete: {missing}")
+    cfg = json.loads((run_dir / "config.json").read_text()) if (run_dir / "config.json").is_file() else {}
+    summary = json.loads((run_dir / "summary.json").read_text()) if (run_dir / "summary.json").is_file() else {}
+    transport = json.loads((run_dir / "transport.json").read_text()) if (run_dir / "transport.json").is_file() else {}
+    audit = transport.get("audit", {})
+    budget = cfg.get("steps", 0)
+    figures.update(budget=budget, env_steps=transport.get("env_steps"), updates=transport.get("updates"),
+                   restarts=summary.get("restarts"), restarts_total=summary.get("restarts_total"),
+                   sent_rows=audit.get("sent_rows"), replay_rows=audit.get("replay_rows"),
+                   lost_rows=audit.get("lost_rows"), duplicated_rows=audit.get("duplicated_rows"),
+                   worker_incarnations=audit.get("streams"), lost_batches=transport.get("lost"),
+                   duplicate_batches=transport.get("duplicates"), recovered_batches=transport.get("recovered"),
+                   redundant_batches=transport.get("redundant"), rejected=transport.get("rejected"),
+                   wall_time_s=summary.get("launcher_wall_time_s"))
+    if not transport.get("env_steps", 0) >= budget > 0:
+        problems.append(f"budget not reached: {transport.get('env_steps')} of {budget}")
+    if not audit:
+        problems.append("no transport audit")
+    else:
+        if audit["lost_rows"] or audit["duplicated_rows"]:
+            problems.append(f"{audit['lost_rows']} rows lost, {audit['duplicated_rows']} duplicated")
+        if audit["streams_without_log"]:
+            problems.append(f"streams without a worker log: {audit['streams_without_log']}")
+        if not audit["sent_rows"] == audit["replay_rows"] == transport.get("env_steps"):
+            problems.append("rows sent, rows in the replay and env_steps differ")
+    try:
+        import torch
+
+        from mam_core.agent import EnvSpec, MultiActorAgent
+        from mam_core.config import AlgoConfig
+        from services.learner import load_checkpoint, load_replay
+
+        state = load_checkpoint(run_dir)
+        agent = MultiActorAgent(AlgoConfig.from_dict(cfg["algo"]), EnvSpec.from_env_id(cfg["env_id"]),
+                                torch.device("cpu"))
+        agent.load_state_dict(state["agent"])
+        figures["checkpoint_updates"] = agent.updates
+        if cfg.get("save_replay", True):
+            figures["checkpoint_replay_rows"] = len(load_replay(run_dir, state=state))
+            if figures["checkpoint_replay_rows"] != min(transport.get("env_steps", -1), cfg["algo"]["buffer_size"]):
+                problems.append(f"the final replay holds {figures['checkpoint_replay_rows']} rows")
+    except Exception as e:  # noqa: BLE001 - any failure to load is a finding
+        problems.append(f"final checkpoint does not load: {type(e).__name__}: {e}")
+    figures["problems"] = problems
+    return figures
+
+
+def chaos(run_args: list[str], run_dir: Path, kill_every: tuple[float, float] = (20.0, 40.0), seed: int = 0,
+          roles: tuple[str, ...] = ROLES, log=print, timeout: float = 7200.0) -> dict[str, Any]:
+    """Run `mam run` with kills; returns the figures (see `verify`) with the kills made."""
+    rng = random.Random(seed)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    out_path = run_dir / "chaos-mam-run.out"
+    env = dict(os.environ, COLUMNS="160", PYTHONWARNINGS="ignore")
+    started = time.monotonic()
+    kills: list[dict[str, Any]] = []
+    with open(out_path, "wb") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", *run_args, "--run-dir", str(run_dir),
+                                 "--no-plot"], cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT)
+    log(f"mam run started (pid {proc.pid}); its output: {out_path}")
+    try:
+        next_kill = time.monotonic() + rng.uniform(*kill_every)
+        while proc.poll() is None:
+            if time.monotonic() - started > timeout:
+                raise TimeoutError(f"mam run still going after {timeout:.0f} s")
+            if time.monotonic() < next_kill:
+                time.sleep(0.2)
+                continue
+            victims = [(pid, role) for pid, role in children_of(proc.pid) if role in roles]
+            if victims:
+                pid, role = rng.choice(sorted(victims))
+                steps = _learner_steps(run_dir)
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    continue
+                kills.append({"t": round(time.monotonic() - started, 1), "role": role, "pid": pid, "env_steps": steps})
+                log(f"t={kills[-1]['t']:7.1f} s  SIGKILL {role} (pid {pid}) at ~{steps:,} env steps")
+            next_kill = time.monotonic() + rng.uniform(*kill_every)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            proc.wait(120)
+    figures = verify(run_dir, proc.returncode)
+    by_role: dict[str, int] = {}
+    for k in kills:
+        by_role[k["role"]] = by_role.get(k["role"], 0) + 1
+    figures.update(kills=len(kills), kills_by_role=by_role, kill_log=kills,
+                   chaos_wall_time_s=round(time.monotonic() - started, 1), run_args=run_args)
+    return figures
+
+
+def _learner_steps(run_dir: Path) -> int:
+    try:
+        lines = (run_dir / "learner.jsonl").read_text().splitlines()
+        return int(json.loads(lines[-1])["env_steps"]) if lines else 0
+    except (OSError, ValueError, KeyError):
+        return 0
+
+
+app = typer.Typer(add_completion=False, help=__doc__)
+
+
+@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+def chaos_command(
+    ctx: typer.Context,
+    kill_every: str = typer.Option("20,40", help="seconds between kills, drawn uniformly from MIN,MAX"),
+    seed: int = typer.Option(0, "--chaos-seed", help="seed of the kill schedule and of the victims"),
+    roles: str = typer.Option(",".join(ROLES), help="roles that may be killed"),
+    out: Path = typer.Option(None, help="write the figures here (default RUN_DIR/chaos.json)"),
+) -> None:
+    """Kill random children of a `mam run` with SIGKILL and check that the run still finishes."""
+    args = list(ctx.args)
+    if "--run-dir" not in args:
+        raise typer.BadParameter("pass the mam run flags after the chaos flags, --run-dir DIR among them")
+    i = args.index("--run-dir")
+    run_dir = Path(args[i + 1])
+    del args[i:i + 2]
+    lo, hi = (float(x) for x in kill_every.split(","))
+    figures = chaos(args, run_dir, (lo, hi), seed, tuple(r.strip() for r in roles.split(",") if r.strip()))
+    path = out or run_dir / "chaos.json"
+    path.write_text(json.dumps(figures, indent=2))
+    print(json.dumps({k: v for k, v in figures.items() if k != "kill_log"}, indent=2))
+    if figures["problems"]:
+        raise typer.Exit(1)
+
+
+def cli() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    cli()
