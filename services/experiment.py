@@ -402,7 +402,7 @@ def plan(grid: Grid) -> list[RunSpec]:
 
 RECORD = "record.json"  # written last: its presence marks a finished run in the ledger
 LEDGER_FILES = ("config.json", "summary.json", "eval.jsonl", "allocation.jsonl", "bias.jsonl")
-LEARNER_ROWS = 300  # learner.jsonl is thinned to at most this many rows in the ledger
+LEARNER_ROWS = 200  # learner.jsonl is thinned to at most this many rows in the ledger
 RECORD_FORMAT = 1
 
 
