@@ -997,7 +997,7 @@ def run_grid(specs: Sequence[RunSpec], exp_dir: Path, console: Console, *, plot_
                 _stop_runs(active, reap)
     finally:
         if in_main:
-            signal.signal(signal.SIGTERM, previous)
+            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
     result.finished.sort(key=order.__getitem__)
     result.failed.sort(key=order.__getitem__)
     result.elapsed_s = time.monotonic() - started
