@@ -1183,9 +1183,11 @@ def experiment_command(
         raise typer.BadParameter(str(e)) from e
     describe_plan(specs, aliases, exp_dir, console, ledger)
     slots = core_slots(parallel) if pin else [()] * parallel
+    code = code_version(ROOT)
     console.print(f"{parallel} run(s) at once" + (", cores " + "; ".join(seeds_text(c) for c in slots) if pin else
                                                   ", not pinned")
-                  + (f"; ledger {ledger}" if ledger is not None else "; no ledger"))
+                  + (f"; ledger {ledger}" if ledger is not None else "; no ledger")
+                  + f"; code {ROOT} at {commit_label(code)}")
     if dry_run:
         return
     exp_dir.mkdir(parents=True, exist_ok=True)
