@@ -403,7 +403,7 @@ def plan(grid: Grid) -> list[RunSpec]:
 
 RECORD = "record.json"  # written last: its presence marks a finished run in the ledger
 LEDGER_FILES = ("config.json", "summary.json", "eval.jsonl", "allocation.jsonl", "bias.jsonl")
-LEARNER_ROWS = 300  # learner.jsonl is thinned to at most this many rows in the ledger
+LEARNER_ROWS = 200  # learner.jsonl is thinned to at most this many rows in the ledger
 RECORD_FORMAT = 1
 
 
@@ -998,7 +998,7 @@ def run_grid(specs: Sequence[RunSpec], exp_dir: Path, console: Console, *, plot_
                 _stop_runs(active, reap)
     finally:
         if in_main:
-            signal.signal(signal.SIGTERM, previous)
+            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
     result.finished.sort(key=order.__getitem__)
     result.failed.sort(key=order.__getitem__)
     result.elapsed_s = time.monotonic() - started
@@ -1191,9 +1191,11 @@ def experiment_command(
         raise typer.BadParameter(str(e)) from e
     describe_plan(specs, aliases, exp_dir, console, ledger)
     slots = core_slots(parallel) if pin else [()] * parallel
+    code = code_version(ROOT)
     console.print(f"{parallel} run(s) at once" + (", cores " + "; ".join(seeds_text(c) for c in slots) if pin else
                                                   ", not pinned")
-                  + (f"; ledger {ledger}" if ledger is not None else "; no ledger"))
+                  + (f"; ledger {ledger}" if ledger is not None else "; no ledger")
+                  + f"; code {ROOT} at {commit_label(code)}")
     if dry_run:
         return
     exp_dir.mkdir(parents=True, exist_ok=True)

@@ -1,8 +1,17 @@
-"""`mam report EXP_DIR`: tables with confidence intervals and figures from an experiment directory.
+"""`mam report PATH`: tables with confidence intervals and figures from an experiment's runs.
 
-An experiment directory (written by `mam experiment`) holds one run directory per
-(env, variant, seed): `EXP_DIR/<env>/<variant>/seed<k>/`. Only finished runs (with
-`summary.json`) count; runs planned in `experiment.json` but not finished are listed as missing.
+PATH is an experiment directory (written by `mam experiment`: one run directory per
+(env, variant, seed), `EXP_DIR/<env>/<variant>/seed<k>/`, plus the records of the ledger its
+experiment.json names), a ledger directory (the compact records, same layout), or a folder holding
+the ledger in `runs/` (`docs/results/<exp>`). Only finished runs (with `summary.json`) count; runs
+planned in `experiment.json` but not finished are listed as missing. Nothing is rerun.
+
+The report opens with a **Verdict**: each multi-actor variant against the K=1 baseline of its
+family (TD3 / DDPG) in the same env: P(variant > baseline) with its 95% CI, both IQMs with CIs,
+wall-clock time per run, and *better* (CI lower bound > 0.5), *worse* (upper bound < 0.5) or *not
+separated*. Each run's record.json names the commit it ran at; rows whose runs differ get a note.
+Tables are on one x-axis (`--x transitions` (default) or `iterations`, which rows of older runs
+lack: their env transitions stand in) and say which; learning curves are drawn on both.
 
 Per run, the score of an evaluation point is the mean return of the **best live actor** at that
 point (after the elimination only the survivor is evaluated, so it is the survivor's return; a
@@ -21,7 +30,8 @@ Per env and variant the report gives:
 - probability of improvement P(X > Y) (MA-TD3 vs TD3, MA-DDPG vs DDPG, the full method vs each
   ablation / η variant) with a stratified-bootstrap 95% CI, per env and over all envs;
 - updates, env steps and wall time per algorithm; for AppleCollect the share of runs whose final
-  policy reaches a 50 apple (final return ≥ 40) with a Wilson 95% interval;
+  policy reaches a 50 apple (final return ≥ 49) with a Wilson 95% interval, and the env step (and
+  iteration) at which each run's evaluation first reached one;
 - for runs with `--bias-every` (the learner's `bias.jsonl`): the Eq. 17 bias rate per point
   (mean over the live actors; points before the first update left out), per run its mean, mean
   absolute value and last value, then mean ± std over seeds, and the Fig. 3 curve (mean ± 1 std).

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -17,11 +19,12 @@ from rich.console import Console
 
 from services.experiment import (LEARNER_ROWS, GridError, Launch, check_resume, config_mismatch, core_slots,
                                  default_parallel, in_ledger, load_grid_file, make_grid, parse_seeds, plan, run_grid,
-                                 run_state, seeds_text, thin_indices, thin_jsonl, variants)
+                                 run_state, seeds_text, thin_indices, thin_jsonl, variants, write_manifest)
 from services.options import RunConfig, write_json
-from services.report import (best_live_score, bias_rows, bucket_points, build_report, iqm, iqm_ci, last_n_mean, mean_ci,
-                             probability_of_improvement, probability_of_improvement_ci, stratified_bootstrap,
-                             wilson_interval, write_report)
+from services.report import (SUCCESS_RETURN, Interval, best_live_score, bias_rows, bucket_points, build_report,
+                             first_reach, iqm, iqm_ci, last_n_mean, mean_ci, probability_of_improvement,
+                             probability_of_improvement_ci, stratified_bootstrap, verdict_word, wilson_interval,
+                             write_report)
 
 ROOT = Path(__file__).resolve().parents[1]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -833,3 +836,113 @@ def test_named_variant_errors(tmp_path):
     f.write_text(base + '[variant.x]\nalgo = "td3"\nbatch-size = 0\n')
     with pytest.raises(GridError, match="variant x"):
         plan(make_grid(load_grid_file(f)))
+
+
+# --- verdict, 50 apple, x-axis, reports from the ledger ----------------------------------------
+
+
+def test_verdict_words():
+    assert verdict_word(Interval(0.8, 0.55, 0.95)) == "better"
+    assert verdict_word(Interval(0.2, 0.05, 0.45)) == "worse"
+    assert verdict_word(Interval(0.6, 0.5, 0.9)) == "not separated"  # the bound must be above 0.5
+    assert verdict_word(Interval(0.4, 0.1, 0.5)) == "not separated"
+    assert verdict_word(Interval(0.5, 0.2, 0.8)) == "not separated"
+    assert verdict_word(Interval(math.nan, math.nan, math.nan)) == "not separated"
+
+
+def test_wilson_interval_more_hand_computed_values():
+    # p̂ = 2/3, z = 1.96: centre (p̂ + z²/2n)/(1 + z²/n) = 0.5731, half-width 0.3654
+    w = wilson_interval(2, 3)
+    assert (w.lo, w.hi) == (pytest.approx(0.2077, abs=1e-3), pytest.approx(0.9385, abs=1e-3))
+    w = wilson_interval(1, 20)  # published: (0.0089, 0.2361)
+    assert (w.lo, w.hi) == (pytest.approx(0.0089, abs=1e-3), pytest.approx(0.2361, abs=1e-3))
+
+
+def test_fifty_apple_bound_and_first_reach():
+    # a 50 apple reached at the last of the 100 steps: 50 − 100·0.01 = 49; the best 10 apple: 9.99
+    assert 48.99 < SUCCESS_RETURN <= 49.0 and 50 + 100 * -0.01 >= SUCCESS_RETURN
+    triples = [(100, 33.0, 9.97), (200, 66.0, 49.96), (300, None, 9.97), (400, 133.0, 49.9)]
+    assert first_reach(triples, SUCCESS_RETURN) == (200, 66.0)
+    assert first_reach(triples[:1], SUCCESS_RETURN) is None
+
+
+def _set_record(run_dir: Path, commit: str, dirty: bool = False) -> None:
+    write_json(run_dir / "record.json", {"commit": commit, "dirty": dirty})
+
+
+def test_verdict_table_on_constructed_runs(tmp_path):
+    exp = tmp_path / "exp"
+    env = exp / "Toy-v0"
+    for seed in range(4):
+        write_run(env / "ma-td3" / f"seed{seed}", "ma-td3", seed, 2, lambda s, sd=seed: s / 100 + sd)  # above TD3
+        write_run(env / "ma-td3-slow" / f"seed{seed}", "ma-td3", seed, 2, lambda s, sd=seed: s / 400 + 0.1 * sd)
+        write_run(env / "ma-td3-same" / f"seed{seed}", "ma-td3", seed, 2, lambda s, sd=seed: s / 200 + sd - 1.5)
+        write_run(env / "td3" / f"seed{seed}", "td3", seed, 1, lambda s, sd=seed: s / 200 + sd - 1.5)
+        for v in ("ma-td3", "ma-td3-slow", "ma-td3-same", "td3"):
+            _set_record(env / v / f"seed{seed}", "a" * 40)
+    _set_record(env / "td3" / "seed3", "b" * 40, dirty=True)  # one baseline run at another commit
+    report, md, _ = write_report(exp, n_boot=500, figures=False)
+    by = {v.variant: v for v in report.verdicts}
+    assert set(by) == {"ma-td3", "ma-td3-slow", "ma-td3-same"}
+    assert all(v.baseline == "td3" and v.env == "Toy-v0" and (v.n_x, v.n_y) == (4, 4) for v in by.values())
+    assert by["ma-td3"].p.value == 1.0 and by["ma-td3"].word == "better"
+    assert by["ma-td3-slow"].p.value == 0.0 and by["ma-td3-slow"].word == "worse"
+    assert by["ma-td3-same"].p.value == 0.5 and by["ma-td3-same"].word == "not separated"
+    assert by["ma-td3"].iqm_x.value == pytest.approx(iqm([15.5, 16.5, 17.5, 18.5]))
+    assert by["ma-td3"].wall_x == pytest.approx(np.mean([20, 21, 22, 23]))  # launcher wall time per run
+    assert by["ma-td3"].commits == {"a" * 12: 7, "b" * 12 + "+modified": 1} and by["ma-td3"].mixed
+    assert any("td3: runs at different commits" in n and "bbbbbbbbbbbb+modified (1)" in n for n in report.notes)
+    text = md.read_text()
+    assert text.index("## Verdict") < text.index("## Toy-v0")
+    assert "| Toy-v0 | ma-td3 | td3 | 4 / 4 | 1.00 [1.00, 1.00] |" in text and "*better*" in text
+    assert "*worse*" in text and "*not separated*" in text and "**different commits**" in text
+    assert "Tables on the x-axis: **env transitions" in text
+
+
+def test_iterations_axis_and_curves_on_both_axes(tmp_path):
+    exp = tmp_path / "exp"
+    for seed in range(2):
+        for algo, k in (("ma-td3", 2), ("td3", 1)):
+            d = exp / "Toy-v0" / algo / f"seed{seed}"
+            write_run(d, algo, seed, k, lambda s: s / 100)
+            if algo == "ma-td3" or seed == 0:  # td3 seed 1: an older run without iterations
+                rows = [json.loads(line) for line in (d / "eval.jsonl").read_text().splitlines()]
+                per = 3 if k > 1 else 1  # MA: 3 slots step together, 3 transitions per iteration
+                (d / "eval.jsonl").write_text("".join(json.dumps({**r, "iterations": r["env_steps"] // per}) + "\n"
+                                                      for r in rows))
+    rep = build_report(exp, n_boot=200, axis="iterations")
+    assert rep.axis == "iterations" and rep.axes == ("transitions", "iterations")
+    ma, td3 = rep.envs["Toy-v0"]
+    assert ma.spacing == pytest.approx(SPACING)  # the largest: TD3's 100 per 100 transitions
+    assert ma.grid.max() == pytest.approx(600) and td3.grid.max() == pytest.approx(STEPS)
+    assert set(ma.curves_by_axis) == {"transitions", "iterations"}
+    assert ma.curves_by_axis["transitions"][0].max() == STEPS
+    assert any("1 run(s) without `iterations`" in n for n in rep.notes)
+    _, md, pngs = write_report(exp, n_boot=200, axis="iterations")
+    assert {p.name for p in pngs} >= {"curves_Toy-v0.png", "curves_Toy-v0_iterations.png"}
+    assert "Tables on the x-axis: **iterations" in md.read_text()
+    with pytest.raises(ValueError):
+        build_report(exp, axis="updates")
+
+
+def test_report_from_the_ledger_alone_and_from_a_fresh_clone(tmp_path):
+    grid = small_grid()
+    specs = plan(grid)
+    exp, ledger = tmp_path / "exp", tmp_path / "docs" / "results" / "toy" / "runs"
+    write_manifest(exp, grid, specs, {}, ledger)
+    run_grid(specs[:3], exp, quiet(), launcher=FakeLauncher(), cores=[()], ledger=ledger)
+    assert json.loads((ledger / "experiment.json").read_text())["runs"][3]["path"] == specs[3].path.as_posix()
+    from_exp = build_report(exp, n_boot=200)
+    shutil.rmtree(exp)  # a fresh clone has only the ledger
+    for root in (ledger, ledger.parent):  # the ledger, or docs/results/<exp> holding it in runs/
+        rep = build_report(root, n_boot=200)
+        assert {(v.variant, v.n) for v in rep.envs["AppleCollect-v0"]} == {("ma-ddpg", 2), ("ddpg", 1)}
+        assert rep.missing == [specs[3].path.as_posix()]
+        assert all(r.commit != "unknown" for v in rep.envs["AppleCollect-v0"] for r in v.runs)
+    assert {(v.variant, v.n) for v in from_exp.envs["AppleCollect-v0"]} == {("ma-ddpg", 2), ("ddpg", 1)}
+    _, md, _ = write_report(ledger.parent, n_boot=200, figures=False)
+    assert md == ledger.parent / "report.md" and "| ma-ddpg |" in md.read_text()
+    # an experiment directory whose runs are only in its ledger
+    write_manifest(tmp_path / "again", grid, specs, {}, ledger)
+    rep = build_report(tmp_path / "again", n_boot=200)
+    assert sum(v.n for v in rep.envs["AppleCollect-v0"]) == 3
