@@ -308,7 +308,8 @@ def test_precision_is_validated():
         resolve("ma-td3", precision="fp8")
 
 
-def test_many_updates_track_the_reference_td3():
+@pytest.mark.parametrize("schedule", ["paper", "equal-data"])
+def test_many_updates_track_the_reference_td3(schedule):
     """K=1 TD3 and the plain reference (benchmarks/td3_reference.py, nn.Sequential + torch Adam)
     from the same weights on the same 300 batches (no smoothing noise: the two draw it from
     different streams) agree to float rounding. One update is not enough to see an optimizer bug:
@@ -320,8 +321,9 @@ def test_many_updates_track_the_reference_td3():
     from benchmarks.td3_reference import TD3
 
     obs_dim, act_dim = 11, 2
-    agent = MultiActorAgent(resolve("td3", hidden=(64, 64), batch_size=64, policy_noise=0.0, seed=0),
+    agent = MultiActorAgent(resolve("td3", hidden=(64, 64), batch_size=64, policy_noise=0.0, seed=0, schedule=schedule),
                             EnvSpec(obs_dim, act_dim, (1.0,) * act_dim))
+    assert agent.batch_groups is None  # K = 1: one mini-batch, as the reference draws
     ref = TD3(obs_dim, act_dim, 1.0, policy_noise=0.0, hidden=64)
 
     def linears(seq):
