@@ -54,6 +54,7 @@ class Referee:
         self.clock = Schedule.for_run(self.algo, cfg.steps)  # transitions <-> iterations
         self.rng = np.random.default_rng(self.algo.seed + 17)
         self.slots: dict[str, int] = {}
+        self.drawn_over: set[str] = set()  # the live workers the current slots were drawn for
         self.eval_round = 0
         self.decided_at = 0  # transitions at the evaluation behind the current P
         self.next_curve_eval = self.algo.eval_every
@@ -118,7 +119,7 @@ class Referee:
             if bus.run_is_done(self.done, self.cfg.run, self.rejects):
                 self.final_evaluation()
                 return
-            if set(self.workers.live()) != set(self.slots):
+            if set(self.workers.live()) != self.drawn_over:  # (with one slot after C, slots ⊂ workers)
                 self.publish_allocation("workers-changed", returns=None)
             steps = self.stats.env_steps if self.stats else 0
             units = self.clock.units_at(steps)  # iterations (paper) or transitions (equal-data)
@@ -202,6 +203,7 @@ class Referee:
         """Slots keep their actor unless `redraw`; new workers draw with the current P. `tie`:
         the actors that shared the best return in this round (recorded in allocation.jsonl)."""
         live_workers = sorted(self.workers.live())
+        self.drawn_over = set(live_workers)
         if redraw or self.schedule.survivor is not None or not self.schedule.config.enabled:
             self.slots = dict(self.schedule.allocation(live_workers, self.rng)) if live_workers else {}
         else:

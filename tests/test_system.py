@@ -113,6 +113,8 @@ def test_mam_run_paper_schedule_accounting(tmp_path: Path) -> None:
     last = rounds[-1]
     assert last["reason"] == "elimination" and len(last["slots"]) == 1  # I_e = 1
     assert list(last["slots"].values()) == [last["survivor"]]
+    # the idle workers are not "changed" workers: the allocation is published again only when one joins or leaves
+    assert sum(r["reason"] == "workers-changed" for r in run["allocation"]) <= 2 * m
     for row in run["learner"]:  # the rate limiter keeps one update per iteration past the start
         if row["iterations"] > start + band:
             assert row["updates"] <= row["iterations"] - start + 1, row
