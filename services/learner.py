@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import signal
 import socket
 import time
 import uuid
@@ -25,7 +24,7 @@ from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
 from mam_core.evaluation import estimation_bias
 from mam_core.replay import ReplayBuffer, ReplayLog
 from mam_core.schedule import Schedule
-from services import bus, keys, options, tb
+from services import bus, keys, options, role, tb
 from services.codec import (Allocation, Done, LearnerStats, MessageError, TransitionBatch, TransitionSpec,
                             Weights, decode, encode)
 from services.options import JsonlWriter, RunConfig, write_json
@@ -577,12 +576,7 @@ def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None
     write_json(run_dir / "config.json", cfg.to_dict())
     with bus.session_scope(conf, retry_for=30.0) as session:  # a router may still be starting
         learner = Learner(cfg, session, run_dir, state)
-
-        def on_signal(signum: int, _frame: Any) -> None:
-            learner.stop_requested = True
-
-        signal.signal(signal.SIGTERM, on_signal)
-        signal.signal(signal.SIGINT, on_signal)
+        role.stop_on_signals(learner)
         learner.serve()
 
 
@@ -590,64 +584,35 @@ app = typer.Typer(add_completion=False, help=__doc__)
 
 
 @app.command()
+@options.run_options()
 def learner_command(
-    env: options.Env = None, algo: options.Algo = None, steps: options.Steps = None,
-    env_kwargs: options.EnvKwargs = None,
-    actors: options.Actors = None, workers: options.Workers = None, eliminate_at: options.EliminateAt = None,
-    compete_every: options.CompeteEvery = None, eta: options.Eta = None, eval_episodes: options.EvalEpisodes = None,
-    eval_every: options.EvalEvery = None, start_steps: options.StartSteps = None, batch_size: options.BatchSize = None,
-    utd: options.Utd = None, no_ot: options.NoOt = None, no_wt: options.NoWt = None, seed: options.Seed = None,
-    device: options.Device = None, hidden: options.Hidden = None, config: options.ConfigFile = None,
-    single_env_after_elimination: options.SingleEnv = None,
-    bias_every: options.BiasEvery = None, bias_rollouts: options.BiasRollouts = None,
-    precision: options.Precision = None, schedule: options.Schedule = None, shared_batch: options.SharedBatch = None,
-    after_elimination: options.AfterElimination = None, skip_random_rounds: options.SkipRandomRounds = None,
-    bias_horizon: options.BiasHorizon = None,
-    run: options.Run = None, connect: options.Connect = None, listen: options.Listen = None,
-    zenoh_config: options.ZenohConfig = None, run_dir: options.RunDir = None,
-    sync_every: int = typer.Option(100, help="publish actor weights every N updates"),
-    checkpoint_every: int = typer.Option(50_000, help="updates between checkpoints"),
-    checkpoint_rows: int = typer.Option(20_000, help="... or transitions between checkpoints"),
-    checkpoint_seconds: float = typer.Option(60.0, help="... or seconds between checkpoints"),
-    save_replay: bool = typer.Option(True, "--save-replay/--no-save-replay",
-                                     help="persist the replay buffer beside the checkpoint (append-only chunks)"),
+    run_opts: dict[str, Any], config: options.ConfigFile = None, connect: options.Connect = None,
+    listen: options.Listen = None, zenoh_config: options.ZenohConfig = None, run_dir: options.RunDir = None,
     resume: Path = typer.Option(None, help="resume the run in this run directory from its checkpoint"),
     run_config: Path = typer.Option(None, help="a resolved config.json (written by `mam run`)"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Run the learner: replay buffer, K actors and n·K critics, weights and stats publisher."""
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    bus.init_zenoh_log()
+    role.setup_logging(verbose)
     if run_config is not None:
         cfg = RunConfig.from_dict(json.loads(run_config.read_text()))
     elif resume is not None:
         cfg = RunConfig.from_dict(json.loads((resume / "config.json").read_text()))
     else:
-        cfg = options.build_run_config(dict(
-            env=env, algo=algo, steps=steps, actors=actors, workers=workers, eliminate_at=eliminate_at,
-            env_kwargs=env_kwargs,
-            compete_every=compete_every, eta=eta, eval_episodes=eval_episodes, eval_every=eval_every,
-            start_steps=start_steps, batch_size=batch_size, utd=utd, no_ot=no_ot, no_wt=no_wt, seed=seed,
-            device=device, hidden=hidden, single_env_after_elimination=single_env_after_elimination, run=run,
-            sync_every=sync_every, checkpoint_every=checkpoint_every, checkpoint_rows=checkpoint_rows,
-            checkpoint_seconds=checkpoint_seconds, save_replay=save_replay,
-            bias_every=bias_every, bias_rollouts=bias_rollouts, precision=precision, schedule=schedule,
-            shared_batch=shared_batch, after_elimination=after_elimination, skip_random_rounds=skip_random_rounds,
-            bias_horizon=bias_horizon), config)
+        cfg = options.build_run_config(run_opts, config)
+    steps = run_opts["steps"]
     if steps is not None and (run_config is not None or resume is not None):
         cfg = RunConfig.from_dict({**cfg.to_dict(), "steps": steps})
     options.check_precision(cfg)
     if not listen and not connect and cfg.endpoint:
         listen = [cfg.endpoint]  # a resumed or launched learner comes back where its clients look
-    listen = listen or ([] if connect or zenoh_config else ["tcp/0.0.0.0:7447"])
+    listen = listen or ([] if connect or zenoh_config else [role.LISTEN_ALL])
     conf = bus.make_config(connect=connect, listen=listen, config_file=zenoh_config)
     directory = resume or run_dir or Path("runs") / cfg.run
     main(cfg, conf, directory, resume=resume is not None)
 
 
-def cli() -> None:
-    app()
+cli = app  # the `mam-learner` entry point
 
 
 if __name__ == "__main__":
