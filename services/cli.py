@@ -81,16 +81,33 @@ def chaos(ctx: typer.Context) -> None:
     chaos_app(ctx.args, prog_name="mam chaos", standalone_mode=True)
 
 
-def _register_harness() -> None:
-    """`mam experiment` and `mam report` (their modules import matplotlib)."""
-    from services.experiment import experiment_command
-    from services.report import report_command
-
-    app.command("experiment")(experiment_command)
-    app.command("report")(report_command)
+_PASSTHROUGH = {"allow_extra_args": True, "ignore_unknown_options": True, "help_option_names": []}
 
 
-_register_harness()
+def _register_lab() -> None:
+    """`mam experiment` and `mam report`, imported only when they run (their modules import
+    matplotlib and torch, which the role commands must not load)."""
+    lab = {"experiment": ("services.experiment", "experiment_command",
+                          "Run a grid of algorithms × seeds × envs through the distributed system; resumable (see --help)."),
+           "report": ("services.report", "report_command",
+                      "Tables (last-10 mean, IQM, P(improvement)) and figures of an experiment (see --help).")}
+
+    def lazy(name: str, module: str, function: str, doc: str) -> None:
+        def command(ctx: typer.Context) -> None:
+            import importlib
+
+            sub = typer.Typer(add_completion=False)
+            sub.command()(getattr(importlib.import_module(module), function))
+            sub(ctx.args, prog_name=f"mam {name}", standalone_mode=True)
+
+        command.__doc__ = doc
+        app.command(name, context_settings=_PASSTHROUGH)(command)
+
+    for name, (module, function, doc) in lab.items():
+        lazy(name, module, function, doc)
+
+
+_register_lab()
 
 
 def _register_eval() -> None:

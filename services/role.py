@@ -42,11 +42,15 @@ def client_config(connect: list[str] | None, listen: list[str] | None = None,
 
 
 def stop_on_signals(target: Any) -> None:
-    """SIGTERM and SIGINT set `target.stop_requested`: the role's loop ends at its next turn,
-    and the role leaves cleanly (checkpoint, final report, liveliness token undeclared)."""
+    """SIGTERM and SIGINT set `target.stop_requested` (or call `target` if it is a function): the
+    role's loop ends at its next turn and the role leaves cleanly (checkpoint, final report,
+    liveliness token undeclared)."""
 
     def on_signal(_signum: int, _frame: Any) -> None:
-        target.stop_requested = True
+        if callable(target):
+            target()
+        else:
+            target.stop_requested = True
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
