@@ -88,7 +88,8 @@ def _register_lab() -> None:
     """`mam experiment` and `mam report`, imported only when they run (their modules import
     matplotlib and torch, which the role commands must not load)."""
     lab = {"experiment": ("services.experiment", "experiment_command",
-                          "Run a grid of algorithms × seeds × envs through the distributed system; resumable (see --help)."),
+                          "Run a grid of algorithms × seeds × envs through the distributed system; resumable "
+                          "(see --help)."),
            "report": ("services.report", "report_command",
                       "Tables (last-10 mean, IQM, P(improvement)) and figures of an experiment (see --help).")}
 

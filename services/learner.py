@@ -25,8 +25,17 @@ from mam_core.evaluation import estimation_bias
 from mam_core.replay import ReplayBuffer, ReplayLog
 from mam_core.schedule import Schedule
 from services import bus, keys, options, role, tb
-from services.codec import (Allocation, Done, LearnerStats, MessageError, TransitionBatch, TransitionSpec,
-                            Weights, decode, encode)
+from services.codec import (
+    Allocation,
+    Done,
+    LearnerStats,
+    MessageError,
+    TransitionBatch,
+    TransitionSpec,
+    Weights,
+    decode,
+    encode,
+)
 from services.options import JsonlWriter, RunConfig, write_json
 from services.policy_export import write_policy
 

@@ -161,7 +161,8 @@ class Referee:
         self.eval_pub.put(msg.to_bytes(self.id, self._next_seq()))
         self.eval_log.write({"t": round(time.monotonic() - self.started, 3), "round": self.eval_round,
                              "env_steps": steps, "iterations": self.clock.units_at(steps),
-                             "updates": self.stats.updates if self.stats else 0, "returns": returns, "mean": means, "versions": list(self.versions),
+                             "updates": self.stats.updates if self.stats else 0, "returns": returns, "mean": means,
+                             "versions": list(self.versions),
                              "bias": None})
         log.info("eval at %d steps: %s", steps, [None if m is None else round(m, 2) for m in means])
         return means
@@ -209,7 +210,8 @@ class Referee:
         self.last_publish = time.monotonic()
         now_steps = self.stats.env_steps if self.stats else steps
         self.alloc_log.write({"t": round(time.monotonic() - self.started, 3), "round": self.schedule.round,
-                              "env_steps": max(now_steps, steps), "iterations": self.clock.units_at(max(now_steps, steps)),
+                              "env_steps": max(now_steps, steps),
+                              "iterations": self.clock.units_at(max(now_steps, steps)),
                               "decided_at": steps, "returns": returns, "tie": tie,
                               "probabilities": [float(p) for p in self.schedule.probabilities], "counts": i_k,
                               "slots": dict(self.slots), "eliminated": [bool(e) for e in self.schedule.eliminated],
