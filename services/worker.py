@@ -225,9 +225,9 @@ class Worker:
 
     def trim_acked(self, st: LearnerStats) -> None:
         mine = st.per_worker.get(self.id)
-        if not mine or mine.get("acked_incarnation") != self.incarnation:
+        if not mine or mine.acked_incarnation != self.incarnation or mine.acked_seq is None:
             return
-        acked = mine.get("acked_seq", -1)
+        acked = mine.acked_seq
         while self.unacked and self.unacked[0].batch_seq <= acked:
             self.unacked_rows -= self.unacked.popleft().rows
 
@@ -253,8 +253,8 @@ class Worker:
             return self.put_rows - self.sent_base
         mine = self.stats.per_worker.get(self.id)
         seen = 0
-        if mine and mine.get("incarnation") == self.incarnation:
-            seen = mine.get("incarnation_rows", 0) + mine.get("redundant_rows", 0)
+        if mine and mine.incarnation == self.incarnation:
+            seen = (mine.incarnation_rows or 0) + (mine.redundant_rows or 0)
         return max(self.put_rows - self.sent_base - seen, 0)
 
     def may_send(self) -> bool:
@@ -265,7 +265,7 @@ class Worker:
         room = st.accept_until - st.env_steps
         share = max(room // max(st.workers, 1), 1) if room > 0 else 0
         mine = st.per_worker.get(self.id)
-        if not mine or mine.get("incarnation") != self.incarnation:
+        if not mine or mine.incarnation != self.incarnation:
             # Not yet counted among the learner's workers: one batch in flight until it is.
             share = min(share, self.cfg.send_batch)
         return self.in_flight() + self.p_n < share
