@@ -98,20 +98,22 @@ class RoleReport:
 
 
 class Every:
-    """A periodic timer: `due()` is true at most once per `period_s` (the first call is due).
+    """A periodic timer over any growing count (seconds by default, or updates, rows ...):
+    `due()` is true at most once per `period` and then starts the next period.
 
-    `due(now)` takes a clock value (time.monotonic() by default); `reset(now)` restarts the
-    period, and `elapsed(now)` is the time since the last due tick.
+    The first call is due unless `start` is given. `due(now)` takes the count (the clock's
+    value by default); `due(now, period)` uses another period for this call (e.g. shorter
+    while idle); `elapsed(now)` is the count since the last due tick.
     """
 
-    def __init__(self, period_s: float, clock: Callable[[], float] = time.monotonic) -> None:
-        self.period = period_s
+    def __init__(self, period: float, clock: Callable[[], float] = time.monotonic, start: float | None = None) -> None:
+        self.period = period
         self.clock = clock
-        self.last: float | None = None
+        self.last = start
 
-    def due(self, now: float | None = None) -> bool:
+    def due(self, now: float | None = None, period: float | None = None) -> bool:
         now = self.clock() if now is None else now
-        if self.last is not None and now - self.last < self.period:
+        if self.last is not None and now - self.last < (self.period if period is None else period):
             return False
         self.last = now
         return True
