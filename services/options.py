@@ -186,7 +186,8 @@ ConfigFile = Annotated[Optional[Path], typer.Option("--config", help="TOML file 
 Run = OPTION["run"].annotation
 Connect = Annotated[Optional[list[str]], typer.Option(
     "--connect", help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447")]
-Listen = Annotated[Optional[list[str]], typer.Option("--listen", help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447")]
+Listen = Annotated[Optional[list[str]], typer.Option(
+    "--listen", help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447")]
 ZenohConfig = Annotated[Optional[Path], typer.Option("--zenoh-config", help="Zenoh JSON5 config file")]
 RunDir = Annotated[Optional[Path], typer.Option("--run-dir", help="directory for this process's logs and outputs")]
 
