@@ -8,7 +8,7 @@ user flags on top and checks them.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 ALGOS = ("ma-td3", "td3", "ma-ddpg", "ddpg")
@@ -85,7 +85,7 @@ _TD3_FAMILY = dict(
     start_steps=25_000, eliminate_at=300_000, compete_every=5_000, eta=0.1,
 )
 _DDPG_FAMILY = dict(
-    # Table 1; MA-DDPG shows obsolescence alone, so η defaults to 0 (DESIGN.md).
+    # Table 1; MA-DDPG shows obsolescence alone, so η defaults to 0 (docs/DESIGN-DECISIONS.md).
     critics_per_actor=1, target_smoothing=False, policy_delay=1, batch_size=100,
     start_steps=10_000, eliminate_at=24_000, compete_every=1_000, eta=0.0,
 )

@@ -15,7 +15,6 @@ from torch import nn
 
 from mam_core.policy import member_shapes
 
-
 Members = slice | torch.Tensor | None
 
 

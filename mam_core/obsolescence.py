@@ -19,7 +19,7 @@ from typing import Any, overload
 import numpy as np
 
 from mam_core.config import AlgoConfig
-from mam_core.schedule import first_round_at
+from mam_core.schedule import first_round_at, round_multiple
 
 # Mixed signs / zeros: shift so the worst actor sits at this fraction of the return spread
 # above zero. It keeps a small, non-zero chance for the worst actor (it is not eliminated
@@ -101,7 +101,8 @@ def _live_probabilities(probabilities: Sequence[float] | np.ndarray, live: Seque
 
 @overload
 def allocate(
-    probabilities: Sequence[float] | np.ndarray, slots: int, rng: np.random.Generator, live: Sequence[bool] | None = None
+    probabilities: Sequence[float] | np.ndarray, slots: int, rng: np.random.Generator,
+    live: Sequence[bool] | None = None,
 ) -> list[int]: ...
 @overload
 def allocate(
@@ -203,11 +204,12 @@ class Obsolescence:
         return ~self.eliminated
 
     def due_round(self, env_steps: int) -> bool:
-        """A competition round is due at each new multiple of A strictly before C."""
-        if not self.config.enabled or self.survivor is not None or env_steps >= self.config.eliminate_at:
+        """A competition round is due at each new multiple of A strictly before C
+        (mam_core.schedule.round_multiple, the rule the learner's barriers follow too)."""
+        if not self.config.enabled or self.survivor is not None:
             return False
-        multiple = (env_steps // self.config.compete_every) * self.config.compete_every
-        return multiple > self.last_round_at and multiple >= self.config.first_round
+        c = self.config
+        return round_multiple(env_steps, c.compete_every, c.eliminate_at, c.first_round, self.last_round_at) is not None
 
     def due_elimination(self, env_steps: int) -> bool:
         """Elimination is due once, at the first step >= C."""

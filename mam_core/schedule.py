@@ -30,6 +30,20 @@ from dataclasses import dataclass
 from mam_core.config import SCHEDULES, AlgoConfig
 
 
+def round_multiple(units: int, compete_every: int, eliminate_at: int | None, first_round: int,
+                   last_round_at: int) -> int | None:
+    """The multiple of A of an allocation round due at `units`, or None: rounds are at A, 2A, ...
+    strictly before C (Algorithm 1, line 15), from `first_round` on, at most one per multiple
+    (after the round at `last_round_at`) even when the counter jumps past several. The one rule
+    behind `Schedule.round_due` and `Obsolescence.due_round` (mam_core/obsolescence.py)."""
+    if eliminate_at is None or units >= eliminate_at:
+        return None
+    multiple = (units // compete_every) * compete_every
+    if multiple < first_round or multiple <= last_round_at:
+        return None
+    return multiple
+
+
 def first_round_at(compete_every: int, start: int, skip_random_rounds: bool) -> int:
     """The first multiple of A at which an allocation round may happen: A, or with
     `--skip-random-rounds` the first multiple strictly after the start phase."""
@@ -128,16 +142,17 @@ class Schedule:
         return first_round_at(self.compete_every, self.start, self.skip_random_rounds)
 
     def round_due(self, units: int, last_round_at: int) -> int | None:
-        """The multiple of A of a round due at `units` (after the round at `last_round_at`), or
-        None: rounds are at A, 2A, ... strictly before C (Algorithm 1, line 15), from
-        `first_round()` on, at most one per multiple even when the counter jumps past several."""
+        """The multiple of A of a round due at `units` after the round at `last_round_at`, or
+        None (`round_multiple`)."""
+        return round_multiple(units, self.compete_every, self.eliminate_at, self.first_round(), last_round_at)
+
+    def decided_round(self, units: int) -> int:
+        """The round an allocation decided at `units` closes: C at or after the elimination, else
+        the multiple of A at or below `units` (what `next_barrier` takes)."""
         c = self.eliminate_at
-        if c is None or units >= c:
-            return None
-        multiple = (units // self.compete_every) * self.compete_every
-        if multiple < self.first_round() or multiple <= last_round_at:
-            return None
-        return multiple
+        if c is not None and units >= c:
+            return c
+        return (units // self.compete_every) * self.compete_every
 
     def next_barrier(self, done_at: int) -> int | None:
         """Units of the next round or of the elimination after the one decided at `done_at`

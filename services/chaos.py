@@ -91,7 +91,7 @@ def verify(run_dir: Path, returncode: int) -> dict[str, Any]:
 
         from mam_core.agent import EnvSpec, MultiActorAgent
         from mam_core.config import AlgoConfig
-        from services.learner import load_checkpoint, load_replay
+        from services.checkpoint import load_checkpoint, load_replay
 
         state = load_checkpoint(run_dir)
         agent = MultiActorAgent(AlgoConfig.from_dict(cfg["algo"]), EnvSpec.from_env_id(cfg["env_id"]),

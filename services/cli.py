@@ -4,36 +4,20 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 import typer
 
-from services import bus, options
+from services import options
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Multi-actor mechanism (MA-TD3, MA-DDPG) over Zenoh: run, watch and plot training runs.")
 
 
 @app.command()
+@options.run_options()
 def run(
-    env: options.Env = None, algo: options.Algo = None, steps: options.Steps = None,
-    env_kwargs: options.EnvKwargs = None,
-    actors: options.Actors = None, workers: options.Workers = None, eliminate_at: options.EliminateAt = None,
-    compete_every: options.CompeteEvery = None, eta: options.Eta = None, eval_episodes: options.EvalEpisodes = None,
-    eval_every: options.EvalEvery = None, start_steps: options.StartSteps = None, batch_size: options.BatchSize = None,
-    utd: options.Utd = None, no_ot: options.NoOt = None, no_wt: options.NoWt = None, seed: options.Seed = None,
-    device: options.Device = None, hidden: options.Hidden = None, config: options.ConfigFile = None,
-    single_env_after_elimination: options.SingleEnv = None,
-    bias_every: options.BiasEvery = None, bias_rollouts: options.BiasRollouts = None,
-    precision: options.Precision = None, schedule: options.Schedule = None, shared_batch: options.SharedBatch = None,
-    after_elimination: options.AfterElimination = None, skip_random_rounds: options.SkipRandomRounds = None,
-    bias_horizon: options.BiasHorizon = None,
-    run_name: options.Run = None, run_dir: options.RunDir = None,
-    sync_every: int = typer.Option(None, help="publish actor weights every N updates (default 100)"),
-    save_replay: bool = typer.Option(None, "--save-replay/--no-save-replay",
-                                     help="persist the replay buffer beside the checkpoint (default: on)"),
-    checkpoint_every: int = typer.Option(None, help="checkpoint every N updates (default 50000) ..."),
-    checkpoint_rows: int = typer.Option(None, help="... or N transitions (default 20000) ..."),
-    checkpoint_seconds: float = typer.Option(None, help="... or N seconds (default 60)"),
+    run_opts: dict[str, Any], config: options.ConfigFile = None, run_dir: options.RunDir = None,
     max_restarts: int = typer.Option(5, help="a child that dies more often than this within --restart-window "
                                              "stops the run"),
     restart_window: float = typer.Option(300.0, help="seconds over which --max-restarts counts"),
@@ -43,17 +27,7 @@ def run(
     from services.launcher import RestartPolicy, run_local
 
     logging.basicConfig(level=logging.WARNING)
-    cfg = options.build_run_config(dict(
-        env=env, algo=algo, steps=steps, actors=actors, workers=workers, eliminate_at=eliminate_at,
-        env_kwargs=env_kwargs,
-        compete_every=compete_every, eta=eta, eval_episodes=eval_episodes, eval_every=eval_every,
-        start_steps=start_steps, batch_size=batch_size, utd=utd, no_ot=no_ot, no_wt=no_wt, seed=seed,
-        device=device, hidden=hidden, single_env_after_elimination=single_env_after_elimination,
-        run=run_name, sync_every=sync_every, save_replay=save_replay, bias_every=bias_every,
-        bias_rollouts=bias_rollouts, precision=precision, schedule=schedule, shared_batch=shared_batch,
-        after_elimination=after_elimination, skip_random_rounds=skip_random_rounds, bias_horizon=bias_horizon,
-        checkpoint_every=checkpoint_every, checkpoint_rows=checkpoint_rows, checkpoint_seconds=checkpoint_seconds),
-        config)
+    cfg = options.build_run_config(run_opts, config)
     options.check_precision(cfg)
     summary = run_local(cfg, run_dir or Path("runs") / cfg.run, plot=not no_plot,
                         policy=RestartPolicy(max_restarts=max_restarts, window_s=restart_window))
@@ -71,9 +45,10 @@ def watch(
 
     if not run_name:
         raise typer.BadParameter("--run NAME is required (printed by `mam run`, in RUN_DIR/config.json)")
+    from services.role import client_config
+
     options.check_run_name(run_name)
-    conf = bus.make_config(connect=connect or ([] if zenoh_config else ["tcp/127.0.0.1:7447"]), config_file=zenoh_config)
-    watch_run(run_name, conf, until_done=not keep)
+    watch_run(run_name, client_config(connect, None, zenoh_config), until_done=not keep)
 
 
 @app.command()
@@ -106,16 +81,34 @@ def chaos(ctx: typer.Context) -> None:
     chaos_app(ctx.args, prog_name="mam chaos", standalone_mode=True)
 
 
-def _register_harness() -> None:
-    """`mam experiment` and `mam report` (their modules import matplotlib)."""
-    from services.experiment import experiment_command
-    from services.report import report_command
-
-    app.command("experiment")(experiment_command)
-    app.command("report")(report_command)
+_PASSTHROUGH = {"allow_extra_args": True, "ignore_unknown_options": True, "help_option_names": []}
 
 
-_register_harness()
+def _register_lab() -> None:
+    """`mam experiment` and `mam report`, imported only when they run (their modules import
+    matplotlib and torch, which the role commands must not load)."""
+    lab = {"experiment": ("services.experiment", "experiment_command",
+                          "Run a grid of algorithms × seeds × envs through the distributed system; resumable "
+                          "(see --help)."),
+           "report": ("services.report", "report_command",
+                      "Tables (last-10 mean, IQM, P(improvement)) and figures of an experiment (see --help).")}
+
+    def lazy(name: str, module: str, function: str, doc: str) -> None:
+        def command(ctx: typer.Context) -> None:
+            import importlib
+
+            sub = typer.Typer(add_completion=False)
+            sub.command()(getattr(importlib.import_module(module), function))
+            sub(ctx.args, prog_name=f"mam {name}", standalone_mode=True)
+
+        command.__doc__ = doc
+        app.command(name, context_settings=_PASSTHROUGH)(command)
+
+    for name, (module, function, doc) in lab.items():
+        lazy(name, module, function, doc)
+
+
+_register_lab()
 
 
 def _register_eval() -> None:

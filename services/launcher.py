@@ -29,7 +29,7 @@ from services.codec import Allocation, Eval, LearnerStats, MessageError
 from services.options import RunConfig, write_json
 
 STOP_GRACE_S = 15.0
-CHECKPOINT_FILE = "learner.pt"  # services.learner.CHECKPOINT_FILE (not imported here: it pulls in torch)
+CHECKPOINT_FILE = "learner.pt"  # services.checkpoint.CHECKPOINT_FILE (not imported here: it pulls in torch)
 PR_SET_PDEATHSIG = 1
 
 

@@ -1,8 +1,9 @@
 """`mam-learner`: replay buffer, all K actors and n·K critics, the rate limiter, checkpoints.
 
-One loop: drain transitions into the replay buffer, run as many updates as `utd` allows,
-publish weights every `sync_every` updates and stats (with the rate limiter's credit) a few
-times a second, follow the referee's eliminations, checkpoint, and end the run at `--steps`.
+One loop: drain transitions into the replay buffer (services/intake.py), run as many updates as
+the schedule allows, publish weights every `sync_every` updates and stats (with the rate
+limiter's credit, mam_core/pacing.py) a few times a second, follow the referee's rounds and
+elimination, checkpoint (services/checkpoint.py), and end the run at `--steps`.
 """
 
 from __future__ import annotations
@@ -10,7 +11,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import signal
 import socket
 import time
 import uuid
@@ -23,78 +23,28 @@ import typer
 
 from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
 from mam_core.evaluation import estimation_bias
+from mam_core.pacing import CheckpointRule, Pacer
 from mam_core.replay import ReplayBuffer, ReplayLog
 from mam_core.schedule import Schedule
-from services import bus, keys, options, tb
-from services.codec import (Allocation, Done, LearnerStats, MessageError, TransitionBatch, TransitionSpec,
-                            Weights, decode, encode)
+from services import bus, keys, options, role, tb
+from services.checkpoint import load_checkpoint, replay_dir, save_checkpoint
+from services.codec import Allocation, Done, LearnerStats, MessageError, TransitionSpec, Weights, decode, encode
+from services.intake import Intake
 from services.options import JsonlWriter, RunConfig, write_json
 from services.policy_export import write_policy
 
 log = logging.getLogger("mam.learner")
 
-STATS_PERIOD_S = 0.1
+STATS_PERIOD_S = 0.1  # stats this often while updating; four times as often while waiting for data
 LOG_PERIOD_S = 1.0
 HEARTBEAT_S = 2.0  # config re-published this often
-CHECKPOINT_FILE = "learner.pt"
-REPLAY_DIR = "replay"  # RUN_DIR/checkpoints/replay/chunk-<first>-<rows>.npz
 REFEREE_GRACE_S = 20.0  # after done: how long to wait for a referee that is gone (a restart) ...
 REFEREE_WAIT_S = 120.0  # ... and at most, in all, for its final evaluation
 
 
-def replay_dir(run_dir: Path) -> Path:
-    return run_dir / "checkpoints" / REPLAY_DIR
-
-
-def save_checkpoint(run_dir: Path, agent: MultiActorAgent, buffer: ReplayBuffer, counters: dict[str, Any],
-                    cfg: RunConfig, replay_log: ReplayLog | None = None) -> Path:
-    """Atomic, pickle-free checkpoint (tensors and plain containers; load with weights_only=True).
-
-    With a `replay_log` the rows inserted since the previous checkpoint are appended as one
-    chunk file first; the checkpoint then names the chunks that hold every row it counts
-    (`replay_log`: inserted, manifest, sampling rng). Chunks no checkpoint names any more are
-    deleted only once this checkpoint is in place.
-    """
-    path = run_dir / "checkpoints" / CHECKPOINT_FILE
-    path.parent.mkdir(parents=True, exist_ok=True)
-    state = {"agent": agent.state_dict(), "counters": counters, "config": json.dumps(cfg.to_dict())}
-    if replay_log is not None:
-        manifest = replay_log.append(buffer)
-        state["replay_log"] = {"inserted": buffer.inserted, "manifest": manifest,
-                               "rng": json.dumps(buffer.rng.bit_generator.state)}
-    tmp = path.with_suffix(".tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, path)
-    if replay_log is not None:
-        replay_log.prune()
-    return path
-
-
-def load_replay(run_dir: Path, capacity: int | None = None, state: dict[str, Any] | None = None) -> ReplayBuffer:
-    """The replay buffer a checkpoint counts (for tests and tools): every row, in a new buffer."""
-    state = state if state is not None else load_checkpoint(run_dir)
-    meta = state["replay_log"]
-    cfg = RunConfig.from_dict(json.loads(state["config"]))
-    spec = EnvSpec.from_env_id(cfg.env_id)
-    inserted = int(meta["inserted"])
-    buffer = ReplayBuffer(capacity or max(inserted, 1), spec.obs_dim, spec.act_dim)
-    ReplayLog(replay_dir(run_dir)).restore(buffer, meta["manifest"], inserted, json.loads(meta["rng"]))
-    return buffer
-
-
-def load_checkpoint(run_dir: Path) -> dict[str, Any]:
-    path = run_dir / "checkpoints" / CHECKPOINT_FILE
-    if not path.is_file():
-        raise FileNotFoundError(f"no checkpoint at {path}")
-    return torch.load(path, weights_only=True, map_location="cpu")
-
-
 class Learner:
     def __init__(self, cfg: RunConfig, session: Any, run_dir: Path, resume: dict[str, Any] | None = None) -> None:
-        self.cfg = cfg
-        self.algo = cfg.algo
-        self.session = session
-        self.run_dir = run_dir
+        self.cfg, self.algo, self.session, self.run_dir = cfg, cfg.algo, session, run_dir
         self.id = f"{socket.gethostname()}-{os.getpid()}"
         self.incarnation = uuid.uuid4().hex[:12]
         self.spec = EnvSpec.from_env_id(cfg.env_id, cfg.env_kwargs)
@@ -106,33 +56,29 @@ class Learner:
         self.schedule = Schedule.for_run(self.algo, cfg.steps)  # iterations (paper) or transitions
         capacity = min(self.algo.buffer_size, self.schedule.budget + cfg.tolerance)
         self.buffer = ReplayBuffer(capacity, self.spec.obs_dim, self.spec.act_dim, self.device, self.algo.seed)
-        self.transition_spec = TransitionSpec(self.spec.obs_dim, self.spec.act_dim, self.algo.actors,
-                                              max_rows=4096, max_action=max(self.spec.max_action))
-        rows = self.transition_spec.max_rows
-        self.max_message = rows * (2 * self.spec.obs_dim + self.spec.act_dim + 2) * 4 + (1 << 16)
-        self.tracker = bus.SequenceTracker()
+        spec = TransitionSpec(self.spec.obs_dim, self.spec.act_dim, self.algo.actors, max_rows=4096,
+                              max_action=max(self.spec.max_action))
+        max_message = spec.max_rows * (2 * self.spec.obs_dim + self.spec.act_dim + 2) * 4 + (1 << 16)
+        self.intake = Intake(self.buffer, spec, max_message)
         self.replay_log = ReplayLog(replay_dir(run_dir)) if cfg.save_replay else None
         # Per worker: (incarnation, seq) such that all its batches up to seq are in the last
         # checkpoint (with the replay). Workers keep the batches after it and resend them to a
-        # restarted learner (exactly once, with the tracker de-duplicating).
+        # restarted learner (exactly once, with the intake de-duplicating).
         self.acked: dict[str, tuple[str, int]] = {}
         self.referee_seen = False
-        self.rejects = bus.RejectLog(log, "transitions")
         self.other_rejects = bus.RejectLog(log, "message")  # allocation topic
-        self.per_worker: dict[str, dict[str, Any]] = {}
-        self.stream_rows: dict[str, int] = {}  # rows per worker/incarnation (proof of exactly-once)
         self.metrics: dict[str, float] = {}
         self.env_steps = 0  # transitions received into the buffer (the schedule maps them to iterations)
-        self.episode_returns: list[float] = []
         self.survivor: int | None = None
-        self.round_done_at = 0  # schedule step (units) of the last obsolescence round the referee published
+        self.checkpoints = CheckpointRule(cfg.checkpoint_every, cfg.checkpoint_rows, cfg.checkpoint_seconds)
         self.started = time.monotonic()
         self.stop_requested = False
         if resume is not None:
             self._restore(resume)
-        self.next_bias = self._next_bias_point()
+        self.pacer = Pacer(self.schedule, cfg.tolerance, cfg.bias_every, self.env_steps)
+        if self.survivor is not None:
+            self.pacer.eliminated = True
 
-    # -- wiring -------------------------------------------------------------------------------
     def _restore(self, state: dict[str, Any]) -> None:
         self.agent.load_state_dict(state["agent"])
         c = state["counters"]
@@ -144,12 +90,12 @@ class Learner:
             self.replay_log.restore(self.buffer, meta["manifest"], int(meta["inserted"]), json.loads(meta["rng"]))
             if self.buffer.inserted != self.env_steps:
                 raise ValueError(f"checkpoint counts {self.env_steps} transitions, its replay {self.buffer.inserted}")
-        self.stream_rows = {k: int(v) for k, v in json.loads(c.get("stream_rows", "{}")).items()}
+        self.intake.stream_rows = {k: int(v) for k, v in json.loads(c.get("stream_rows", "{}")).items()}
         # Sequence numbers go on from the checkpoint: a gap then counts what died with the old
         # learner, until the workers' resends fill it.
-        self.tracker.restore(json.loads(c.get("per_worker", "{}")))
+        self.intake.tracker.restore(json.loads(c.get("per_worker", "{}")))
         if self.replay_log is not None:
-            self.acked = self._checkpointed_prefixes()
+            self.acked = self.intake.checkpointed_prefixes()
         # Policy versions jump past anything the dead incarnation can have published after this
         # checkpoint (at most checkpoint_every updates, one actor step per policy_delay of them).
         # Otherwise workers keep its newer-numbered weights, tag their transitions with versions
@@ -163,8 +109,7 @@ class Learner:
                  len(self.buffer))
 
     def serve(self) -> None:
-        run = self.cfg.run
-        s = self.session
+        run, s = self.cfg.run, self.session
         self.config_pub = bus.declare_latest_publisher(s, keys.config(run))
         self.weights_pubs = [bus.declare_latest_publisher(s, keys.weights(run, k)) for k in range(self.algo.actors)]
         self.stats_pub = bus.declare_latest_publisher(s, keys.learner_stats(run))
@@ -183,48 +128,35 @@ class Learner:
         try:
             self._loop()
         finally:
-            self.inbox.close()
-            self.allocation.close()
-            self.workers.close()
-            self.referees.close()
-            self.log_writer.close()
-            if self.bias_writer is not None:
-                self.bias_writer.close()
-            self.board.close()
+            for closable in (self.inbox, self.allocation, self.workers, self.referees, self.log_writer,
+                             self.bias_writer, self.board):
+                if closable is not None:
+                    closable.close()
 
-    # -- the loop -----------------------------------------------------------------------------
+    # -- the loop: receive, ingest, step the schedule, update, publish ----------------------------
     def _loop(self) -> None:
         self.publish_weights(all_actors=True)
-        last_stats = last_log = last_heartbeat = 0.0
-        self.last_checkpoint = (self.agent.updates, self.env_steps, time.monotonic())
-        last_sync = self.agent.updates
-        last_log_steps, last_log_updates, last_log_t = self.env_steps, self.agent.updates, time.monotonic()
-        self.rates = (0.0, 0.0)
+        self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
+        sync = role.Every(self.cfg.sync_every, start=self.agent.updates)  # counts updates
+        stats, heartbeat, log_row = role.Every(STATS_PERIOD_S), role.Every(HEARTBEAT_S), role.Every(LOG_PERIOD_S)
+        self.rates, self._rate_base = (0.0, 0.0), (self.env_steps, self.agent.updates, time.monotonic())
         while not self.stop_requested:
             self.ingest(self.inbox.drain(max_items=256))
             self.follow_allocation()
-            if self.bias_due():
+            if self.pacer.bias_due(self.env_steps, self.agent.updates):
                 self.measure_bias()  # the critic as trained on the point's transitions
             budget_done = self.env_steps >= self.schedule.budget
             ran = self.run_updates(deadline=time.monotonic() + 0.02)
-            if self.agent.updates - last_sync >= self.cfg.sync_every:
+            if sync.due(self.agent.updates):
                 self.publish_weights()
-                last_sync = self.agent.updates
             now = time.monotonic()
-            if now - last_stats >= STATS_PERIOD_S or ran == 0:
-                if now - last_stats >= STATS_PERIOD_S / 4:
-                    self.publish_stats()
-                    last_stats = now
-            if now - last_heartbeat >= HEARTBEAT_S:  # late joiners also get it from the cache
+            if stats.due(now, STATS_PERIOD_S if ran else STATS_PERIOD_S / 4):
+                self.publish_stats()
+            if heartbeat.due(now):  # late joiners also get it from the cache
                 self.publish_config()
-                last_heartbeat = now
-            if now - last_log >= LOG_PERIOD_S:
-                dt = max(now - last_log_t, 1e-9)
-                self.rates = ((self.env_steps - last_log_steps) / dt, (self.agent.updates - last_log_updates) / dt)
-                last_log_steps, last_log_updates, last_log_t = self.env_steps, self.agent.updates, now
-                self.write_log()
-                last_log = now
-            if self.checkpoint_due(now):
+            if log_row.due(now):
+                self.write_log(now)
+            if self.checkpoints.due(self.agent.updates, self.env_steps, now):
                 self.checkpoint()
             if not self.referee_seen and self.referees.live():
                 self.referee_seen = True
@@ -239,17 +171,8 @@ class Learner:
         self.write_log()
         self.checkpoint()
 
-    def checkpoint_due(self, now: float) -> bool:
-        """Every `checkpoint_every` updates, `checkpoint_rows` transitions or `checkpoint_seconds`
-        (whichever comes first; the time only when something changed). The rows bound also
-        bounds what workers keep for a resend (docs/DESIGN-DECISIONS.md, "Supervision")."""
-        updates, steps, t = self.last_checkpoint
-        if self.agent.updates - updates >= self.cfg.checkpoint_every:
-            return True
-        if self.env_steps - steps >= self.cfg.checkpoint_rows:
-            return True
-        changed = self.agent.updates != updates or self.env_steps != steps
-        return changed and now - t >= self.cfg.checkpoint_seconds
+    def ingest(self, items: list[bus.Received]) -> None:
+        self.env_steps += self.intake.ingest(items, self.agent.versions)
 
     def updates_allowed(self) -> int:
         """Rate limiter: utd updates per schedule step (iteration or transition) past the start."""
@@ -258,25 +181,9 @@ class Learner:
         return self.schedule.updates_allowed(self.env_steps)
 
     def accept_until(self) -> int:
-        """Credit: collection may run `tolerance` transitions ahead of what the updates have
-        consumed, and never past the next obsolescence round until the referee has published it."""
-        consumed = max(self.schedule.transitions_consumed(self.agent.updates), self.schedule.random_until)
-        limit = min(self.schedule.budget, consumed + self.cfg.tolerance)
-        boundary = self.next_round_boundary()
-        if boundary is not None and self.referees.live():
-            limit = min(limit, boundary)
-        return limit
-
-    def next_round_boundary(self) -> int | None:
-        """Transitions at the next allocation round (A, 2A, ... before C) or the elimination (C).
-
-        Rounds are barriers, as in Algorithm 1: the allocation for steps (jA, (j+1)A] is
-        decided from the evaluation at jA. Without a live referee there is no barrier.
-        """
-        if self.survivor is not None:
-            return None
-        barrier = self.schedule.next_barrier(self.round_done_at)
-        return None if barrier is None else self.schedule.transitions_at(barrier)
+        """The credit (mam_core/pacing.py): `tolerance` ahead of the updates, and no further than
+        the next round while a referee is live and has not published it."""
+        return self.pacer.accept_until(self.agent.updates, referee_live=bool(self.referees.live()))
 
     def run_updates(self, deadline: float) -> int:
         ran = 0
@@ -287,58 +194,6 @@ class Learner:
             if time.monotonic() > deadline:
                 break
         return ran
-
-    def ingest(self, items: list[bus.Received]) -> None:
-        for item in items:
-            sender = keys.parse_last(item.key)
-            try:
-                batch = TransitionBatch.from_bytes(item.payload, self.transition_spec, max_bytes=self.max_message)
-                if batch.worker != sender:
-                    raise MessageError("sender_mismatch", f"key says {sender}, message says {batch.worker}")
-                if batch.version > self.agent.versions[batch.actor]:
-                    raise MessageError("future_version", f"version {batch.version} > {self.agent.versions[batch.actor]}")
-            except MessageError as e:
-                self.rejects.reject(sender, e)
-                continue
-            status = self.tracker.observe(batch.worker, batch.incarnation, batch.batch_seq, resend=batch.resend)
-            if status == bus.DUPLICATE:
-                self.rejects.reject(sender, "duplicate")
-                continue
-            w = self._worker_entry(batch)
-            if status == bus.REDUNDANT:  # a resend of what this learner already has: dropped
-                w["redundant_rows"] += batch.rows
-                continue
-            self.buffer.add_batch(batch.obs, batch.action, batch.reward, batch.next_obs, batch.terminated,
-                                  actor=batch.actor, version=batch.version)
-            self.env_steps += batch.rows
-            stream = f"{batch.worker}/{batch.incarnation}"
-            self.stream_rows[stream] = self.stream_rows.get(stream, 0) + batch.rows
-            w["received"] += batch.rows
-            w["incarnation_rows"] += batch.rows
-            w["last_seq"] = max(w["last_seq"], batch.batch_seq)
-            w["actor"] = batch.actor
-            w["lag"] = self.agent.versions[batch.actor] - batch.version if batch.version >= 0 else 0
-            w["last_seen"] = time.monotonic()
-            w["rows_since"] += batch.rows
-            if batch.episode_return:
-                self.episode_returns.extend(batch.episode_return)
-
-    def _worker_entry(self, batch: TransitionBatch) -> dict[str, Any]:
-        w = self.per_worker.setdefault(batch.worker, {"received": 0, "rows_since": 0, "t_since": time.monotonic(),
-                                                      "rate": 0.0, "last_seq": -1, "actor": batch.actor, "lag": 0,
-                                                      "last_seen": time.monotonic()})
-        if w.get("incarnation") != batch.incarnation:
-            w["incarnation"], w["incarnation_rows"], w["redundant_rows"] = batch.incarnation, 0, 0
-            w["last_seq"] = -1
-        return w
-
-    def _checkpointed_prefixes(self) -> dict[str, tuple[str, int]]:
-        out = {}
-        for sender in self.tracker.per_sender():
-            prefix = self.tracker.contiguous(sender)
-            if prefix is not None:
-                out[sender] = prefix
-        return out
 
     def follow_allocation(self) -> None:
         """Lift the round barrier once the referee has published the round; train only the
@@ -351,26 +206,21 @@ class Learner:
         except MessageError as e:
             self.other_rejects.reject("allocation", e)
             return
-        if alloc.round > 0:  # env_steps: the transitions at which the current P was decided
-            a, c = self.algo.compete_every, self.algo.eliminate_at
-            units = self.schedule.units_at(alloc.env_steps)
-            done_at = c if units >= c else (units // a) * a
-            self.round_done_at = max(self.round_done_at, done_at)
+        self.pacer.on_allocation(alloc.round, alloc.env_steps, alloc.survivor)
         if alloc.survivor is not None and self.survivor is None:
             self.survivor = alloc.survivor
             self.agent.eliminate(alloc.survivor)
             log.info("eliminated all actors but %d at %d transitions", alloc.survivor, self.env_steps)
             self.publish_weights(all_actors=True)
 
-    # -- publishing ---------------------------------------------------------------------------
+    # -- publishing -------------------------------------------------------------------------------
     def publish_weights(self, all_actors: bool = False) -> None:
         live = self.agent.live_actors
         for k in range(self.algo.actors):
-            if not (live[k] or all_actors):
-                continue
-            msg = Weights(k, self.agent.versions[k], self.agent.actor_params(k), self.spec.obs_dim,
-                          self.spec.act_dim, max(self.spec.max_action), tuple(self.algo.hidden))
-            self.weights_pubs[k].put(msg.to_bytes(self.id, self._next_seq()))
+            if live[k] or all_actors:
+                msg = Weights(k, self.agent.versions[k], self.agent.actor_params(k), self.spec.obs_dim,
+                              self.spec.act_dim, max(self.spec.max_action), tuple(self.algo.hidden))
+                self.weights_pubs[k].put(msg.to_bytes(self.id, self._next_seq()))
 
     def _next_seq(self) -> int:
         self.seq += 1
@@ -378,25 +228,13 @@ class Learner:
 
     def stats(self, done: bool = False) -> LearnerStats:
         now = time.monotonic()
-        per_worker = {}
-        for wid, w in self.per_worker.items():
-            dt = now - w["t_since"]
-            if dt >= 1.0:
-                w["rate"], w["rows_since"], w["t_since"] = w["rows_since"] / dt, 0, now
-            per_worker[wid] = {"received": w["received"], "last_seq": w["last_seq"],
-                               "incarnation": w["incarnation"], "incarnation_rows": w["incarnation_rows"],
-                               "redundant_rows": w["redundant_rows"],
-                               "actor": w["actor"], "lag": w["lag"], "rate": round(w["rate"], 2)}
-        for wid, (incarnation, seq) in self.acked.items():  # what workers may stop keeping for a resend
-            entry = per_worker.setdefault(wid, {"received": 0, "last_seq": -1})
-            entry["acked_incarnation"], entry["acked_seq"] = incarnation, seq
         losses = {k.split("/", 1)[1]: v for k, v in self.metrics.items() if k.startswith("loss/")}
         q_means = [self.metrics.get(f"q/actor{k}", float("nan")) for k in range(self.algo.actors)]
         return LearnerStats(
             env_steps=self.env_steps, updates=self.agent.updates, accept_until=self.accept_until(),
-            utd=self.utd(), losses=losses, q_means=tuple(q_means),
-            versions=tuple(self.agent.versions), per_worker=per_worker, rejected=self.rejected(),
-            done=done, live=tuple(self.agent.live_actors), workers=self.active_workers(now),
+            utd=self.utd(), losses=losses, q_means=tuple(q_means), versions=tuple(self.agent.versions),
+            per_worker=self.intake.counters(now, self.acked), rejected=self.rejected(), done=done,
+            live=tuple(self.agent.live_actors), workers=max(len(self.workers.live()), self.intake.active(now)),
             steps=self.schedule.budget, incarnation=self.incarnation)
 
     @property
@@ -409,14 +247,9 @@ class Learner:
         consumed = max(self.iterations - self.algo.start_steps, 0)
         return self.agent.updates / consumed if consumed else 0.0
 
-    def active_workers(self, now: float) -> int:
-        """Workers sharing the credit: live tokens, or recent senders if tokens are not seen."""
-        recent = sum(1 for w in self.per_worker.values() if now - w["last_seen"] < 5.0)
-        return max(len(self.workers.live()), recent)
-
     def rejected(self) -> dict[str, int]:
         """Rejection counts by reason: transitions by reason, the allocation topic as allocation:<reason>."""
-        out = dict(self.rejects.counts())
+        out = dict(self.intake.rejects.counts())
         out.update({f"allocation:{r}": n for r, n in self.other_rejects.counts().items()})
         return out
 
@@ -426,38 +259,33 @@ class Learner:
     def publish_stats(self, done: bool = False) -> None:
         self.stats_pub.put(self.stats(done).to_bytes(self.id, self._next_seq()))
 
-    def write_log(self) -> None:
+    def write_log(self, now: float | None = None) -> None:
+        """One learner.jsonl row; with `now`, the rates since the previous such row first."""
+        if now is not None:
+            steps, updates, t = self._rate_base
+            dt = max(now - t, 1e-9)
+            self.rates = ((self.env_steps - steps) / dt, (self.agent.updates - updates) / dt)
+            self._rate_base = (self.env_steps, self.agent.updates, now)
+        tracker = self.intake.tracker
         row = {"t": round(time.monotonic() - self.started, 3), "env_steps": self.env_steps,
                "iterations": self.iterations, "updates": self.agent.updates, "utd": self.utd(),
                "transitions_per_s": round(self.rates[0], 2), "updates_per_s": round(self.rates[1], 2),
                "versions": list(self.agent.versions), "live": self.agent.live_actors,
-               "lost": self.tracker.lost, "duplicates": self.tracker.duplicates,
-               "rejected": self.rejects.total, "buffer": len(self.buffer),
-               "received": {w: d["received"] for w, d in self.per_worker.items()}}
+               "lost": tracker.lost, "duplicates": tracker.duplicates,
+               "rejected": self.intake.rejects.total, "buffer": len(self.buffer),
+               "received": {w: t.received for w, t in self.intake.workers.items()}}
         row.update(self.metrics)
-        if self.episode_returns:
-            row["train_return"] = float(np.mean(self.episode_returns))
-            self.episode_returns.clear()
+        if self.intake.episode_returns:
+            row["train_return"] = float(np.mean(self.intake.episode_returns))
+            self.intake.episode_returns.clear()
         self.log_writer.write(row)
-
-    def _next_bias_point(self) -> int | None:
-        """The next multiple of `bias_every` schedule steps (None: no bias measurement)."""
-        every = self.cfg.bias_every
-        return (self.iterations // every + 1) * every if every > 0 else None
-
-    def bias_due(self) -> bool:
-        """A bias point is reached and the updates have caught up with it."""
-        point = self.next_bias
-        return point is not None and self.iterations >= point and \
-            self.agent.updates >= self.schedule.updates_allowed(self.schedule.transitions_at(point))
 
     def measure_bias(self) -> None:
         """Eq. 17 for every live actor k: Q_k1(s0, π_k(s0)) of the current critic against the
         discounted Monte-Carlo return of π_k from the same initial states (`bias_rollouts`
         rollouts, seeded by the point so every variant of a seed starts from the same states).
         Training pauses meanwhile; the rate limiter holds the workers."""
-        point = self.next_bias
-        self.next_bias = self._next_bias_point()
+        point = self.pacer.take_bias_point(self.env_steps)
         started = time.monotonic()
         live = self.agent.live_actors
         seed = 1_000_003 * (self.algo.seed + 1) + point // self.cfg.bias_every * 1_009
@@ -478,19 +306,19 @@ class Learner:
 
     def checkpoint(self) -> None:
         started = time.monotonic()
-        counters = {"env_steps": self.env_steps, "per_worker": json.dumps(self.tracker.per_sender()),
-                    "stream_rows": json.dumps(self.stream_rows)}
+        counters = {"env_steps": self.env_steps, "per_worker": json.dumps(self.intake.tracker.per_sender()),
+                    "stream_rows": json.dumps(self.intake.stream_rows)}
         path = save_checkpoint(self.run_dir, self.agent, self.buffer, counters, self.cfg, self.replay_log)
-        self.last_checkpoint = (self.agent.updates, self.env_steps, time.monotonic())
+        self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
         if self.replay_log is not None:  # only now on disk: workers may drop what it holds
-            self.acked = self._checkpointed_prefixes()
+            self.acked = self.intake.checkpointed_prefixes()
         write_policy(self.run_dir, self.cfg, self.agent, self.env_steps, self.survivor)  # policy.npz (numpy)
         log.info("checkpoint %s at %d updates, %d transitions (%.2f s)", path, self.agent.updates, self.env_steps,
                  time.monotonic() - started)
 
     def finish(self) -> None:
         """Budget reached: final weights, checkpoint, then tell everyone until they have left."""
-        if self.next_bias is not None and self.iterations >= self.next_bias:
+        if self.pacer.bias_reached(self.env_steps):
             self.measure_bias()  # a point at the budget itself: the loop leaves before checking it
         self.publish_weights(all_actors=True)
         self.write_log()
@@ -510,18 +338,16 @@ class Learner:
         self.ingest(self.inbox.drain())
         self.checkpoint()  # with the rows that came in after done: the replay holds every counted row
         self.wait_for_referee(msg)
+        tracker = self.intake.tracker
         write_json(self.run_dir / "transport.json", {
-            "env_steps": self.env_steps, "iterations": self.iterations, "updates": self.agent.updates, "lost": self.tracker.lost,
-            "duplicates": self.tracker.duplicates, "rejected": self.rejected(),
-            "recovered": self.tracker.recovered, "redundant": self.tracker.redundant,
+            "env_steps": self.env_steps, "iterations": self.iterations, "updates": self.agent.updates,
+            "lost": tracker.lost, "duplicates": tracker.duplicates, "rejected": self.rejected(),
+            "recovered": tracker.recovered, "redundant": tracker.redundant,
             "replay_rows": self.buffer.inserted if self.replay_log is not None else None,
-            "per_worker": {w: {k: v for k, v in d.items() if k in ("received", "incarnation", "last_seq")}
-                           for w, d in self.per_worker.items()},
-            "rows_per_stream": dict(self.stream_rows), "streams": self.tracker.per_sender(),
+            **self.intake.transport(),
             "inbox_dropped": self.inbox.dropped})  # shed before decoding when the inbox overflowed
         log.info("done: %d transitions, %d updates, lost %d, duplicates %d, rejected %d", self.env_steps,
-                 self.agent.updates, self.tracker.lost, self.tracker.duplicates, self.rejects.total)
-
+                 self.agent.updates, tracker.lost, tracker.duplicates, self.intake.rejects.total)
 
     def wait_for_referee(self, msg: Done) -> None:
         """Stay up (repeating done) until the referee has written its final evaluation.
@@ -577,12 +403,7 @@ def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None
     write_json(run_dir / "config.json", cfg.to_dict())
     with bus.session_scope(conf, retry_for=30.0) as session:  # a router may still be starting
         learner = Learner(cfg, session, run_dir, state)
-
-        def on_signal(signum: int, _frame: Any) -> None:
-            learner.stop_requested = True
-
-        signal.signal(signal.SIGTERM, on_signal)
-        signal.signal(signal.SIGINT, on_signal)
+        role.stop_on_signals(learner)
         learner.serve()
 
 
@@ -590,64 +411,35 @@ app = typer.Typer(add_completion=False, help=__doc__)
 
 
 @app.command()
+@options.run_options()
 def learner_command(
-    env: options.Env = None, algo: options.Algo = None, steps: options.Steps = None,
-    env_kwargs: options.EnvKwargs = None,
-    actors: options.Actors = None, workers: options.Workers = None, eliminate_at: options.EliminateAt = None,
-    compete_every: options.CompeteEvery = None, eta: options.Eta = None, eval_episodes: options.EvalEpisodes = None,
-    eval_every: options.EvalEvery = None, start_steps: options.StartSteps = None, batch_size: options.BatchSize = None,
-    utd: options.Utd = None, no_ot: options.NoOt = None, no_wt: options.NoWt = None, seed: options.Seed = None,
-    device: options.Device = None, hidden: options.Hidden = None, config: options.ConfigFile = None,
-    single_env_after_elimination: options.SingleEnv = None,
-    bias_every: options.BiasEvery = None, bias_rollouts: options.BiasRollouts = None,
-    precision: options.Precision = None, schedule: options.Schedule = None, shared_batch: options.SharedBatch = None,
-    after_elimination: options.AfterElimination = None, skip_random_rounds: options.SkipRandomRounds = None,
-    bias_horizon: options.BiasHorizon = None,
-    run: options.Run = None, connect: options.Connect = None, listen: options.Listen = None,
-    zenoh_config: options.ZenohConfig = None, run_dir: options.RunDir = None,
-    sync_every: int = typer.Option(100, help="publish actor weights every N updates"),
-    checkpoint_every: int = typer.Option(50_000, help="updates between checkpoints"),
-    checkpoint_rows: int = typer.Option(20_000, help="... or transitions between checkpoints"),
-    checkpoint_seconds: float = typer.Option(60.0, help="... or seconds between checkpoints"),
-    save_replay: bool = typer.Option(True, "--save-replay/--no-save-replay",
-                                     help="persist the replay buffer beside the checkpoint (append-only chunks)"),
+    run_opts: dict[str, Any], config: options.ConfigFile = None, connect: options.Connect = None,
+    listen: options.Listen = None, zenoh_config: options.ZenohConfig = None, run_dir: options.RunDir = None,
     resume: Path = typer.Option(None, help="resume the run in this run directory from its checkpoint"),
     run_config: Path = typer.Option(None, help="a resolved config.json (written by `mam run`)"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Run the learner: replay buffer, K actors and n·K critics, weights and stats publisher."""
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    bus.init_zenoh_log()
+    role.setup_logging(verbose)
     if run_config is not None:
         cfg = RunConfig.from_dict(json.loads(run_config.read_text()))
     elif resume is not None:
         cfg = RunConfig.from_dict(json.loads((resume / "config.json").read_text()))
     else:
-        cfg = options.build_run_config(dict(
-            env=env, algo=algo, steps=steps, actors=actors, workers=workers, eliminate_at=eliminate_at,
-            env_kwargs=env_kwargs,
-            compete_every=compete_every, eta=eta, eval_episodes=eval_episodes, eval_every=eval_every,
-            start_steps=start_steps, batch_size=batch_size, utd=utd, no_ot=no_ot, no_wt=no_wt, seed=seed,
-            device=device, hidden=hidden, single_env_after_elimination=single_env_after_elimination, run=run,
-            sync_every=sync_every, checkpoint_every=checkpoint_every, checkpoint_rows=checkpoint_rows,
-            checkpoint_seconds=checkpoint_seconds, save_replay=save_replay,
-            bias_every=bias_every, bias_rollouts=bias_rollouts, precision=precision, schedule=schedule,
-            shared_batch=shared_batch, after_elimination=after_elimination, skip_random_rounds=skip_random_rounds,
-            bias_horizon=bias_horizon), config)
+        cfg = options.build_run_config(run_opts, config)
+    steps = run_opts["steps"]
     if steps is not None and (run_config is not None or resume is not None):
         cfg = RunConfig.from_dict({**cfg.to_dict(), "steps": steps})
     options.check_precision(cfg)
     if not listen and not connect and cfg.endpoint:
         listen = [cfg.endpoint]  # a resumed or launched learner comes back where its clients look
-    listen = listen or ([] if connect or zenoh_config else ["tcp/0.0.0.0:7447"])
+    listen = listen or ([] if connect or zenoh_config else [role.LISTEN_ALL])
     conf = bus.make_config(connect=connect, listen=listen, config_file=zenoh_config)
     directory = resume or run_dir or Path("runs") / cfg.run
     main(cfg, conf, directory, resume=resume is not None)
 
 
-def cli() -> None:
-    app()
+cli = app  # the `mam-learner` entry point
 
 
 if __name__ == "__main__":

@@ -14,7 +14,7 @@ import typer
 from rich.console import Console
 from rich.live import Live
 
-from services import bus, keys, options
+from services import bus, keys, options, role
 from services.codec import Allocation, Done, Eval, LearnerStats, MessageError, decode
 from services.monitor_view import MonitorState, render
 from services.options import RunConfig
@@ -100,12 +100,10 @@ def monitor_command(
     if not run:
         raise typer.BadParameter("--run NAME is required")
     options.check_run_name(run)
-    conf = bus.make_config(connect=connect or ([] if zenoh_config else ["tcp/127.0.0.1:7447"]), config_file=zenoh_config)
-    watch(run, conf, until_done=not keep)
+    watch(run, role.client_config(connect, None, zenoh_config), until_done=not keep)
 
 
-def cli() -> None:
-    app()
+cli = app  # the `mam-monitor` entry point
 
 
 if __name__ == "__main__":

@@ -8,11 +8,14 @@ and monitors need only `--run` and `--connect`.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import inspect
 import json
 import os
 import re
 import time
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Optional
@@ -20,64 +23,173 @@ from typing import Annotated, Any, Optional
 import typer
 
 from mam_core.config import AFTER_ELIMINATION, ALGOS, SCHEDULES, AlgoConfig, resolve
+from services import keys
 
-# -- algorithm flags (paper symbol in brackets), the same on every command that takes them ----
-Env = Annotated[Optional[str], typer.Option(
-    "--env", help="Gymnasium env id, e.g. HalfCheetah-v5 or AppleCollect-v0, or module.path:EnvId (the module "
-    "registers the env when imported; it must import on every host)")]
-EnvKwargs = Annotated[Optional[str], typer.Option(
-    "--env-kwargs", help='JSON object of keyword arguments for gym.make, e.g. \'{"ctrl_cost_weight": 0.05}\'')]
-Algo = Annotated[Optional[str], typer.Option("--algo", help=f"one of {', '.join(ALGOS)}")]
-Steps = Annotated[Optional[int], typer.Option("--steps", help="[T] budget in schedule steps: iterations (--schedule paper) or transitions (equal-data)")]
-Actors = Annotated[Optional[int], typer.Option("--actors", help="[K] number of actors")]
-Workers = Annotated[Optional[int], typer.Option("--workers", help="[M] environment slots (worker processes)")]
-EliminateAt = Annotated[Optional[int], typer.Option("--eliminate-at", help="[C] schedule step (iteration or transition) of the elimination")]
-CompeteEvery = Annotated[Optional[int], typer.Option("--compete-every", help="[A] schedule steps between allocation rounds")]
-Eta = Annotated[Optional[float], typer.Option("--eta", help="[η] weight of the other actors' Q-values (Eq. 9)")]
-EvalEpisodes = Annotated[Optional[int], typer.Option("--eval-episodes", help="episodes per actor per evaluation")]
-EvalEvery = Annotated[Optional[int], typer.Option("--eval-every", help="schedule steps between evaluations after elimination")]
-StartSteps = Annotated[Optional[int], typer.Option("--start-steps", help="first schedule steps use uniform random actions (and no updates)")]
-BatchSize = Annotated[Optional[int], typer.Option("--batch-size", help="mini-batch size")]
-Utd = Annotated[Optional[float], typer.Option("--utd", help="gradient updates per schedule step (per iteration, or per transition)")]
-NoOt = Annotated[Optional[bool], typer.Option("--no-ot", help="ablation: uniform fixed allocation, no elimination")]
-NoWt = Annotated[Optional[bool], typer.Option("--no-wt", help="ablation: no Q-value weighting (η = 0)")]
-Seed = Annotated[Optional[int], typer.Option("--seed", help="random seed")]
-Device = Annotated[Optional[str], typer.Option("--device", help="auto, cpu or cuda (learner)")]
-Hidden = Annotated[Optional[str], typer.Option("--hidden", help="hidden layer sizes, e.g. 256,256")]
-Precision = Annotated[Optional[str], typer.Option(
-    "--precision", help="learner GEMMs: fp32, or bf16 (mixed precision: hidden-to-hidden layers in bfloat16)")]
-BiasEvery = Annotated[Optional[int], typer.Option(
-    "--bias-every", help="measure the Eq. 17 estimation bias every N schedule steps in the learner (0: off)")]
-BiasRollouts = Annotated[Optional[int], typer.Option(
-    "--bias-rollouts", help="Monte-Carlo rollouts per bias measurement (default 20, as in the paper)")]
-ConfigFile = Annotated[Optional[Path], typer.Option("--config", help="TOML file holding any of these options")]
-SingleEnv = Annotated[Optional[bool], typer.Option(
-    "--single-env-after-elimination", help="the survivor runs one slot only (implied by --schedule paper)")]
-Schedule = Annotated[Optional[str], typer.Option(
-    "--schedule", help=f"{' or '.join(SCHEDULES)} (default paper): paper = Algorithm 1, --steps/--start-steps/"
-                       "--compete-every/--eliminate-at/--eval-every/--bias-every count iterations (M transitions "
-                       "and one update each before C, one transition after); equal-data = they count transitions "
-                       "and --utd gives updates per transition")]
-SharedBatch = Annotated[Optional[bool], typer.Option(
-    "--shared-batch", help="one mini-batch for all actors (default: one per actor, as in Algorithm 1)")]
-AfterElimination = Annotated[Optional[str], typer.Option(
-    "--after-elimination", help=f"{', '.join(AFTER_ELIMINATION)} (default frozen): the eliminated actors' "
-                                "critics after C stay frozen in Eq. 9, keep training, or leave Eq. 9 (η → 0)")]
-SkipRandomRounds = Annotated[Optional[bool], typer.Option(
-    "--skip-random-rounds", help="no allocation round during the random start phase (default: rounds from A on)")]
-BiasHorizon = Annotated[Optional[str], typer.Option(
-    "--bias-horizon", help="Eq. 17's Monte-Carlo Q*: critic (default: adds the bootstrap tail γ^T·Q(s_T, π(s_T)) "
-                           "at a time limit, the critic's own horizon) or episode (cut at the time limit)")]
+# -- the run options: one table -----------------------------------------------------------------
+ALGO, RUN = "algo", "run"  # where a run option lands: an AlgoConfig field or a RunConfig field
+BIAS_HORIZONS = ("critic", "episode")
+
+
+@dataclass(frozen=True)
+class RunOption:
+    """One run option: the same flag on `mam run` and `mam-learner` (and `mam experiment`), the
+    same key in a TOML file. Per-algorithm defaults live in mam_core.config (`defaults_for`),
+    the service defaults in `RunConfig`; a flag left out is None and takes them."""
+
+    name: str  # the TOML key and `build_run_config` key (`-` in a TOML key reads as `_`)
+    type: type  # str, int, float or bool
+    help: str
+    target: str = ALGO  # ALGO: an AlgoConfig field; RUN: a RunConfig field
+    symbol: str = ""  # the paper's symbol, shown in brackets in the help
+    multi_actor: bool = False  # only meaningful with K > 1 actors
+    flags: tuple[str, ...] = ()  # the command-line declaration; default --name-with-dashes
+    cli: bool = True  # False: TOML only (no flag)
+    aliases: tuple[str, ...] = ()  # other accepted keys (TOML and build_run_config)
+
+    @property
+    def decls(self) -> tuple[str, ...]:
+        return self.flags or ("--" + self.name.replace("_", "-"),)
+
+    @property
+    def annotation(self) -> Any:
+        """The typer parameter type: Optional[type] with the flag and its help."""
+        text = f"[{self.symbol}] {self.help}" if self.symbol else self.help
+        return Annotated[Optional[self.type], typer.Option(*self.decls, help=text)]
+
+
+def _opt(name: str, type_: type, help: str, **kw: Any) -> RunOption:  # noqa: A002
+    return RunOption(name, type_, help, **kw)
+
+
+_SCHEDULE_HELP = (f"{' or '.join(SCHEDULES)} (default paper): paper = Algorithm 1, --steps/--start-steps/"
+                  "--compete-every/--eliminate-at/--eval-every/--bias-every count iterations (M transitions "
+                  "and one update each before C, one transition after); equal-data = they count transitions "
+                  "and --utd gives updates per transition")
+
+RUN_OPTIONS: tuple[RunOption, ...] = (
+    _opt("env", str, "Gymnasium env id, e.g. HalfCheetah-v5 or AppleCollect-v0, or module.path:EnvId (the module "
+         "registers the env when imported; it must import on every host)", target=RUN, aliases=("env_id",)),
+    _opt("env_kwargs", str, 'JSON object of keyword arguments for gym.make, e.g. \'{"ctrl_cost_weight": 0.05}\' '
+         "(in TOML: a table)", target=RUN),
+    _opt("algo", str, f"one of {', '.join(ALGOS)}"),
+    _opt("steps", int, "budget in schedule steps: iterations (--schedule paper) or transitions (equal-data)",
+         symbol="T", target=RUN),
+    _opt("actors", int, "number of actors", symbol="K"),
+    _opt("workers", int, "environment slots (worker processes)", symbol="M"),
+    _opt("eliminate_at", int, "schedule step (iteration or transition) of the elimination", symbol="C",
+         multi_actor=True),
+    _opt("compete_every", int, "schedule steps between allocation rounds", symbol="A", multi_actor=True),
+    _opt("eta", float, "weight of the other actors' Q-values (Eq. 9)", symbol="η", multi_actor=True),
+    _opt("eval_episodes", int, "episodes per actor per evaluation"),
+    _opt("eval_every", int, "schedule steps between evaluations after elimination"),
+    _opt("start_steps", int, "first schedule steps use uniform random actions (and no updates)"),
+    _opt("batch_size", int, "mini-batch size"),
+    _opt("utd", float, "gradient updates per schedule step (per iteration, or per transition)"),
+    _opt("no_ot", bool, "ablation: uniform fixed allocation, no elimination", multi_actor=True),
+    _opt("no_wt", bool, "ablation: no Q-value weighting (η = 0)", multi_actor=True),
+    _opt("seed", int, "random seed"),
+    _opt("device", str, "auto, cpu or cuda (learner)"),
+    _opt("hidden", str, "hidden layer sizes, e.g. 256,256"),
+    _opt("precision", str, "learner GEMMs: fp32, or bf16 (mixed precision: hidden-to-hidden layers in bfloat16)"),
+    _opt("single_env_after_elimination", bool, "the survivor runs one slot only (implied by --schedule paper)",
+         multi_actor=True),
+    _opt("schedule", str, _SCHEDULE_HELP),
+    _opt("shared_batch", bool, "one mini-batch for all actors (default: one per actor, as in Algorithm 1)",
+         multi_actor=True),
+    _opt("after_elimination", str, f"{', '.join(AFTER_ELIMINATION)} (default frozen): the eliminated actors' "
+         "critics after C stay frozen in Eq. 9, keep training, or leave Eq. 9 (η → 0)", multi_actor=True),
+    _opt("skip_random_rounds", bool, "no allocation round during the random start phase (default: rounds from A on)",
+         multi_actor=True),
+    _opt("bias_every", int, "measure the Eq. 17 estimation bias every N schedule steps in the learner (0: off)",
+         target=RUN),
+    _opt("bias_rollouts", int, "Monte-Carlo rollouts per bias measurement (default 20, as in the paper)", target=RUN),
+    _opt("bias_horizon", str, "Eq. 17's Monte-Carlo Q*: critic (default: adds the bootstrap tail γ^T·Q(s_T, π(s_T)) "
+         "at a time limit, the critic's own horizon) or episode (cut at the time limit)", target=RUN),
+    _opt("run", str, "run name: the key-expression namespace mam/<run>/...", target=RUN),
+    _opt("sync_every", int, "publish actor weights every N updates (default 100)", target=RUN),
+    _opt("save_replay", bool, "persist the replay buffer beside the checkpoint as append-only chunks (default: on)",
+         target=RUN, flags=("--save-replay/--no-save-replay",)),
+    _opt("checkpoint_every", int, "checkpoint every N updates (default 50000) ...", target=RUN),
+    _opt("checkpoint_rows", int, "... or N transitions (default 20000) ...", target=RUN),
+    _opt("checkpoint_seconds", float, "... or N seconds (default 60)", target=RUN),
+    # TOML only: knobs of the algorithm and the services that no command line needs
+    _opt("send_batch", int, "transitions per message from a worker", target=RUN, cli=False),
+    _opt("band", int, "rate limiter tolerance in transitions (0: automatic)", target=RUN, cli=False),
+    _opt("learner_threads", int, "torch threads of the learner (0: torch's default)", target=RUN, cli=False),
+    _opt("critics_per_actor", int, "critics per actor", symbol="n", cli=False),
+    _opt("lr", float, "actor and critic learning rate (Adam)", cli=False),
+    _opt("tau", float, "soft target update rate (Eq. 4)", symbol="τ", cli=False),
+    _opt("gamma", float, "discount", symbol="γ", cli=False),
+    _opt("explore_noise", float, "σ of the Gaussian exploration noise, times max_action", cli=False),
+    _opt("policy_noise", float, "σ̃ of the target policy smoothing, times max_action", cli=False),
+    _opt("noise_clip", float, "clip of the smoothing noise, times max_action", symbol="c", cli=False),
+    _opt("target_smoothing", bool, "TD3's target policy smoothing", cli=False),
+    _opt("policy_delay", int, "actor and target updates every d critic updates", symbol="d", cli=False),
+    _opt("buffer_size", int, "replay buffer capacity", cli=False),
+)
+OPTION = {o.name: o for o in RUN_OPTIONS}
+_KEYS = {alias: o.name for o in RUN_OPTIONS for alias in (o.name, *o.aliases)}
+
+
+def cli_options(exclude: tuple[str, ...] | frozenset[str] = ()) -> tuple[RunOption, ...]:
+    """The run options that are command-line flags, less `exclude`."""
+    return tuple(o for o in RUN_OPTIONS if o.cli and o.name not in exclude)
+
+
+def run_options(exclude: tuple[str, ...] = ()) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """Decorator for a typer command: adds one keyword parameter per run option (less
+    `exclude`) and calls the command with them gathered in `run_opts` (name -> value or None).
+
+        @app.command()
+        @options.run_options()
+        def run(run_opts: dict[str, Any], config: options.ConfigFile = None) -> None: ...
+    """
+
+    def wrap(fn: Callable[..., Any]) -> Callable[..., Any]:
+        table = cli_options(frozenset(exclude))
+        own = [p for p in inspect.signature(fn, eval_str=True).parameters.values() if p.name != "run_opts"]
+        clash = {p.name for p in own} & {o.name for o in table}
+        if clash:
+            raise TypeError(f"{fn.__name__}: parameters {sorted(clash)} clash with run options")
+        params = [inspect.Parameter(o.name, inspect.Parameter.KEYWORD_ONLY, default=None, annotation=o.annotation)
+                  for o in table]
+        own = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in own]
+
+        @functools.wraps(fn)
+        def command(**kwargs: Any) -> Any:
+            run_opts = {o.name: kwargs.pop(o.name) for o in table}
+            return fn(run_opts=run_opts, **kwargs)
+
+        command.__signature__ = inspect.Signature(params + own)  # type: ignore[attr-defined]
+        command.__annotations__ = {p.name: p.annotation for p in params + own}
+        del command.__wrapped__  # typer reads the signature above, not fn's
+        return command
+
+    return wrap
+
+
+# -- Annotated types of single flags (other commands and `mam experiment` use them) ---------------
+Env, EnvKwargs, Algo, Steps = (OPTION[n].annotation for n in ("env", "env_kwargs", "algo", "steps"))
+Actors, Workers, EliminateAt, CompeteEvery, Eta = (
+    OPTION[n].annotation for n in ("actors", "workers", "eliminate_at", "compete_every", "eta"))
+EvalEpisodes, EvalEvery, StartSteps, BatchSize, Utd = (
+    OPTION[n].annotation for n in ("eval_episodes", "eval_every", "start_steps", "batch_size", "utd"))
+NoOt, NoWt, Seed, Device, Hidden, Precision = (
+    OPTION[n].annotation for n in ("no_ot", "no_wt", "seed", "device", "hidden", "precision"))
+BiasEvery, BiasRollouts, BiasHorizon = (OPTION[n].annotation for n in ("bias_every", "bias_rollouts", "bias_horizon"))
+SingleEnv, Schedule, SharedBatch, AfterElimination, SkipRandomRounds = (
+    OPTION[n].annotation for n in ("single_env_after_elimination", "schedule", "shared_batch", "after_elimination",
+                                   "skip_random_rounds"))
+ConfigFile = Annotated[Optional[Path], typer.Option("--config", help="TOML file holding any of the run options")]
 
 # -- network flags ----------------------------------------------------------------------------
-Run = Annotated[Optional[str], typer.Option("--run", help="run name: the key-expression namespace mam/<run>/...")]
-Connect = Annotated[Optional[list[str]], typer.Option("--connect", help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447")]
-Listen = Annotated[Optional[list[str]], typer.Option("--listen", help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447")]
+Run = OPTION["run"].annotation
+Connect = Annotated[Optional[list[str]], typer.Option(
+    "--connect", help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447")]
+Listen = Annotated[Optional[list[str]], typer.Option(
+    "--listen", help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447")]
 ZenohConfig = Annotated[Optional[Path], typer.Option("--zenoh-config", help="Zenoh JSON5 config file")]
 RunDir = Annotated[Optional[Path], typer.Option("--run-dir", help="directory for this process's logs and outputs")]
-
-BIAS_HORIZONS = ("critic", "episode")
-_RUN_NAME = re.compile(r"[A-Za-z0-9_.\-]+")
 
 
 @dataclass(frozen=True)
@@ -145,9 +257,8 @@ class RunConfig:
 
 
 def check_run_name(name: str) -> str:
-    if not _RUN_NAME.fullmatch(name or "") or len(name) > 128:
-        raise ValueError(f"run name {name!r}: use letters, digits, '_', '.', '-' only")
-    return name
+    """A run name is one key chunk (services/keys.py): letters, digits, '_', '.', '-'."""
+    return keys.check_name(name, "run name")
 
 
 def check_env_kwargs(value: Any) -> dict[str, Any]:
@@ -170,8 +281,18 @@ def default_run_name(env_id: str, algo: str) -> str:
     return f"{algo}-{env}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid() % 10000}"
 
 
+def _canonical(key: str, where: str) -> str:
+    """The table name of an option key (`-` read as `_`, aliases resolved); unknown: BadParameter."""
+    name = _KEYS.get(key.replace("-", "_"))
+    if name is None:
+        raise typer.BadParameter(f"{where}: unknown option {key!r} (the run options are listed in "
+                                 "services/options.py RUN_OPTIONS)")
+    return name
+
+
 def load_toml(path: Path | None) -> dict[str, Any]:
-    """A TOML file's options with `-` in keys read as `_` (`eliminate-at` == `eliminate_at`)."""
+    """A TOML file's run options by table name (`eliminate-at` == `eliminate_at`). Sections
+    (e.g. [obsolescence]) only group options; `env_kwargs` is a table of gym.make arguments."""
     if path is None:
         return {}
     if not path.is_file():
@@ -182,27 +303,19 @@ def load_toml(path: Path | None) -> dict[str, Any]:
         raise typer.BadParameter(f"{path}: {e}") from e
     flat: dict[str, Any] = {}
     for key, value in data.items():
-        if key.replace("-", "_") == "env_kwargs":  # a table of gym.make arguments, not a section
-            flat["env_kwargs"] = value
-        elif isinstance(value, dict):  # sections (e.g. [obsolescence]) only group options
-            flat.update({k.replace("-", "_"): v for k, v in value.items()})
+        if isinstance(value, dict) and key.replace("-", "_") != "env_kwargs":
+            flat.update({_canonical(k, str(path)): v for k, v in value.items()})
         else:
-            flat[key.replace("-", "_")] = value
+            flat[_canonical(key, str(path))] = value
     return flat
 
 
-_RUN_FIELDS = {"run", "env_id", "env", "steps", "algo", "sync_every", "checkpoint_every", "checkpoint_rows",
-               "checkpoint_seconds", "send_batch", "band", "save_replay", "learner_threads", "bias_every",
-               "bias_rollouts", "bias_horizon", "env_kwargs"}
-
-
 def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig:
-    """Merge TOML and command-line values (command line wins) into a validated RunConfig."""
+    """Merge TOML and command-line values (command line wins) into a validated RunConfig.
+    `cli` maps run option names (or aliases) to values; None means not given."""
     merged = load_toml(config_file)
-    merged.update({k: v for k, v in cli.items() if v is not None})
-    if "env" in merged:
-        merged["env_id"] = merged.pop("env")
-    env_id = merged.pop("env_id", None)
+    merged.update({_canonical(k, "command line"): v for k, v in cli.items() if v is not None})
+    env_id = merged.pop("env", None)
     if not env_id:
         raise typer.BadParameter("--env is required (in a flag or the --config file)")
     try:
@@ -210,15 +323,15 @@ def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig
     except ValueError as e:
         raise typer.BadParameter(f"--env-kwargs: {e}") from None
     check_env_id(env_id, env_kwargs)
-    if env_kwargs:
-        merged["env_kwargs"] = env_kwargs
     algo_name = merged.pop("algo", None) or "ma-td3"
     if algo_name not in ALGOS:
         raise typer.BadParameter(f"--algo must be one of {', '.join(ALGOS)}, not {algo_name!r}")
     steps = merged.pop("steps", None)
     if steps is None or int(steps) < 1:
         raise typer.BadParameter("--steps must be a positive number of transitions")
-    run_fields = {k: merged.pop(k) for k in list(merged) if k in _RUN_FIELDS}
+    run_fields = {k: merged.pop(k) for k in list(merged) if OPTION[k].target == RUN}
+    if env_kwargs:
+        run_fields["env_kwargs"] = env_kwargs
     if isinstance(merged.get("hidden"), str):
         merged["hidden"] = tuple(int(h) for h in merged["hidden"].split(",") if h.strip())
     try:

@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import signal
 import socket
 import time
 from pathlib import Path
@@ -25,12 +24,11 @@ import typer
 import mam_core.envs  # noqa: F401
 from mam_core.evaluation import eval_seed, evaluate_policy
 from mam_core.obsolescence import Obsolescence, best_actors, counts, obsolescence_for
-from mam_core.policy import EnvSpec, NumpyActors, Policy
+from mam_core.policy import EnvSpec, Policy
 from mam_core.schedule import Schedule
-from services import bus, keys, options, tb
-from services.codec import Allocation, Eval, LearnerStats, MessageError, Weights, encode
+from services import bus, keys, options, role, tb
+from services.codec import Allocation, Eval, LearnerStats, MessageError
 from services.options import JsonlWriter, RunConfig, write_json
-from services.worker import REPORT_EVERY_S, fetch_config, plausible_version
 
 log = logging.getLogger("mam.referee")
 
@@ -47,9 +45,9 @@ class Referee:
         self.id = f"{socket.gethostname()}-{os.getpid()}"
         self.rejects = bus.RejectLog(log, "message")
         self.spec = EnvSpec.from_env_id(cfg.env_id, cfg.env_kwargs)
-        self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden)  # acting only: no torch
-        self.shapes = self.actors.shapes
-        self.versions = [-1] * self.algo.actors
+        self.follower = role.WeightsFollower(self.algo.actors, self.spec, self.algo.hidden, self.rejects)
+        self.actors = self.follower.actors  # acting only: no torch
+        self.versions = self.follower.versions
         self.schedule: Obsolescence = obsolescence_for(self.algo)  # counts schedule steps (units)
         self.clock = Schedule.for_run(self.algo, cfg.steps)  # transitions <-> iterations
         self.rng = np.random.default_rng(self.algo.seed + 17)
@@ -96,8 +94,7 @@ class Referee:
         self.done = bus.Latest.subscribe(s, keys.done(run))
         self.workers = bus.watch_alive(s, run, "worker")
         self.token = bus.declare_alive(s, run, "referee", self.id)
-        self.report_pub = bus.declare_reliable_publisher(s, keys.role_stats(run, "referee", self.id))
-        self.last_report = 0.0
+        self.report = role.RoleReport(s, run, "referee", self.id)
         self.board = tb.RunBoard(self.run_dir, "referee")  # RUN_DIR/tb/referee: the JSONL rows' scalars
         self.alloc_log = self.board.tee(JsonlWriter(self.run_dir / "allocation.jsonl"), tb.allocation_scalars)
         self.eval_log = self.board.tee(JsonlWriter(self.run_dir / "eval.jsonl"), tb.eval_scalars)
@@ -136,18 +133,7 @@ class Referee:
                 self.stats_sub.wait_fresh(timeout=0.1)
 
     def refresh(self) -> None:
-        for key, item in self.weights.fresh().items():
-            try:
-                w = Weights.from_bytes(item.payload, self.shapes, self.algo.actors)
-            except MessageError as e:
-                self.rejects.reject(keys.parse_last(key), e)
-                continue
-            if not plausible_version(w, self.stats):
-                self.rejects.reject(keys.parse_last(key), MessageError("future_version", f"v{w.version}"))
-                continue
-            if w.version >= self.versions[w.actor]:
-                self.actors.load_member(w.actor, w.params)
-                self.versions[w.actor] = w.version
+        self.follower.follow(self.weights, self.stats)
         item = self.stats_sub.fresh().get(keys.learner_stats(self.cfg.run))
         if item is not None:
             try:
@@ -176,7 +162,8 @@ class Referee:
         self.eval_pub.put(msg.to_bytes(self.id, self._next_seq()))
         self.eval_log.write({"t": round(time.monotonic() - self.started, 3), "round": self.eval_round,
                              "env_steps": steps, "iterations": self.clock.units_at(steps),
-                             "updates": self.stats.updates if self.stats else 0, "returns": returns, "mean": means, "versions": list(self.versions),
+                             "updates": self.stats.updates if self.stats else 0, "returns": returns, "mean": means,
+                             "versions": list(self.versions),
                              "bias": None})
         log.info("eval at %d steps: %s", steps, [None if m is None else round(m, 2) for m in means])
         return means
@@ -225,7 +212,8 @@ class Referee:
         self.last_publish = time.monotonic()
         now_steps = self.stats.env_steps if self.stats else steps
         self.alloc_log.write({"t": round(time.monotonic() - self.started, 3), "round": self.schedule.round,
-                              "env_steps": max(now_steps, steps), "iterations": self.clock.units_at(max(now_steps, steps)),
+                              "env_steps": max(now_steps, steps),
+                              "iterations": self.clock.units_at(max(now_steps, steps)),
                               "decided_at": steps, "returns": returns, "tie": tie,
                               "probabilities": [float(p) for p in self.schedule.probabilities], "counts": i_k,
                               "slots": dict(self.slots), "eliminated": [bool(e) for e in self.schedule.eliminated],
@@ -233,13 +221,13 @@ class Referee:
         log.info("allocation (%s) round %d: P=%s I=%s", reason, self.schedule.round,
                  np.round(self.schedule.probabilities, 3).tolist(), i_k)
 
-    def publish_report(self) -> None:
-        """The referee's counters on mam/<run>/stats/referee-<id> (rejections are visible there)."""
-        now = time.monotonic()
-        if now - self.last_report >= REPORT_EVERY_S:
-            body = {"role": "referee", "id": self.id, "round": self.schedule.round, "rejected": self.rejects.counts()}
-            self.report_pub.put(encode("role_stats", body, sender=self.id, seq=self._next_seq()))
-            self.last_report = now
+    def publish_report(self, final: bool = False) -> None:
+        """The referee's counters on mam/<run>/stats/referee-<id> (rejections are visible there);
+        `final` once the final evaluation is written (the learner waits for it)."""
+        fields = {"round": self.schedule.round, "rejected": self.rejects.counts()}
+        if final:
+            fields["final"] = True
+        self.report.publish(fields, seq=self._next_seq, force=final)
 
     def final_evaluation(self) -> None:
         """After the learner's `done`: evaluate the final weights and write summary.json."""
@@ -261,10 +249,8 @@ class Referee:
             "rounds": self.schedule.round, "probabilities": self.schedule.probabilities.tolist(),
             "rejected": self.rejects.counts()})
         # The learner stays up until it sees this (a restarted referee still needs its caches).
-        body = {"role": "referee", "id": self.id, "round": self.schedule.round, "rejected": self.rejects.counts(),
-                "final": True}
         for _ in range(3):  # the last put before close can be lost
-            self.report_pub.put(encode("role_stats", body, sender=self.id, seq=self._next_seq()))
+            self.publish_report(final=True)
             time.sleep(0.1)
 
     def _next_seq(self) -> int:
@@ -275,14 +261,9 @@ class Referee:
 def main(run: str, conf: Any, run_dir: Path) -> None:
     run_dir.mkdir(parents=True, exist_ok=True)
     with bus.session_scope(conf, retry_for=30.0) as session:
-        cfg = fetch_config(session, run, bus.RejectLog(log, "config"))
+        cfg = role.fetch_config(session, run, bus.RejectLog(log, "config"))
         referee = Referee(cfg, session, run_dir)
-
-        def on_signal(signum: int, _frame: Any) -> None:
-            referee.stop_requested = True
-
-        signal.signal(signal.SIGTERM, on_signal)
-        signal.signal(signal.SIGINT, on_signal)
+        role.stop_on_signals(referee)
         referee.serve()
 
 
@@ -296,18 +277,14 @@ def referee_command(
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Run the referee of a run: evaluation rounds, P_k, slot allocation, elimination."""
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    bus.init_zenoh_log()
+    role.setup_logging(verbose)
     if not run:
         raise typer.BadParameter("--run NAME is required")
     options.check_run_name(run)
-    conf = bus.make_config(connect=connect or ([] if zenoh_config else ["tcp/127.0.0.1:7447"]), listen=listen, config_file=zenoh_config)
-    main(run, conf, run_dir or Path("runs") / run)
+    main(run, role.client_config(connect, listen, zenoh_config), run_dir or Path("runs") / run)
 
 
-def cli() -> None:
-    app()
+cli = app  # the `mam-referee` entry point
 
 
 if __name__ == "__main__":

@@ -12,13 +12,11 @@ shows every access-control decision (deploy/zenoh/router-tls.json5, docs/DEPLOY.
 from __future__ import annotations
 
 import logging
-import signal
 import threading
 
 import typer
-import zenoh
 
-from services import bus, options
+from services import bus, options, role
 
 log = logging.getLogger("mam.router")
 
@@ -36,18 +34,15 @@ def router_command(
     listen: options.Listen = None, connect: options.Connect = None, zenoh_config: options.ZenohConfig = None,
 ) -> None:
     """Run a Zenoh router (default: listen on tcp/0.0.0.0:7447) until SIGTERM / Ctrl-C."""
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    zenoh.init_log_from_env_or("warn")
-    listen = listen or ([] if zenoh_config else ["tcp/0.0.0.0:7447"])
+    role.setup_logging()
+    listen = listen or ([] if zenoh_config else [role.LISTEN_ALL])
     conf = bus.make_config(connect=connect, listen=listen, config_file=zenoh_config, mode="router")
     stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
+    role.stop_on_signals(stop.set)
     serve(conf, stop)
 
 
-def cli() -> None:
-    app()
+cli = app  # `mam router`
 
 
 if __name__ == "__main__":

@@ -10,11 +10,9 @@ pauses when the learner's credit is used up, and exits when the run is done.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import os
-import signal
 import socket
 import time
 import uuid
@@ -26,18 +24,16 @@ import numpy as np
 import typer
 
 from mam_core.envs import make_env  # registers AppleCollect-v0; imports `module:EnvId` modules
-from mam_core.policy import EnvSpec, NumpyActors
+from mam_core.policy import EnvSpec
 from mam_core.schedule import Schedule
-from services import bus, keys, options
-from services.codec import Allocation, LearnerStats, MessageError, TransitionBatch, Weights, decode, encode
+from services import bus, keys, options, role
+from services.codec import Allocation, LearnerStats, MessageError, TransitionBatch
 from services.options import RunConfig, write_json
 
 log = logging.getLogger("mam.worker")
 
-CONFIG_WAIT_S = 600.0  # how long a worker waits for a learner to appear
 MAX_BATCH_AGE_S = 0.05  # a partial batch is sent after this long
 STATUS_EVERY_S = 10.0
-REPORT_EVERY_S = 1.0
 ENV_RETRIES = 10  # consecutive failed resets before the env is made anew; as many again: the worker exits
 FAULTS = ("step_exception", "reset_exception", "nonfinite_obs", "nonfinite_reward")
 
@@ -49,38 +45,6 @@ class EnvFault(Exception):
         super().__init__(f"{kind}: {detail}")
         self.kind = kind
         self.detail = detail
-
-
-def fetch_config(session: Any, run: str, rejects: bus.RejectLog, timeout: float = CONFIG_WAIT_S) -> RunConfig:
-    """The run's resolved config from the learner's config topic (waits for a learner)."""
-    latest = bus.Latest.subscribe(session, keys.config(run))
-    deadline = time.monotonic() + timeout
-    try:
-        while time.monotonic() < deadline:
-            if not latest.wait(keys.config(run), timeout=1.0):
-                log.info("waiting for the learner of run %r ...", run)
-                continue
-            item = latest.get(keys.config(run))
-            try:
-                msg = decode(item.payload)
-                return RunConfig.from_dict(msg["config"])
-            except (MessageError, KeyError, TypeError, ValueError) as e:
-                rejects.reject(keys.parse_last(item.key), MessageError("config", str(e)[:200]))
-                latest.fresh()
-                time.sleep(0.5)
-        raise TimeoutError(f"no learner published a config for run {run!r} within {timeout:.0f} s")
-    finally:
-        latest.close()
-
-
-MAX_VERSION_LEAD = 100_000  # weights this far ahead of the learner's reported version are forged
-
-
-def plausible_version(w: Weights, stats: LearnerStats | None) -> bool:
-    """Weights may lead the last stats a little (published in between), never by a lot."""
-    if stats is None or w.actor >= len(stats.versions):
-        return w.version <= MAX_VERSION_LEAD
-    return w.version <= stats.versions[w.actor] + MAX_VERSION_LEAD
 
 
 class Worker:
@@ -117,10 +81,10 @@ class Worker:
         self.batch_log = None
         # numpy forwards, no torch in a worker: a one-row torch forward costs ~100 µs of dispatch
         # between env steps, this ~14 µs, and importing torch ~3 s and ~180 MB (docs/PERFORMANCE.md)
-        self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden)
+        self.follower = role.WeightsFollower(self.algo.actors, self.spec, self.algo.hidden, self.rejects)
+        self.actors = self.follower.actors
         self.policies = [self.actors.policy(k) for k in range(self.algo.actors)]
-        self.shapes = self.actors.shapes
-        self.versions = [-1] * self.algo.actors  # -1: no weights yet
+        self.versions = self.follower.versions  # -1: no weights yet
         self.actor = slot_index % self.algo.actors  # until the first allocation arrives
         self.idle = False  # after the elimination with one environment slot, and this is not it
         self.random_until = Schedule.for_run(self.algo, cfg.steps).random_until  # transitions
@@ -152,8 +116,7 @@ class Worker:
     def serve(self) -> None:
         run, s = self.cfg.run, self.session
         self.pub = bus.declare_reliable_publisher(s, keys.transitions(run, self.id))
-        self.report_pub = bus.declare_reliable_publisher(s, keys.role_stats(run, "worker", self.id))
-        self.last_report = 0.0
+        self.report = role.RoleReport(s, run, "worker", self.id)
         self.weights = bus.Latest.subscribe(s, keys.weights_all(run))
         self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
         self.stats_sub = bus.Latest.subscribe(s, keys.learner_stats(run))
@@ -207,13 +170,9 @@ class Worker:
 
     def publish_report(self, force: bool = False) -> None:
         """This worker's counters on mam/<run>/stats/worker-<id> (rejections are visible there)."""
-        now = time.monotonic()
-        if force or now - self.last_report >= REPORT_EVERY_S:
-            body = {"role": "worker", "id": self.id, "incarnation": self.incarnation, "sent_rows": self.sent_rows,
-                    "batches": self.batch_seq, "actor": self.actor, "rejected": self.rejects.counts(),
-                    **self.fault_counters()}
-            self.report_pub.put(encode("role_stats", body, sender=self.id, seq=self.batch_seq))
-            self.last_report = now
+        self.report.publish({"incarnation": self.incarnation, "sent_rows": self.sent_rows, "batches": self.batch_seq,
+                             "actor": self.actor, "rejected": self.rejects.counts(), **self.fault_counters()},
+                            seq=self.batch_seq, force=force)
 
     def write_report(self) -> None:
         """What this incarnation sent (compared with the learner's transport.json in tests)."""
@@ -231,18 +190,7 @@ class Worker:
                 "unacked_dropped_rows": self.unacked_dropped_rows}
 
     def refresh(self) -> None:
-        for key, item in self.weights.fresh().items():
-            try:
-                w = Weights.from_bytes(item.payload, self.shapes, self.algo.actors)
-            except MessageError as e:
-                self.rejects.reject(keys.parse_last(key), e)
-                continue
-            if not plausible_version(w, self.stats):
-                self.rejects.reject(keys.parse_last(key), MessageError("future_version", f"v{w.version}"))
-                continue
-            if w.version > self.versions[w.actor] or self.versions[w.actor] < 0:
-                self.actors.load_member(w.actor, w.params)
-                self.versions[w.actor] = w.version
+        self.follower.follow(self.weights, self.stats)
         item = self.allocation.fresh().get(keys.allocation(self.cfg.run))
         if item is not None:
             try:
@@ -277,9 +225,9 @@ class Worker:
 
     def trim_acked(self, st: LearnerStats) -> None:
         mine = st.per_worker.get(self.id)
-        if not mine or mine.get("acked_incarnation") != self.incarnation:
+        if not mine or mine.acked_incarnation != self.incarnation or mine.acked_seq is None:
             return
-        acked = mine.get("acked_seq", -1)
+        acked = mine.acked_seq
         while self.unacked and self.unacked[0].batch_seq <= acked:
             self.unacked_rows -= self.unacked.popleft().rows
 
@@ -305,8 +253,8 @@ class Worker:
             return self.put_rows - self.sent_base
         mine = self.stats.per_worker.get(self.id)
         seen = 0
-        if mine and mine.get("incarnation") == self.incarnation:
-            seen = mine.get("incarnation_rows", 0) + mine.get("redundant_rows", 0)
+        if mine and mine.incarnation == self.incarnation:
+            seen = (mine.incarnation_rows or 0) + (mine.redundant_rows or 0)
         return max(self.put_rows - self.sent_base - seen, 0)
 
     def may_send(self) -> bool:
@@ -317,7 +265,7 @@ class Worker:
         room = st.accept_until - st.env_steps
         share = max(room // max(st.workers, 1), 1) if room > 0 else 0
         mine = st.per_worker.get(self.id)
-        if not mine or mine.get("incarnation") != self.incarnation:
+        if not mine or mine.incarnation != self.incarnation:
             # Not yet counted among the learner's workers: one batch in flight until it is.
             share = min(share, self.cfg.send_batch)
         return self.in_flight() + self.p_n < share
@@ -444,14 +392,9 @@ class Worker:
 
 def main(run: str, conf: Any, worker_id: str, slot_index: int = 0, run_dir: Path | None = None) -> None:
     with bus.session_scope(conf, retry_for=30.0) as session:
-        cfg = fetch_config(session, run, bus.RejectLog(log, "config"))
+        cfg = role.fetch_config(session, run, bus.RejectLog(log, "config"))
         worker = Worker(cfg, session, worker_id, slot_index, run_dir)
-
-        def on_signal(signum: int, _frame: Any) -> None:
-            worker.stop_requested = True
-
-        signal.signal(signal.SIGTERM, on_signal)
-        signal.signal(signal.SIGINT, on_signal)
+        role.stop_on_signals(worker)
         worker.serve()
 
 
@@ -468,20 +411,16 @@ def worker_command(
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Run one environment slot of a run (needs only --run and --connect)."""
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    bus.init_zenoh_log()
+    role.setup_logging(verbose)
     if not run:
         raise typer.BadParameter("--run NAME is required (the learner prints it and writes it to config.json)")
     options.check_run_name(run)
     worker_id = id or f"{socket.gethostname()}-{os.getpid()}"
     keys.check_name(worker_id, "worker id")
-    conf = bus.make_config(connect=connect or ([] if zenoh_config else ["tcp/127.0.0.1:7447"]), listen=listen, config_file=zenoh_config)
-    main(run, conf, worker_id, slot, run_dir)
+    main(run, role.client_config(connect, listen, zenoh_config), worker_id, slot, run_dir)
 
 
-def cli() -> None:
-    app()
+cli = app  # the `mam-worker` entry point
 
 
 if __name__ == "__main__":

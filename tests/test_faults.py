@@ -17,7 +17,7 @@ from mam_core.agent import EnvSpec, MultiActorAgent
 from mam_core.config import AlgoConfig
 from services import bus, keys
 from services.codec import Allocation, LearnerStats
-from services.learner import load_replay
+from services.checkpoint import load_replay
 from services.plot import read_jsonl
 from tests.e2e import ROOT, assert_exactly_once, load, processes_of, spawn, stop, unique_run
 

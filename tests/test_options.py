@@ -46,3 +46,54 @@ def test_toml_file_then_flags(tmp_path: Path):
 def test_bad_input_is_a_clear_error(cli, message):
     with pytest.raises(typer.BadParameter, match=message):
         build_run_config(cli, None)
+
+
+def _run_option_flags(app, name: str | None = None) -> dict[str, tuple[tuple[str, ...], str]]:
+    """The run-option parameters of a typer command: name -> (flags, help)."""
+    from typer.main import get_command
+
+    from services.options import OPTION
+
+    command = get_command(app)
+    if name is not None:
+        command = command.commands[name]
+    return {p.name: (tuple(p.opts) + tuple(p.secondary_opts), p.help) for p in command.params if p.name in OPTION}
+
+
+def test_the_option_table_drives_mam_run_and_mam_learner():
+    from services import cli, learner
+    from services.options import cli_options
+
+    table = {o.name: (tuple(o.decls[0].split("/")), o.annotation.__metadata__[0].help) for o in cli_options()}
+    assert len(table) >= 30 and "eliminate_at" in table and "save_replay" in table
+    assert table["save_replay"][0] == ("--save-replay", "--no-save-replay")
+    assert table["eliminate_at"][1].startswith("[C] ")
+    assert _run_option_flags(cli.app, "run") == table
+    assert _run_option_flags(learner.app) == table
+
+
+def test_the_table_knows_every_algorithm_field():
+    import dataclasses
+
+    from mam_core.config import AlgoConfig
+    from services.options import ALGO, OPTION, RUN, RUN_OPTIONS
+
+    algo_fields = {f.name for f in dataclasses.fields(AlgoConfig)}
+    run_fields = {f.name for f in dataclasses.fields(RunConfig)}
+    assert {o.name for o in RUN_OPTIONS if o.target == ALGO} == algo_fields
+    assert {o.name for o in RUN_OPTIONS if o.target == RUN} <= run_fields | {"env"}
+    assert len(OPTION) == len(RUN_OPTIONS)  # one entry per name
+
+
+def test_toml_reads_table_options_and_refuses_unknown_keys(tmp_path: Path):
+    f = tmp_path / "run.toml"
+    f.write_text('env_id = "AppleCollect-v0"\nsteps = 500\ngamma = 0.9\nsend-batch = 16\n'
+                 '[service]\nsync-every = 7\n[env_kwargs]\napple_radius = 0.3\n')
+    cfg = build_run_config({}, f)
+    assert cfg.env_id == "AppleCollect-v0" and cfg.algo.gamma == 0.9 and cfg.send_batch == 16
+    assert cfg.sync_every == 7 and cfg.env_kwargs == {"apple_radius": 0.3}
+    f.write_text('env = "AppleCollect-v0"\nsteps = 500\n[obsolescence]\ncompete-evry = 10\n')
+    with pytest.raises(typer.BadParameter, match="unknown option 'compete-evry'"):
+        build_run_config({}, f)
+    with pytest.raises(typer.BadParameter, match="unknown option 'endpoint'"):
+        build_run_config({"env": "AppleCollect-v0", "steps": 10, "endpoint": "tcp/1.2.3.4:1"}, None)

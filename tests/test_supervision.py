@@ -16,7 +16,7 @@ import torch
 from mam_core.agent import EnvSpec, MultiActorAgent
 from mam_core.config import AlgoConfig
 from services.chaos import children_of
-from services.learner import load_replay
+from services.checkpoint import load_replay
 from services.plot import read_jsonl
 from tests.e2e import ROOT, assert_exactly_once, load, processes_of, unique_run
 

@@ -1,0 +1,161 @@
+"""Zenoh configs, sessions and publishers (RELIABLE + BLOCK; latest-value with a cache)."""
+
+from __future__ import annotations
+
+import json
+import socket
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator
+
+import zenoh
+from zenoh.ext import (
+    AdvancedPublisher,
+    CacheConfig,
+    MissDetectionConfig,
+    RepliesConfig,
+    declare_advanced_publisher,
+)
+
+MODES = ("peer", "client", "router")
+
+
+# --------------------------------------------------------------------------- config & sessions
+
+
+def init_zenoh_log() -> None:
+    """Zenoh's own log (TLS and connection errors) on stderr: RUST_LOG if set, else warnings."""
+    try:
+        zenoh.init_log_from_env_or("warn")
+    except Exception:  # already initialised in this process
+        pass
+
+
+def free_tcp_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that was free a moment ago (bind to :0, read it back, release it).
+
+    Zenoh cannot report the port of a ``:0`` listener, so we pick one first.
+    """
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def loopback_endpoint(port: int) -> str:
+    return f"tcp/127.0.0.1:{int(port)}"
+
+
+def make_config(
+    connect: list[str] | None = None,
+    listen: list[str] | None = None,
+    config_file: str | Path | None = None,
+    mode: str | None = None,
+) -> zenoh.Config:
+    """A Zenoh config for one role.
+
+    With ``config_file`` (JSON5) the file is the base and ``connect``/``listen``/``mode``
+    override it. Multicast scouting, gossip scouting and timestamping (needed by the
+    advanced publisher's cache) are set unless the file mentions them. Without ``mode``:
+    a file's mode is kept; otherwise ``connect`` alone gives a client, anything else a peer.
+    No connect and no listen gives a peer that nobody can reach: tests and launchers
+    always pass explicit endpoints.
+    """
+    if mode is not None and mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    text = ""
+    if config_file is not None:
+        text = Path(config_file).read_text()
+        conf = zenoh.Config.from_file(str(config_file))
+    else:
+        conf = zenoh.Config()
+    if "multicast" not in text:
+        conf.insert_json5("scouting/multicast/enabled", "false")
+    if "gossip" not in text:
+        conf.insert_json5("scouting/gossip/enabled", "false")
+    if "timestamping" not in text:
+        conf.insert_json5("timestamping/enabled", "true")
+    if mode is None and "mode" not in text:
+        # A session that only listens is the hub of a star: it must route between its clients
+        # (a peer forwards data but not every liveliness/query path), so it is a router.
+        mode = "client" if connect and not listen else ("router" if listen and not connect else "peer")
+    if mode is not None:
+        conf.insert_json5("mode", json.dumps(mode))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    return conf
+
+
+def open_session(conf: zenoh.Config, *, retry_for: float = 0.0) -> zenoh.Session:
+    """Open a session; a client whose endpoint is not up yet fails at once, so retry
+    for up to ``retry_for`` seconds (the launcher starts the learner first, but races happen).
+
+    The caller must close it: prefer ``with open_session(conf) as session:`` or
+    ``session_scope``. Never open a session before ``fork`` (docs/ZENOH-NOTES.md).
+    """
+    deadline = time.monotonic() + retry_for
+    while True:
+        try:
+            return zenoh.open(conf)
+        except zenoh.ZError:
+            if time.monotonic() >= deadline:
+                raise
+            time.sleep(0.1)
+
+
+@contextmanager
+def session_scope(conf: zenoh.Config, *, retry_for: float = 0.0) -> Iterator[zenoh.Session]:
+    """``with session_scope(conf) as s:`` — the session is closed however the block ends."""
+    session = open_session(conf, retry_for=retry_for)
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+# --------------------------------------------------------------------------- publishers
+
+
+def declare_reliable_publisher(
+    session: zenoh.Session,
+    key: str,
+    *,
+    express: bool = False,
+    priority: zenoh.Priority | None = None,
+) -> zenoh.Publisher:
+    """RELIABLE + BLOCK: a put waits for queue room instead of dropping (transitions, stats).
+
+    ``express`` skips batching (lower latency for small, rare messages).
+    """
+    return session.declare_publisher(
+        key,
+        congestion_control=zenoh.CongestionControl.BLOCK,
+        reliability=zenoh.Reliability.RELIABLE,
+        express=express,
+        priority=priority,
+    )
+
+
+def declare_latest_publisher(session: zenoh.Session, key: str) -> AdvancedPublisher:
+    """RELIABLE + BLOCK publisher that keeps its last sample for late joiners.
+
+    Zenoh's advanced publisher with a one-sample cache; ``publisher_detection`` lets
+    subscribers that started earlier query it as soon as it appears. Needs
+    ``timestamping/enabled`` (``make_config`` sets it).
+    """
+    block = zenoh.CongestionControl.BLOCK
+    return declare_advanced_publisher(
+        session,
+        key,
+        congestion_control=block,
+        reliability=zenoh.Reliability.RELIABLE,
+        cache=CacheConfig(max_samples=1, replies_config=RepliesConfig(congestion_control=block)),
+        # Sequence numbers per publisher instead of the default per-session timestamps:
+        # with timestamps, a wildcard subscriber drops the cached sample of one publisher
+        # when another publisher of the same session replied with a newer one (seen here
+        # with weights/0 and weights/1 declared by the learner's session).
+        sample_miss_detection=MissDetectionConfig(),
+        publisher_detection=True,
+    )

@@ -1,0 +1,125 @@
+"""The role skeleton: weights following, the periodic timer, and what each role module imports."""
+
+from __future__ import annotations
+
+import ast
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mam_core.policy import EnvSpec, member_shapes
+from services import bus, keys
+from services.codec import LearnerStats, Weights
+from services.role import MAX_VERSION_LEAD, Every, WeightsFollower
+
+ROOT = Path(__file__).resolve().parents[1]
+ROLE_MODULES = ("learner", "worker", "referee", "monitor", "router")
+SPEC = EnvSpec(obs_dim=3, act_dim=2, max_action=(1.0, 1.0))
+HIDDEN = (4,)
+
+
+def weights_item(k: int, version: int, fill: float) -> tuple[str, bus.Received]:
+    params = {name: np.full(shape, fill, np.float32) for name, shape in member_shapes(3, HIDDEN, 2).items()}
+    payload = Weights(k, version, params, 3, 2, 1.0, HIDDEN).to_bytes("learner", version)
+    key = keys.weights("r", k)
+    return key, bus.Received(key, payload, None, 0.0)
+
+
+def follower() -> WeightsFollower:
+    return WeightsFollower(2, SPEC, HIDDEN, bus.RejectLog(None, "message"))
+
+
+def test_follower_loads_only_strictly_newer_versions():
+    f = follower()
+    assert f.versions == [-1, -1]
+    assert f.update(dict([weights_item(0, 5, 1.0)]), None) == [0]
+    assert f.versions == [5, -1] and np.all(f.actors.params[0]["w0"] == 1.0)
+    # The same version again (a heartbeat or a cache replay) is the same parameters: not reloaded,
+    # even if its bytes differed; an older one (reordered, stale cache) is ignored too.
+    assert f.update(dict([weights_item(0, 5, 2.0)]), None) == []
+    assert f.update(dict([weights_item(0, 4, 3.0)]), None) == []
+    assert np.all(f.actors.params[0]["w0"] == 1.0) and f.versions == [5, -1]
+    assert f.update(dict([weights_item(0, 6, 4.0), weights_item(1, 0, 5.0)]), None) == [0, 1]
+    assert f.versions == [6, 0] and np.all(f.actors.params[0]["w0"] == 4.0)
+    assert np.all(f.actors.params[1]["b0"] == 5.0)
+    assert f.rejects.total == 0
+
+
+def test_follower_rejects_malformed_and_forged_versions():
+    f = follower()
+    stats = LearnerStats(env_steps=0, updates=0, accept_until=0, utd=0.0, versions=(10, 10))
+    key, item = weights_item(1, 10 + MAX_VERSION_LEAD + 1, 1.0)
+    assert f.update({key: item}, stats) == []
+    assert f.update({key: bus.Received(key, b"\x93garbage", None, 0.0)}, stats) == []
+    key, item = weights_item(1, 10 + MAX_VERSION_LEAD, 1.0)  # a lead up to the bound is plausible
+    assert f.update({key: item}, stats) == [1]
+    assert f.rejects.total == 2 and set(f.rejects.counts()) >= {"future_version"}
+
+
+def test_every_is_due_once_per_period():
+    clock = [100.0]
+    every = Every(1.0, clock=lambda: clock[0])
+    assert every.due()  # the first call is due
+    assert not every.due()
+    clock[0] += 0.99
+    assert not every.due() and every.elapsed() == pytest.approx(0.99)
+    clock[0] += 0.01
+    assert every.due() and not every.due()
+    every.reset(clock[0] + 5.0)
+    assert not every.due(clock[0] + 5.5) and every.due(clock[0] + 6.0)
+
+
+def _imported_services(path: Path) -> set[str]:
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module:
+            if node.module == "services":
+                names.update(a.name for a in node.names)
+            elif node.module.startswith("services."):
+                names.add(node.module.split(".")[1])
+        elif isinstance(node, ast.Import):
+            names.update(a.name.split(".")[1] for a in node.names if a.name.startswith("services."))
+    return names
+
+
+@pytest.mark.parametrize("role", ROLE_MODULES)
+def test_no_role_module_imports_another(role: str):
+    others = set(ROLE_MODULES) - {role}
+    assert not _imported_services(ROOT / "services" / f"{role}.py") & others  # in the source, anywhere
+    code = (f"import sys, json; import services.{role}; "
+            f"print(json.dumps(sorted(m for m in {sorted(others)!r} if 'services.' + m in sys.modules)))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == []  # nor through what it imports
+
+
+HEAVY = ("torch", "matplotlib")
+
+
+@pytest.mark.parametrize("argv", [["services.worker", "--help"], ["services.referee", "--help"],
+                                  ["services.cli", "worker", "--help"], ["services.cli", "referee", "--help"]])
+def test_role_commands_import_neither_torch_nor_matplotlib(argv: list[str]):
+    code = ("import json, runpy, sys\n"
+            f"sys.argv = {argv!r}\n"
+            "try:\n"
+            f"    runpy.run_module({argv[0]!r}, run_name='__main__', alter_sys=True)\n"
+            "except SystemExit as e:\n"
+            "    assert e.code in (0, None), e.code\n"
+            f"print(json.dumps([m for m in {HEAVY!r} if m in sys.modules]))\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "--run" in out.stdout  # the role's own help was printed
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == []
+
+
+def test_the_learner_does_import_torch():
+    """The check above can fail: the learner's --help does load torch."""
+    code = ("import runpy, sys\nsys.argv = ['services.learner', '--help']\n"
+            "try:\n    runpy.run_module('services.learner', run_name='__main__', alter_sys=True)\n"
+            "except SystemExit:\n    pass\nprint('torch' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.stdout.strip().splitlines()[-1] == "True"
