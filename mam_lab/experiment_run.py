@@ -1,4 +1,4 @@
-"""One run of a `mam experiment` grid as its own process: `python -m services.experiment_run RUN_DIR`.
+"""One run of a `mam experiment` grid as its own process: `python -m mam_lab.experiment_run RUN_DIR`.
 
 `mam experiment` writes RUN_DIR/launch.json and starts this module once per run, with stdout and
 stderr going to RUN_DIR/launcher.log. It pins itself to the cores it was given (every process the
@@ -22,8 +22,10 @@ import traceback
 from pathlib import Path
 from typing import Any
 
+from services import rundir
+
 FINISHED, FAILED, INTERRUPTED = 0, 1, 130
-LAUNCH_FILE = "launch.json"
+LAUNCH_FILE = rundir.LAUNCH
 
 
 class _Stop(Exception):
@@ -46,7 +48,7 @@ def pin(cores: Any) -> list[int] | None:
 def main(argv: list[str]) -> int:
     signal.signal(signal.SIGTERM, _on_term)
     if len(argv) != 1:
-        print("usage: python -m services.experiment_run RUN_DIR", file=sys.stderr)
+        print("usage: python -m mam_lab.experiment_run RUN_DIR", file=sys.stderr)
         return FAILED
     run_dir = Path(argv[0])
     stops: tuple[type[BaseException], ...] = (KeyboardInterrupt, _Stop)
@@ -76,7 +78,7 @@ def main(argv: list[str]) -> int:
         sys.stdout.flush()
     if outcome.get("interrupted"):
         return INTERRUPTED
-    return FINISHED if summary and (run_dir / "summary.json").is_file() else FAILED
+    return FINISHED if summary and (run_dir / rundir.SUMMARY).is_file() else FAILED
 
 
 if __name__ == "__main__":

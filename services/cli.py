@@ -93,7 +93,7 @@ def plot(run_dir: Path = typer.Argument(..., help="a run directory written by `m
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True, "help_option_names": []})
 def bench(ctx: typer.Context) -> None:
     """Performance ratios: learner vs single TD3, end to end, transport, scaling (see --help)."""
-    from services.bench import app as bench_app
+    from mam_lab.bench import app as bench_app
 
     bench_app(ctx.args, prog_name="mam bench", standalone_mode=True)
 
@@ -108,8 +108,8 @@ def chaos(ctx: typer.Context) -> None:
 
 def _register_harness() -> None:
     """`mam experiment` and `mam report` (their modules import matplotlib)."""
-    from services.experiment import experiment_command
-    from services.report import report_command
+    from mam_lab.experiment import experiment_command
+    from mam_lab.report import report_command
 
     app.command("experiment")(experiment_command)
     app.command("report")(report_command)
