@@ -25,10 +25,13 @@ from typing import Any
 
 import typer
 
+from services import rundir
+
 ROOT = Path(__file__).resolve().parents[1]
 ROLES = ("learner", "referee", "worker")
-RUN_FILES = ("config.json", "learner.jsonl", "eval.jsonl", "allocation.jsonl", "summary.json", "transport.json",
-             "referee_state.json", "checkpoints/learner.pt", "logs/learner.log", "logs/referee.log")
+RUN_FILES = (rundir.CONFIG, rundir.LEARNER_LOG, rundir.EVAL, rundir.ALLOCATION, rundir.SUMMARY, rundir.TRANSPORT,
+             rundir.REFEREE_STATE, f"{rundir.CHECKPOINTS}/{rundir.LEARNER_CHECKPOINT}", rundir.role_log("learner"),
+             rundir.role_log("referee"))
 
 
 def children_of(pid: int) -> list[tuple[int, str]]:
@@ -62,9 +65,8 @@ def verify(run_dir: Path, returncode: int) -> dict[str, Any]:
     missing = [name for name in RUN_FILES if not (run_dir / name).is_file()]
     if missing:
         problems.append(f"run directory incomplete: {missing}")
-    cfg = json.loads((run_dir / "config.json").read_text()) if (run_dir / "config.json").is_file() else {}
-    summary = json.loads((run_dir / "summary.json").read_text()) if (run_dir / "summary.json").is_file() else {}
-    transport = json.loads((run_dir / "transport.json").read_text()) if (run_dir / "transport.json").is_file() else {}
+    cfg, summary, transport = ({} if not (run_dir / name).is_file() else json.loads((run_dir / name).read_text())
+                               for name in (rundir.CONFIG, rundir.SUMMARY, rundir.TRANSPORT))
     audit = transport.get("audit", {})
     budget = cfg.get("steps", 0)
     figures.update(budget=budget, env_steps=transport.get("env_steps"), updates=transport.get("updates"),
@@ -155,7 +157,7 @@ def chaos(run_args: list[str], run_dir: Path, kill_every: tuple[float, float] = 
 
 def _learner_steps(run_dir: Path) -> int:
     try:
-        lines = (run_dir / "learner.jsonl").read_text().splitlines()
+        lines = (run_dir / rundir.LEARNER_LOG).read_text().splitlines()
         return int(json.loads(lines[-1])["env_steps"]) if lines else 0
     except (OSError, ValueError, KeyError):
         return 0
@@ -181,7 +183,7 @@ def chaos_command(
     del args[i:i + 2]
     lo, hi = (float(x) for x in kill_every.split(","))
     figures = chaos(args, run_dir, (lo, hi), seed, tuple(r.strip() for r in roles.split(",") if r.strip()))
-    path = out or run_dir / "chaos.json"
+    path = out or run_dir / rundir.CHAOS
     path.write_text(json.dumps(figures, indent=2))
     print(json.dumps({k: v for k, v in figures.items() if k != "kill_log"}, indent=2))
     if figures["problems"]:

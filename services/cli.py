@@ -68,7 +68,7 @@ def plot(run_dir: Path = typer.Argument(..., help="a run directory written by `m
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True, "help_option_names": []})
 def bench(ctx: typer.Context) -> None:
     """Performance ratios: learner vs single TD3, end to end, transport, scaling (see --help)."""
-    from services.bench import app as bench_app
+    from mam_lab.bench import app as bench_app
 
     bench_app(ctx.args, prog_name="mam bench", standalone_mode=True)
 
@@ -87,10 +87,10 @@ _PASSTHROUGH = {"allow_extra_args": True, "ignore_unknown_options": True, "help_
 def _register_lab() -> None:
     """`mam experiment` and `mam report`, imported only when they run (their modules import
     matplotlib and torch, which the role commands must not load)."""
-    lab = {"experiment": ("services.experiment", "experiment_command",
+    lab = {"experiment": ("mam_lab.experiment", "experiment_command",
                           "Run a grid of algorithms × seeds × envs through the distributed system; resumable "
                           "(see --help)."),
-           "report": ("services.report", "report_command",
+           "report": ("mam_lab.report", "report_command",
                       "Tables (last-10 mean, IQM, P(improvement)) and figures of an experiment (see --help).")}
 
     def lazy(name: str, module: str, function: str, doc: str) -> None:

@@ -23,6 +23,7 @@ import typer
 from mam_core.envs import EnvError, make_env
 from mam_core.evaluation import eval_seed, rollout
 from mam_core.policy import POLICY_FILE, EnvSpec, PolicyFileError, TrainedPolicy, load_policy, policy_path
+from services import rundir
 from services.options import check_env_kwargs
 
 
@@ -32,17 +33,13 @@ def _fail(message: str) -> typer.Exit:
 
 
 def _summary(run_dir: Path) -> dict[str, Any]:
-    try:
-        data = json.loads((run_dir / "summary.json").read_text())
-        return data if isinstance(data, dict) else {}
-    except (OSError, ValueError):
-        return {}
+    return rundir.read_json(run_dir / rundir.SUMMARY)
 
 
 def open_policy(run_dir: Path, actor: str) -> TrainedPolicy:
     """load_policy with clear errors; a run directory from before policy.npz is converted once."""
     path = policy_path(run_dir)
-    if not path.exists() and path.name == POLICY_FILE and (path.parent / "learner.pt").is_file():
+    if not path.exists() and path.name == POLICY_FILE and (path.parent / rundir.LEARNER_CHECKPOINT).is_file():
         from services.policy_export import export_from_checkpoint  # torch, once, for old run directories
 
         typer.echo(f"no {POLICY_FILE} yet: writing it from checkpoints/learner.pt", err=True)

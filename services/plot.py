@@ -15,8 +15,6 @@ so plotting changes no global matplotlib state of the calling process.
 
 from __future__ import annotations
 
-import json
-import logging
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -27,48 +25,11 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-log = logging.getLogger(__name__)
+from services import rundir
+from services.rundir import read_json, read_jsonl  # one reader of run files for plots, reports, the lab
 
-PLOTS_DIR = "plots"
+PLOTS_DIR = rundir.PLOTS
 DPI = 120
-
-
-# --- reading -------------------------------------------------------------------------------
-
-
-def read_jsonl(path: Path | str) -> list[dict[str, Any]]:
-    """Rows of a JSONL file; blank, partial (a live run's last line) or corrupt lines are skipped.
-
-    A missing file gives []. Only JSON objects count as rows.
-    """
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8", errors="replace")
-    except FileNotFoundError:
-        return []
-    lines = text.splitlines()
-    last = max((i for i, line in enumerate(lines) if line.strip()), default=-1)
-    rows: list[dict[str, Any]] = []
-    for i, line in enumerate(lines):
-        if not line.strip():
-            continue
-        try:
-            row = json.loads(line)
-        except json.JSONDecodeError:
-            if i != last:  # a trailing partial line is expected while a run is live; others are not
-                log.warning("%s:%d: skipping corrupt line", path, i + 1)
-            continue
-        if isinstance(row, dict):
-            rows.append(row)
-    return rows
-
-
-def _read_json(path: Path) -> dict[str, Any]:
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (FileNotFoundError, json.JSONDecodeError, UnicodeDecodeError):
-        return {}
-    return data if isinstance(data, dict) else {}
 
 
 def _num(value: Any) -> float:
@@ -328,11 +289,11 @@ def plot_run(run_dir: Path, x: str = "transitions") -> list[Path]:
     if not run_dir.is_dir():
         raise FileNotFoundError(f"run directory not found: {run_dir}")
     XLABEL = X_AXES[x]
-    config = _read_json(run_dir / "config.json")
-    summary = on_axis([_read_json(run_dir / "summary.json")], x)[0]
-    evals = on_axis(read_jsonl(run_dir / "eval.jsonl"), x)
-    allocation = on_axis(read_jsonl(run_dir / "allocation.jsonl"), x)
-    learner = on_axis(read_jsonl(run_dir / "learner.jsonl"), x)
+    config = read_json(run_dir / rundir.CONFIG)
+    summary = on_axis([read_json(run_dir / rundir.SUMMARY)], x)[0]
+    evals = on_axis(read_jsonl(run_dir / rundir.EVAL), x)
+    allocation = on_axis(read_jsonl(run_dir / rundir.ALLOCATION), x)
+    learner = on_axis(read_jsonl(run_dir / rundir.LEARNER_LOG), x)
     suffix = "" if x == "transitions" else "_iterations"
 
     steps = [float(r["env_steps"]) for r in _rows_with_steps(evals + allocation + learner)]
@@ -350,7 +311,7 @@ def plot_run(run_dir: Path, x: str = "transitions") -> list[Path]:
     written = [
         plot_learning_curves(evals, survivor, elimination, title, out / f"learning_curves{suffix}.png"),
         plot_allocation(allocation, last_step, survivor, elimination, title, out / f"allocation{suffix}.png"),
-        plot_bias(evals + on_axis(read_jsonl(run_dir / "bias.jsonl"), x), title, out / f"bias{suffix}.png"),
+        plot_bias(evals + on_axis(read_jsonl(run_dir / rundir.BIAS), x), title, out / f"bias{suffix}.png"),
         plot_learner(learner, target_utd, title, out / f"learner{suffix}.png"),
     ]
     return [p for p in written if p is not None]

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from mam_core.policy import POLICY_FILE, EnvSpec, save_policy_file
+from services import rundir
 from services.options import RunConfig
 
 
@@ -32,7 +33,7 @@ def write_policy(run_dir: Path, cfg: RunConfig, agent: Any, env_steps: int, surv
     params = [agent.actor_params(k) for k in range(cfg.algo.actors)]
     meta = policy_meta(cfg, agent.spec, env_steps=env_steps, updates=agent.updates, versions=agent.versions,
                        live=agent.live_actors, survivor=survivor)
-    return save_policy_file(run_dir / "checkpoints" / POLICY_FILE, params, meta)
+    return save_policy_file(run_dir / rundir.CHECKPOINTS / POLICY_FILE, params, meta)
 
 
 def export_from_checkpoint(run_dir: Path) -> Path:
@@ -41,7 +42,7 @@ def export_from_checkpoint(run_dir: Path) -> Path:
 
     from mam_core.agent import MultiActorAgent
 
-    path = run_dir / "checkpoints" / "learner.pt"
+    path = run_dir / rundir.CHECKPOINTS / rundir.LEARNER_CHECKPOINT
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
     state = torch.load(path, weights_only=True, map_location="cpu")

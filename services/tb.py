@@ -33,9 +33,11 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+from services import rundir
+
 log = logging.getLogger("mam.tb")
 
-TB_DIR = "tb"
+TB_DIR = rundir.TB
 FLUSH_SECS = 5.0  # events reach the file at least this often (and at close)
 
 Row = Mapping[str, Any]

@@ -1,7 +1,7 @@
 """`mam bench` smoke tests: every piece runs at tiny sizes and reports finite, positive figures.
 
 No timing is asserted (a shared CI box makes timings meaningless); only that the bench
-runs end to end, as `python -m services.bench`, and prints its JSON object on the last line.
+runs end to end, as `python -m mam_lab.bench`, and prints its JSON object on the last line.
 """
 
 from __future__ import annotations
@@ -15,14 +15,14 @@ from pathlib import Path
 
 import pytest
 
-from services.bench import PIECES, BenchSizes, meets, print_report, target_for
+from mam_lab.bench import PIECES, BenchSizes, meets, print_report, target_for
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def start_bench(*args: str) -> subprocess.Popen:
     env = dict(os.environ, PYTHONWARNINGS="ignore", COLUMNS="120")
-    return subprocess.Popen([sys.executable, "-m", "services.bench", "--tiny", "--json", *args], cwd=ROOT, env=env,
+    return subprocess.Popen([sys.executable, "-m", "mam_lab.bench", "--tiny", "--json", *args], cwd=ROOT, env=env,
                             text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
 
 
@@ -48,7 +48,8 @@ def test_learner_transport_and_weights_pieces() -> None:
     assert result["device"] == "cpu" and result["torch_threads"] == 1
     assert {"torch", "zenoh", "mujoco", "gymnasium", "python"} <= set(result["versions"])
     assert_positive(result, [
-        "learner_k2_vs_td3", "learner_k2_bf16_vs_td3", "learner_halfcheetah_k1_vs_td3", "learner_halfcheetah_td3_updates_per_s",
+        "learner_k2_vs_td3", "learner_k2_bf16_vs_td3", "learner_halfcheetah_k1_vs_td3",
+        "learner_halfcheetah_td3_updates_per_s",
         "learner_halfcheetah_k2_updates_per_s", "learner_halfcheetah_k2_vs_td3_cpu_time",
         "learner_halfcheetah_k2_shared_vs_td3", "learner_halfcheetah_k2_per_actor_vs_shared",
         "transport_transitions_per_s", "transport_bytes_per_transition",
@@ -60,8 +61,8 @@ def test_learner_transport_and_weights_pieces() -> None:
 
 def test_end_to_end_and_collection_pieces() -> None:
     result = bench_json(start_bench("--only", "e2e,collection"))
-    assert_positive(result, ["e2e_vs_single_process", "e2e_bf16_vs_single_process", "e2e_single_process_s", "e2e_mam_run_to_done_s",
-                             "e2e_mam_run_wall_s", "collection_steps_per_s_m4"])
+    assert_positive(result, ["e2e_vs_single_process", "e2e_bf16_vs_single_process", "e2e_single_process_s",
+                             "e2e_mam_run_to_done_s", "e2e_mam_run_wall_s", "collection_steps_per_s_m4"])
     assert result["e2e_mam_run_startup_s"] <= result["e2e_mam_run_to_done_s"] <= result["e2e_mam_run_wall_s"]
 
 
@@ -86,7 +87,7 @@ def test_sizes_and_pieces() -> None:
     assert quick.weights_hidden == tiny.weights_hidden == (256, 256)
     assert set(PIECES) == {"learner", "e2e", "transport", "weights", "collection"}
     with pytest.raises(ValueError):
-        from services.bench import run_bench
+        from mam_lab.bench import run_bench
 
         run_bench(tiny, ("nope",))
 

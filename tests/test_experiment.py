@@ -17,14 +17,34 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from services.experiment import (LEARNER_ROWS, GridError, Launch, check_resume, config_mismatch, core_slots,
-                                 default_parallel, in_ledger, load_grid_file, make_grid, parse_seeds, plan, run_grid,
-                                 run_state, seeds_text, thin_indices, thin_jsonl, variants, write_manifest)
-from services.options import RunConfig, write_json
-from services.report import (SUCCESS_RETURN, Interval, best_live_score, bias_rows, bucket_points, build_report,
-                             first_reach, iqm, iqm_ci, last_n_mean, mean_ci, probability_of_improvement,
-                             probability_of_improvement_ci, stratified_bootstrap, verdict_word, wilson_interval,
-                             write_report)
+from mam_lab.analysis import SUCCESS_RETURN, build_report
+from mam_lab.grid import GridError, load_grid_file, make_grid, parse_seeds, plan, seeds_text, variants
+from mam_lab.ledger import (
+    LEARNER_ROWS,
+    check_resume,
+    config_mismatch,
+    in_ledger,
+    run_state,
+    thin_indices,
+    thin_jsonl,
+    write_manifest,
+)
+from mam_lab.report import write_report
+from mam_lab.scheduler import Launch, core_slots, default_parallel, run_grid
+from mam_lab.scores import best_live_score, bucket_points, first_reach, last_n_mean
+from mam_lab.stats import (
+    Interval,
+    iqm,
+    iqm_ci,
+    mean_ci,
+    probability_of_improvement,
+    probability_of_improvement_ci,
+    stratified_bootstrap,
+    verdict_word,
+    wilson_interval,
+)
+from mam_lab.tables import bias_rows
+from services.options import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -374,7 +394,7 @@ def test_grid_file_rejects_unknown_keys(tmp_path):
 
 # --- running and resuming (real child processes that stand in for a run) --------------------
 
-# A run process as `mam experiment` starts it (see services/experiment_run.py), with its training
+# A run process as `mam experiment` starts it (see mam_lab/experiment_run.py), with its training
 # replaced by a sleep: it takes its affinity from launch.json, writes the files a run writes and
 # reports its outcome through its exit status. MODE: ok, fail (exit 3), interrupt (exit 130),
 # hang (until SIGTERM, then 130).
@@ -513,7 +533,7 @@ def _mkdir(path: Path) -> Path:
 def test_small_real_grid_in_parallel_then_report_then_resume_from_the_ledger(tmp_path):
     exp, ledger = tmp_path / "exp", tmp_path / "ledger"
     env = dict(os.environ, COLUMNS="160", PYTHONWARNINGS="ignore")
-    args = [sys.executable, "-m", "services.experiment", "--exp-dir", str(exp), "--envs", "AppleCollect-v0",
+    args = [sys.executable, "-m", "mam_lab.experiment", "--exp-dir", str(exp), "--envs", "AppleCollect-v0",
             "--algos", "ma-ddpg,ddpg", "--seeds", "2", "--steps", "1500", "--hidden", "32,32", "--batch-size", "32",
             "--start-steps", "300", "--compete-every", "300", "--eliminate-at", "900", "--eval-every", "300",
             "--eval-episodes", "2", "--no-plot", "--no-report", "--parallel", "2", "--ledger", str(ledger)]
@@ -537,7 +557,7 @@ def test_small_real_grid_in_parallel_then_report_then_resume_from_the_ledger(tmp
     assert (cfg["ma-ddpg"]["actors"], cfg["ma-ddpg"]["workers"], cfg["ddpg"]["actors"]) == (3, 5, 1)
     assert not list(ledger.rglob("*.pt")) and not list(ledger.rglob("*.log"))
 
-    rep = subprocess.run([sys.executable, "-m", "services.report", str(exp), "--n-boot", "500"], cwd=ROOT, env=env,
+    rep = subprocess.run([sys.executable, "-m", "mam_lab.report", str(exp), "--n-boot", "500"], cwd=ROOT, env=env,
                          text=True, capture_output=True, timeout=300)
     assert rep.returncode == 0, rep.stdout + rep.stderr
     text = (exp / "report.md").read_text()
@@ -651,7 +671,8 @@ sys.path.insert(0, {str(ROOT)!r})
 sys.path.insert(0, {str(Path(__file__).parent)!r})
 from pathlib import Path
 from test_experiment import FakeLauncher, quiet, small_grid
-from services.experiment import plan, run_grid
+from mam_lab.grid import plan
+from mam_lab.scheduler import run_grid
 specs = plan(small_grid())
 r = run_grid(specs, Path({str(exp)!r}), quiet(), launcher=FakeLauncher("ok", "hang", "hang"), parallel=2,
              cores=[(), ()], ledger=Path({str(ledger)!r}))
@@ -696,7 +717,7 @@ def test_experiment_run_exit_status_and_pinning(tmp_path):
     cfg = plan(small_grid())[0].run_config("x").to_dict()
     cfg["algo"]["batch_size"] = 0  # invalid: RunConfig.from_dict refuses it
     write_json(run_dir / "launch.json", {"config": cfg, "cores": [core], "plot": False})
-    out = subprocess.run([sys.executable, "-m", "services.experiment_run", str(run_dir)], cwd=ROOT,
+    out = subprocess.run([sys.executable, "-m", "mam_lab.experiment_run", str(run_dir)], cwd=ROOT,
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 1, out.stdout + out.stderr
     assert f"pinned to cores [{core}]" in out.stdout and "Traceback" in out.stderr

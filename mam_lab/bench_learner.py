@@ -1,0 +1,249 @@
+"""`mam bench` learner pieces: MA-TD3 updates/s against the reference TD3 on the same replay data
+(interleaved rounds), a profile of one update step, and the replay buffer's checkpoint costs.
+torch is imported by each function, not by the module."""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from mam_lab.bench_sizes import ROOT, SHAPES, BenchSizes, _median
+
+
+def random_replay(obs_dim: int, act_dim: int, max_action: float, rows: int, device: str, seed: int = 0):
+    """A replay buffer full of random transitions (the update rate does not depend on the data)."""
+    from mam_core.replay import ReplayBuffer
+
+    rng = np.random.default_rng(seed)
+    buf = ReplayBuffer(rows, obs_dim, act_dim, device, seed)
+    buf.add_batch(rng.normal(size=(rows, obs_dim)).astype(np.float32),
+                  rng.uniform(-max_action, max_action, (rows, act_dim)).astype(np.float32),
+                  rng.normal(size=rows).astype(np.float32), rng.normal(size=(rows, obs_dim)).astype(np.float32),
+                  rng.random(rows) < 0.01)
+    return buf
+
+
+def reference_td3(obs_dim: int, act_dim: int, max_action: float, hidden: tuple[int, ...], device: str):
+    """`benchmarks/td3_reference.TD3` on `device` (it only knows equal hidden widths)."""
+    if len(hidden) != 2 or hidden[0] != hidden[1]:
+        raise ValueError(f"the reference TD3 has two hidden layers of one width, not {hidden}")
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))
+    import warnings
+
+    from benchmarks.td3_reference import TD3
+
+    warnings.filterwarnings("ignore", message="Converting a tensor with requires_grad=True")  # its float(loss)
+    td3 = TD3(obs_dim, act_dim, max_action, hidden=hidden[0])
+    for net in (td3.actor, td3.actor_target, td3.critic, td3.critic_target):
+        net.to(device)  # same Parameter objects: the optimizers still hold them
+    return td3
+
+
+def learner_contenders(shape: str, sizes: BenchSizes, device: str, seed: int = 0) -> dict[str, Callable[[], Any]]:
+    """One update step of each contender, sampling from the same replay buffer."""
+    from mam_core.agent import EnvSpec, MultiActorAgent
+    from mam_core.config import resolve
+
+    obs_dim, act_dim, max_action = SHAPES[shape]
+    buf = random_replay(obs_dim, act_dim, max_action, max(20 * sizes.batch_size, 5000), device, seed)
+    td3 = reference_td3(obs_dim, act_dim, max_action, sizes.hidden, device)
+    batch = sizes.batch_size
+
+    def td3_step() -> float:
+        b = buf.sample(batch)
+        return td3.train(b["obs"], b["action"], b["reward"].unsqueeze(1), b["next_obs"], b["not_done"].unsqueeze(1))
+
+    out: dict[str, Callable[[], Any]] = {"td3": td3_step}
+    spec = EnvSpec(obs_dim, act_dim, (max_action,) * act_dim)
+    for k in sizes.learner_ks:  # one mini-batch per actor (Algorithm 1, the default)
+        cfg = resolve("ma-td3", actors=k, hidden=sizes.hidden, batch_size=batch, seed=seed)
+        agent = MultiActorAgent(cfg, spec, device)
+        out[f"k{k}"] = (lambda a=agent: a.update(buf.sample(batch, a.batch_groups)))
+    if 2 in sizes.learner_ks:
+        # --shared-batch: one mini-batch for all actors (Eq. 9's target pass then runs on B rows, not K·B)
+        cfg = resolve("ma-td3", actors=2, hidden=sizes.hidden, batch_size=batch, seed=seed, shared_batch=True)
+        agent = MultiActorAgent(cfg, spec, device)
+        out["k2_shared"] = (lambda a=agent: a.update(buf.sample(batch)))
+        # the opt-in mixed precision (--precision bf16) against the same fp32 reference
+        cfg = resolve("ma-td3", actors=2, hidden=sizes.hidden, batch_size=batch, seed=seed, precision="bf16")
+        agent = MultiActorAgent(cfg, spec, device)
+        out["k2_bf16"] = (lambda a=agent: a.update(buf.sample(batch, a.batch_groups)))
+    return out
+
+
+def interleaved_rates(steps: dict[str, Callable[[], Any]], rounds: int, per_round: int,
+                      warmup: int = 4) -> dict[str, dict[str, list[float]]]:
+    """Rates (calls/s by wall clock and by process CPU time) per contender per round.
+
+    The order rotates every round so no contender always follows the same one.
+    """
+    names = list(steps)
+    for name in names:
+        for _ in range(warmup):
+            steps[name]()
+    wall: dict[str, list[float]] = {n: [] for n in names}
+    cpu: dict[str, list[float]] = {n: [] for n in names}
+    for r in range(rounds):
+        order = names[r % len(names):] + names[: r % len(names)]
+        for name in order:
+            f = steps[name]
+            t, c = time.perf_counter(), time.process_time()
+            for _ in range(per_round):
+                f()
+            wall[name].append(per_round / max(time.perf_counter() - t, 1e-9))
+            cpu[name].append(per_round / max(time.process_time() - c, 1e-9))
+    return {"wall": wall, "cpu": cpu}
+
+
+def ratio_of_medians_per_round(a: list[float], b: list[float]) -> float:
+    """Median over rounds of a[r] / b[r] (same round: same machine conditions)."""
+    return _median([x / y for x, y in zip(a, b)])
+
+
+def bench_learner(sizes: BenchSizes, device: str = "cpu", threads: int = 1, log: Callable[[str], None] = print,
+                  seed: int = 0) -> dict[str, Any]:
+    """MA-TD3 updates/s at K = sizes.learner_ks against the reference TD3, per env shape."""
+    import torch
+
+    torch.set_num_threads(threads)
+    out: dict[str, Any] = {}
+    for shape in sizes.learner_shapes:
+        log(f"learner: {shape} shapes, K={list(sizes.learner_ks)} vs reference TD3 "
+            f"({sizes.learner_rounds} rounds x {sizes.learner_updates} updates)")
+        rates = interleaved_rates(learner_contenders(shape, sizes, device, seed), sizes.learner_rounds,
+                                  sizes.learner_updates)
+        wall, cpu = rates["wall"], rates["cpu"]
+        out[f"learner_{shape}_td3_updates_per_s"] = _median(wall["td3"])
+        for k in sizes.learner_ks:
+            out[f"learner_{shape}_k{k}_updates_per_s"] = _median(wall[f"k{k}"])
+            out[f"learner_{shape}_k{k}_vs_td3"] = ratio_of_medians_per_round(wall[f"k{k}"], wall["td3"])
+            out[f"learner_{shape}_k{k}_vs_td3_cpu_time"] = ratio_of_medians_per_round(cpu[f"k{k}"], cpu["td3"])
+        if "k2_shared" in wall:
+            out[f"learner_{shape}_k2_shared_updates_per_s"] = _median(wall["k2_shared"])
+            out[f"learner_{shape}_k2_shared_vs_td3"] = ratio_of_medians_per_round(wall["k2_shared"], wall["td3"])
+            out[f"learner_{shape}_k2_per_actor_vs_shared"] = ratio_of_medians_per_round(wall["k2"], wall["k2_shared"])
+        if "k2_bf16" in wall:
+            out[f"learner_{shape}_k2_bf16_updates_per_s"] = _median(wall["k2_bf16"])
+            out[f"learner_{shape}_k2_bf16_vs_td3"] = ratio_of_medians_per_round(wall["k2_bf16"], wall["td3"])
+    first = sizes.learner_shapes[0]
+    if 2 in sizes.learner_ks:
+        out["learner_k2_vs_td3"] = out[f"learner_{first}_k2_vs_td3"]
+        out["learner_k2_vs_td3_shape"] = first
+        out["learner_k2_bf16_vs_td3"] = out[f"learner_{first}_k2_bf16_vs_td3"]
+    return out
+
+
+# --------------------------------------------------------------------------- profile
+
+
+def profile_learner_step(shape: str = "halfcheetah", k: int = 2, updates: int = 40, device: str = "cpu",
+                         threads: int = 1, sizes: BenchSizes | None = None) -> dict[str, float]:
+    """Where one MA-TD3 update goes (torch.profiler, ms per update by kind of op)."""
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.set_num_threads(threads)
+    sizes = replace(sizes or BenchSizes(), learner_ks=(k,))
+    step = learner_contenders(shape, sizes, device)[f"k{k}"]
+    for _ in range(6):
+        step()
+    t0 = time.perf_counter()
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(updates):
+            step()
+    wall = (time.perf_counter() - t0) / updates * 1e3
+    kinds = {"matmul": ("aten::bmm", "aten::baddbmm", "aten::mm", "aten::addmm", "aten::matmul"),
+             "optimizer (fused Adam)": ("aten::_fused_adam_",),
+             "soft target update": ("aten::lerp_", "aten::_foreach_lerp_"),
+             "relu and its backward": ("aten::relu_", "aten::relu", "aten::clamp_min_", "aten::clamp_min",
+                                       "aten::threshold_backward"),
+             "copies, cat, sums": ("aten::copy_", "aten::cat", "aten::sum", "aten::clone", "aten::index_select"),
+             }
+    out = {name: 0.0 for name in kinds}
+    other = 0.0
+    for ev in prof.key_averages():
+        ms = ev.self_cpu_time_total / 1e3 / updates
+        for name, ops in kinds.items():
+            if ev.key in ops:
+                out[name] += ms
+                break
+        else:
+            if ev.key.startswith("aten::") or ev.key.startswith("Optimizer"):
+                other += ms
+    out["other aten ops"] = other
+    out["python and dispatch (rest)"] = max(wall - sum(out.values()), 0.0)
+    out["total (profiled)"] = wall
+    return out
+
+
+# --------------------------------------------------------------------------- replay checkpoints
+
+
+def bench_replay(rows: int = 1_000_000, obs_dim: int = 17, act_dim: int = 6, increment: int = 20_000,
+                 log: Callable[[str], None] = print, work_dir: Path | None = None) -> dict[str, Any]:
+    """Checkpoint time and disk size of a full replay buffer (default: 1M HalfCheetah rows).
+
+    Times, on the same random buffer: the chunk log's first checkpoint (every row new), one
+    incremental checkpoint (`increment` new rows, the default `checkpoint_rows`), restoring the
+    whole buffer from its chunks, and for comparison the previous format (the whole buffer in
+    the torch checkpoint, rewritten every time). The page cache is warm: these are the costs of
+    serialising and writing, not of a cold disk.
+    """
+    import torch
+
+    from mam_core.replay import ReplayBuffer, ReplayLog
+
+    def fill(buf: ReplayBuffer, n: int, rng: np.random.Generator) -> None:
+        for start in range(0, n, 100_000):
+            k = min(100_000, n - start)
+            buf.add_batch(rng.standard_normal((k, obs_dim), np.float32),
+                          rng.uniform(-1, 1, (k, act_dim)).astype(np.float32),
+                          rng.standard_normal(k).astype(np.float32), rng.standard_normal((k, obs_dim), np.float32),
+                          rng.random(k) < 0.001, actor=start % 2, version=start)
+
+    def du(path: Path) -> int:
+        return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+    rng = np.random.default_rng(0)
+    log(f"replay: {rows:,} rows (obs {obs_dim}, act {act_dim}) as chunks, +{increment:,} rows, restore; "
+        f"and the whole buffer in the torch checkpoint")
+    with tempfile.TemporaryDirectory(prefix="mam-bench-replay-") as tmp:
+        work = Path(work_dir or tmp)
+        buf = ReplayBuffer(rows, obs_dim, act_dim)
+        fill(buf, rows, rng)
+        chunks = ReplayLog(work / "replay")
+        t0 = time.perf_counter()
+        manifest = chunks.append(buf)
+        full_s = time.perf_counter() - t0
+        full_bytes = du(work / "replay")
+        fill(buf, increment, rng)  # the ring wraps: the oldest rows leave the manifest
+        t0 = time.perf_counter()
+        manifest = chunks.append(buf)
+        chunks.prune()
+        inc_s = time.perf_counter() - t0
+        disk_bytes = du(work / "replay")
+        again = ReplayBuffer(rows, obs_dim, act_dim)
+        t0 = time.perf_counter()
+        ReplayLog(work / "replay").restore(again, manifest, buf.inserted)
+        restore_s = time.perf_counter() - t0
+        assert np.array_equal(again.obs, buf.obs) and np.array_equal(again.version, buf.version)
+        t0 = time.perf_counter()
+        torch.save({"replay": buf.state_dict()}, work / "old.pt")
+        old_s = time.perf_counter() - t0
+        old_bytes = (work / "old.pt").stat().st_size
+        t0 = time.perf_counter()
+        ReplayBuffer(rows, obs_dim, act_dim).load_state_dict(torch.load(work / "old.pt", weights_only=True)["replay"])
+        old_restore_s = time.perf_counter() - t0
+    row_bytes = 4 * (2 * obs_dim + act_dim + 2) + 2 + 4
+    return {"replay_rows": rows, "replay_row_bytes": row_bytes, "replay_increment_rows": increment,
+            "replay_full_checkpoint_s": full_s, "replay_full_checkpoint_bytes": full_bytes,
+            "replay_incremental_checkpoint_s": inc_s, "replay_disk_bytes_after_wrap": disk_bytes,
+            "replay_restore_s": restore_s, "replay_torch_checkpoint_s": old_s,
+            "replay_torch_checkpoint_bytes": old_bytes, "replay_torch_restore_s": old_restore_s}

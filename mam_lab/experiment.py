@@ -1,0 +1,190 @@
+"""`mam experiment`: a grid of algorithms × seeds × envs through the distributed system.
+
+Every run of the grid is a full local cluster (`services.launcher.run_local`: learner, referee
+and M workers over loopback Zenoh), started as its own process (`python -m mam_lab.experiment_run`)
+whose exit status is the run's outcome (0 finished, 130 interrupted, else failed). `--parallel P`
+runs P of them at once (default: cores ÷ `--cores-per-run`, at least 1), each pinned by CPU
+affinity to its own len(cores) // P cores (every process of a run inherits it; the learner uses one
+torch thread). One progress view shows the grid and every run in progress; Ctrl-C (or SIGTERM)
+sends SIGTERM to every run, whose launcher stops its processes, and a rerun resumes.
+
+    EXP_DIR/experiment.json             the grid, the planned runs, versions, the ledger
+    EXP_DIR/<env>/<variant>/seed<k>/    a run directory (config.json, eval.jsonl, summary.json, ...)
+    EXP_DIR/<env>/<variant>/seed<k>/launcher.log   what `mam run` would have printed
+    EXP_DIR/<env>/<variant>/seed<k>/record.json    which code ran it (commit), with what, how long
+    EXP_DIR/failures/...                logs of failed attempts
+    EXP_DIR/report.md, EXP_DIR/figures/ `mam report EXP_DIR` (run at the end unless --no-report)
+
+The ledger (`--ledger DIR`, default docs/results/<name>/runs relative to the current directory;
+`--no-ledger`: none) keeps a compact record of each finished run, to be committed:
+DIR/<env>/<variant>/seed<k>/ with config.json, summary.json, eval.jsonl, allocation.jsonl,
+bias.jsonl (where present), learner.jsonl thinned to LEARNER_ROWS rows and record.json (the commit
+the run ran at, with a dirty flag, versions, wall time, the spec, the exit status); no checkpoints,
+no logs. DIR/experiment.json lists every run planned into that ledger. A run recorded in the
+ledger counts as finished even when EXP_DIR does not have it (a fresh clone continues the grid).
+
+Variants: each algorithm of `--algos` under its own name, and for every multi-actor algorithm
+(ma-td3, ma-ddpg) one variant per ablation (`<algo>-no-ot`, `<algo>-no-wt`) and per η of
+`--etas` (`<algo>-eta0.05`); then the grid file's named variants, `[variant.NAME]` tables, each
+with an `algo` and any run flags. A variant whose resolved configuration equals an earlier one (say
+`ma-td3-eta0.1`, which is `ma-td3`) is not run twice. `--variants a,b` runs only those.
+
+The budget (`--steps`, env transitions received by the learner from all slots together) is the
+same for every run of the grid. Flags: paper defaults per algorithm < the grid file's `[common]`
+< its `[algo.NAME]` < flags on the command line < the variant's ablation / η / `[variant.NAME]`
+flags. The multi-actor flags (`--actors`, `--workers`, `--eliminate-at`, `--compete-every`, `--eta`,
+`--single-env-after-elimination`) given on the command line or in `[common]` apply to the
+multi-actor algorithms only: TD3 and DDPG keep K=1, M=1 unless their own `[algo.td3]` (or a
+`[variant.NAME]` of theirs) says otherwise.
+
+Resumable: a run whose `summary.json` exists, or whose record is in the ledger, is skipped (after
+checking that its config matches the grid); a run directory without either (an interrupted or
+failed run) is removed and redone. Runs are ordered seed by seed (all envs and variants of seed 0,
+then seed 1, ...), so a grid stopped early still has balanced results across algorithms.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.console import Console
+
+from mam_core.config import ALGOS
+from mam_lab.grid import GridError, load_grid_file, make_grid, plan, seeds_text, variants
+from mam_lab.ledger import check_resume, default_ledger, write_manifest
+from mam_lab.provenance import ROOT, code_version, commit_label
+from mam_lab.scheduler import GridResult, core_slots, default_parallel, run_grid
+from mam_lab.view import describe_plan, hms
+from services import options
+
+# --- command ---------------------------------------------------------------------------------
+
+
+def experiment_command(
+    config: Annotated[Optional[Path], typer.Option(
+        "--config", help="grid TOML file (see deploy/experiments/); flags given here win over it")] = None,
+    exp_dir: Annotated[Optional[Path], typer.Option(
+        "--exp-dir", help="experiment directory (default: the grid file's exp-dir, else runs/experiments/<name>); "
+                          "run again with the same directory to resume")] = None,
+    envs: Annotated[Optional[str], typer.Option("--envs", help="comma-separated env ids, e.g. "
+                                                                "HalfCheetah-v5,Hopper-v5")] = None,
+    algos: Annotated[Optional[str], typer.Option("--algos", help=f"comma-separated, of {', '.join(ALGOS)}")] = None,
+    seeds: Annotated[Optional[str], typer.Option("--seeds", help="N (seeds 0..N-1), A-B, or a list 0,3,7")] = None,
+    steps: Annotated[Optional[int], typer.Option(
+        "--steps", help="budget of every run: env transitions received by the learner (all slots)")] = None,
+    ablations: Annotated[Optional[str], typer.Option(
+        "--ablations", help="extra variants of each multi-actor algo: no-ot, no-wt (comma-separated)")] = None,
+    etas: Annotated[Optional[str], typer.Option(
+        "--etas", help="η sweep: one variant per value for each multi-actor algo, e.g. 0.05,0.1,0.2")] = None,
+    actors: options.Actors = None, workers: options.Workers = None, eliminate_at: options.EliminateAt = None,
+    compete_every: options.CompeteEvery = None, eta: options.Eta = None, eval_episodes: options.EvalEpisodes = None,
+    eval_every: options.EvalEvery = None, start_steps: options.StartSteps = None,
+    batch_size: options.BatchSize = None, utd: options.Utd = None, device: options.Device = None,
+    hidden: options.Hidden = None, single_env_after_elimination: options.SingleEnv = None,
+    bias_every: options.BiasEvery = None, bias_rollouts: options.BiasRollouts = None,
+    precision: options.Precision = None, schedule: options.Schedule = None, shared_batch: options.SharedBatch = None,
+    after_elimination: options.AfterElimination = None, skip_random_rounds: options.SkipRandomRounds = None,
+    bias_horizon: options.BiasHorizon = None,
+    name: Annotated[Optional[str], typer.Option("--name", help="experiment name (default: the grid file's)")] = None,
+    dry_run: Annotated[bool, typer.Option("--dry-run", help="print the planned runs and exit")] = False,
+    retries: Annotated[int, typer.Option("--retries", help="attempts after a failed run")] = 1,
+    fail_fast: Annotated[bool, typer.Option("--fail-fast", help="stop at the first run that fails")] = False,
+    no_plot: Annotated[bool, typer.Option("--no-plot", help="no per-run PNGs (RUN_DIR/plots)")] = False,
+    no_report: Annotated[bool, typer.Option("--no-report", help="skip `mam report` at the end")] = False,
+    parallel: Annotated[Optional[int], typer.Option(
+        "--parallel", help="runs at once, each its own process pinned to its own cores (default: cores ÷ "
+                           "--cores-per-run, at least 1)")] = None,
+    cores_per_run: Annotated[int, typer.Option("--cores-per-run", help="cores per run for the default --parallel")] = 1,
+    pin: Annotated[bool, typer.Option("--pin/--no-pin", help="CPU affinity per run (cores ÷ P each)")] = True,
+    ledger: Annotated[Optional[Path], typer.Option(
+        "--ledger", help="directory of the compact records of finished runs (default docs/results/<name>/runs, "
+                         "relative to the current directory); a run recorded there is finished")] = None,
+    no_ledger: Annotated[bool, typer.Option("--no-ledger", help="keep no ledger")] = False,
+    variants_opt: Annotated[Optional[str], typer.Option(
+        "--variants", help="run only these variants of the grid (comma-separated names)")] = None,
+) -> None:
+    """Run a grid of algorithms × seeds × envs through the distributed system; resumable.
+
+    The multi-actor flags (--actors, --workers, --eliminate-at, --compete-every, --eta,
+    --single-env-after-elimination) apply to ma-td3 / ma-ddpg only; the others to every run.
+    """
+    import logging
+
+    logging.basicConfig(level=logging.WARNING)
+    console = Console()
+    try:
+        file = load_grid_file(config) if config is not None else {}
+        flags = dict(actors=actors, workers=workers, eliminate_at=eliminate_at, compete_every=compete_every,
+                     eta=eta, eval_episodes=eval_episodes, eval_every=eval_every, start_steps=start_steps,
+                     batch_size=batch_size, utd=utd, device=device, hidden=hidden,
+                     single_env_after_elimination=single_env_after_elimination, bias_every=bias_every,
+                     bias_rollouts=bias_rollouts, precision=precision, schedule=schedule,
+                     shared_batch=shared_batch, after_elimination=after_elimination,
+                     skip_random_rounds=skip_random_rounds, bias_horizon=bias_horizon)
+        grid = make_grid(file, envs=envs, algos=algos, seeds=seeds, steps=steps, ablations=ablations, etas=etas,
+                         name=name, flags=flags, variants=variants_opt)
+        specs = plan(grid)
+        for spec in specs:  # before anything starts: bf16 where it would only be slower
+            if dict(spec.flags).get("precision") == "bf16":
+                options.check_precision(spec.run_config("check"))
+        _, aliases = variants(grid)
+        if exp_dir is None:
+            if file.get("exp_dir"):
+                exp_dir = Path(str(file["exp_dir"]))
+            elif config is not None or name:
+                exp_dir = Path("runs") / "experiments" / grid.name
+            else:
+                raise GridError("--exp-dir is required without a grid file or --name")
+        if no_ledger:
+            ledger = None
+        elif ledger is None:
+            ledger = default_ledger(grid.name)
+        if parallel is not None and parallel < 1:
+            raise GridError("--parallel must be >= 1")
+        if cores_per_run < 1:
+            raise GridError("--cores-per-run must be >= 1")
+        parallel = parallel or default_parallel(cores_per_run)
+        check_resume(specs, exp_dir, ledger)
+    except GridError as e:
+        raise typer.BadParameter(str(e)) from e
+    describe_plan(specs, aliases, exp_dir, console, ledger)
+    slots = core_slots(parallel) if pin else [()] * parallel
+    code = code_version(ROOT)
+    console.print(f"{parallel} run(s) at once" + (", cores " + "; ".join(seeds_text(c) for c in slots) if pin else
+                                                  ", not pinned")
+                  + (f"; ledger {ledger}" if ledger is not None else "; no ledger")
+                  + f"; code {ROOT} at {commit_label(code)}")
+    if dry_run:
+        return
+    exp_dir.mkdir(parents=True, exist_ok=True)
+    write_manifest(exp_dir, grid, specs, aliases, ledger, parallel=parallel)
+    try:
+        result = run_grid(specs, exp_dir, console, plot_runs=not no_plot, retries=retries, fail_fast=fail_fast,
+                          parallel=parallel, cores=slots, ledger=ledger, experiment=grid.name)
+    except KeyboardInterrupt:
+        result = GridResult(interrupted=True)
+    console.print(f"[bold]{len(result.skipped) + len(result.finished)}/{len(specs)}[/] runs finished "
+                  f"({len(result.finished)} now, {len(result.skipped)} before), {len(result.failed)} failed "
+                  f"in {hms(result.elapsed_s)}")
+    if not no_report and (result.finished or result.skipped):
+        from mam_lab.report import write_report
+        from mam_lab.tables import print_tables
+
+        report, md, pngs = write_report(exp_dir)
+        print_tables(report, console)
+        console.print(f"[green]report[/] {md} ({len(pngs)} figures)")
+    if result.interrupted:
+        console.print(f"[yellow]interrupted[/]: run the same command again to resume ({exp_dir})")
+        raise typer.Exit(130)
+    if result.failed:
+        raise typer.Exit(1)
+
+
+def main() -> None:
+    typer.run(experiment_command)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,183 @@
+"""The report's figures (matplotlib object API with the Agg canvas, never pyplot; matplotlib is
+imported only when a figure is drawn): learning curves with bootstrap CI bands, the allocation to
+the eventual survivor, the Eq. 17 bias rate (Fig. 3) and the IQMs with their CIs.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mam_lab.analysis import SUCCESS_RETURN, Report, VariantStats, is_apple_collect
+from mam_lab.runs import BiasStats, RunRecord
+from mam_lab.scores import _finite
+from mam_lab.stats import curve_band
+
+DPI = 120
+
+
+def _figure(**kw: Any):
+    from matplotlib.figure import Figure
+
+    return Figure(layout="constrained", **kw)
+
+
+def _save(fig: Any, path: Path) -> Path:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(fig)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=DPI)
+    return path
+
+
+def _label_steps_axes(ax: Any, ylabel: str, title: str, axis: str = "transitions") -> None:
+    """Labels, grid and legend of a plot over env steps (or iterations)."""
+    ax.set_xlabel("env steps (transitions received by the learner)" if axis == "transitions"
+                  else "iterations (env transitions where a run does not record them)")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize="small")
+
+
+def plot_env_curves(env: str, vs: Sequence[VariantStats], path: Path, n_boot: int = 1000, seed: int = 0,
+                    axis: str = "transitions") -> Path | None:
+    """Mean best-live-actor return over seeds per variant on `axis`, with a bootstrap 95% CI band;
+    the legend gives each variant's mean wall-clock time per run."""
+    curves = [(v, *v.curves_by_axis.get(axis, (v.grid, v.curves))) for v in vs]
+    if not any(grid.size for _, grid, _ in curves):
+        return None
+    fig = _figure(figsize=(8.5, 5))
+    ax = fig.add_subplot()
+    for i, (v, grid, matrix) in enumerate(curves):
+        if not grid.size:
+            continue
+        mean, lo, hi = curve_band(matrix, n_boot, seed=seed)
+        color = f"C{i % 10}"
+        wall = v.wall_times()
+        wall_text = f", {wall.mean():,.0f} s/run" if wall.size else ""
+        ax.plot(grid, mean, color=color, linewidth=1.8, marker="o", markersize=2.5,
+                label=f"{v.variant} (n={v.n}{wall_text})")
+        ax.fill_between(grid, lo, hi, color=color, alpha=0.18, linewidth=0)
+        c = v.runs[0].algo_config.get("eliminate_at")
+        k = v.runs[0].algo_config.get("actors") or 1
+        if isinstance(c, (int, float)) and axis == "iterations":
+            c = c * v.runs[0].iterations_per_transition()
+        if k > 1 and not v.runs[0].algo_config.get("no_ot") and isinstance(c, (int, float)) and 0 < c <= grid[-1]:
+            ax.axvline(c, color=color, linestyle=":", linewidth=1.0)
+    if is_apple_collect(env):
+        ax.axhline(SUCCESS_RETURN, color="0.5", linestyle="--", linewidth=0.8, label=f"return {SUCCESS_RETURN:.2f}")
+    _label_steps_axes(ax, "evaluation return (best live actor)",
+                      f"{env}: mean over seeds, 95% bootstrap CI (dotted: elimination C)", axis)
+    return _save(fig, path)
+
+
+def allocation_share(run: RunRecord, steps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Share of the slots I_k/ΣI and probability P_k of the run's eventual best actor over `steps`
+    (held from each allocation row to the next; NaN before the first)."""
+    best = run.eventual_best
+    share = np.full(steps.size, np.nan)
+    prob = share.copy()
+    rows = [r for r in run.allocation if _finite(r.get("env_steps")) is not None]
+    if best is None or not rows:
+        return share, prob
+    xs = np.asarray([float(r["env_steps"]) for r in rows])
+    s_vals, p_vals = [], []
+    for r in rows:
+        counts = r.get("counts") if isinstance(r.get("counts"), list) else []
+        total = sum(c for c in counts if isinstance(c, (int, float)))
+        s_vals.append(counts[best] / total if total and best < len(counts) else np.nan)
+        probs = r.get("probabilities") if isinstance(r.get("probabilities"), list) else []
+        p_vals.append(_finite(probs[best]) if best < len(probs) and _finite(probs[best]) is not None else np.nan)
+    idx = np.searchsorted(xs, steps, side="right") - 1
+    ok = idx >= 0
+    share[ok] = np.asarray(s_vals)[idx[ok]]
+    prob[ok] = np.asarray(p_vals)[idx[ok]]
+    return share, prob
+
+
+def plot_env_allocation(env: str, vs: Sequence[VariantStats], path: Path) -> Path | None:
+    """Per multi-actor variant: the share of slots and P of the eventual survivor over env steps
+    (thin lines: seeds, thick: mean)."""
+    multi = [v for v in vs if (v.runs[0].algo_config.get("actors") or 1) > 1 and any(r.allocation for r in v.runs)]
+    if not multi:
+        return None
+    fig = _figure(figsize=(max(7.5, 4.2 * len(multi) + 1), 6))
+    axes = fig.subplots(2, len(multi), sharex=True, sharey="row", squeeze=False)
+    for col, v in enumerate(multi):
+        last = max(max((float(r.get("env_steps") or 0) for r in run.allocation), default=0.0) for run in v.runs)
+        last = max(last, v.env_steps if math.isfinite(v.env_steps) else 0.0)
+        steps = np.linspace(0, last, 300)
+        shares, probs = zip(*(allocation_share(r, steps) for r in v.runs))
+        for ax, data, label in ((axes[0, col], np.asarray(shares), "slot share of the survivor $I_s/M$"),
+                                (axes[1, col], np.asarray(probs), "$P_s$ of the survivor (Eq. 8)")):
+            for row in data:
+                ax.step(steps, row, where="post", color="0.6", linewidth=0.6, alpha=0.7)
+            seen = np.isfinite(data).sum(axis=0)
+            mean = np.where(seen > 0, np.nansum(data, axis=0) / np.maximum(seen, 1), np.nan)
+            ax.step(steps, mean, where="post", color=f"C{col % 10}", linewidth=2.0, label="mean over seeds")
+            k = v.runs[0].algo_config.get("actors") or 1
+            ax.axhline(1.0 / k, color="0.3", linestyle=":", linewidth=0.8, label="uniform 1/K")
+            ax.set_ylim(-0.02, 1.02)
+            ax.grid(alpha=0.3)
+            if col == 0:
+                ax.set_ylabel(label)
+        axes[0, col].set_title(f"{v.variant} ({v.setting()}, n={v.n})", fontsize="medium")
+        axes[1, col].set_xlabel("env steps")
+    axes[0, 0].legend(loc="lower right", fontsize="small")
+    fig.suptitle(f"{env}: allocation to the eventual survivor (thin: seeds)")
+    return _save(fig, path)
+
+
+def plot_bias(env: str, bs: Sequence[BiasStats], path: Path) -> Path | None:
+    """Fig. 3: the Eq. 17 bias rate over env steps per variant, mean over seeds ± one std."""
+    if not bs:
+        return None
+    fig = _figure(figsize=(8.5, 5))
+    ax = fig.add_subplot()
+    for i, b in enumerate(bs):
+        seen = np.isfinite(b.rates).sum(axis=0)
+        ok = seen > 0
+        filled = np.where(np.isfinite(b.rates), b.rates, 0.0)
+        mean = filled.sum(axis=0)[ok] / seen[ok]
+        std = np.sqrt(np.maximum((filled ** 2).sum(axis=0)[ok] / seen[ok] - mean ** 2, 0.0))
+        color = f"C{i % 10}"
+        ax.plot(b.points[ok], mean, color=color, linewidth=1.8, marker="o", markersize=2.5,
+                label=f"{b.variant} (n={b.n})")
+        ax.fill_between(b.points[ok], mean - std, mean + std, color=color, alpha=0.18, linewidth=0)
+    ax.axhline(0.0, color="0.3", linewidth=0.8)
+    _label_steps_axes(ax, "bias rate $(\\hat Q - Q^*)/|Q^*|$ (Eq. 17)",
+                      f"{env}: estimation bias, mean over seeds ± 1 std")
+    return _save(fig, path)
+
+
+def plot_iqm(report: Report, path: Path) -> Path | None:
+    """IQM of the last-10 scores with 95% CIs, one panel per env (+ the normalised aggregate)."""
+    panels = [(env, [(v.variant, v.iqm) for v in vs]) for env, vs in report.envs.items()]
+    if report.aggregate:
+        panels.append(("all envs (normalised)", [(n, i) for n, _, i in report.aggregate]))
+    panels = [(t, [(n, i) for n, i in items if math.isfinite(i.value)]) for t, items in panels]
+    panels = [p for p in panels if p[1]]
+    if not panels:
+        return None
+    cols = min(len(panels), 4)
+    rows = math.ceil(len(panels) / cols)
+    height = max(2.0, 0.4 * max(len(items) for _, items in panels) + 1.2)
+    fig = _figure(figsize=(max(7.0, 4.2 * cols), height * rows + 0.4))
+    axes = fig.subplots(rows, cols, squeeze=False)
+    for ax in axes.flat[len(panels):]:
+        ax.set_visible(False)
+    for ax, (title, items) in zip(axes.flat, panels):
+        y = np.arange(len(items))[::-1]
+        for yy, (name, i) in zip(y, items):
+            ax.errorbar(i.value, yy, xerr=[[i.value - i.lo], [i.hi - i.value]], fmt="o", capsize=3)
+        ax.set_yticks(y, [n for n, _ in items])
+        ax.set_title(title, fontsize="medium")
+        ax.grid(alpha=0.3, axis="x")
+    fig.suptitle("IQM of the last-10 scores, 95% bootstrap CI")
+    return _save(fig, path)

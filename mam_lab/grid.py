@@ -1,0 +1,385 @@
+"""The grid of `mam experiment`: which runs, with which flags (pure: touches no files, except
+`load_grid_file` reading the grid file).
+
+Variants: each algorithm of `--algos` under its own name, and for every multi-actor algorithm
+(ma-td3, ma-ddpg) one variant per ablation (`<algo>-no-ot`, `<algo>-no-wt`) and per η of
+`--etas` (`<algo>-eta0.05`); then the grid file's named variants, `[variant.NAME]` tables, each
+with an `algo` and any run flags. A variant whose resolved configuration equals an earlier one (say
+`ma-td3-eta0.1`, which is `ma-td3`) is not run twice. `--variants a,b` runs only those.
+
+The budget (`--steps`, env transitions received by the learner from all slots together) is the
+same for every run of the grid. Flags: paper defaults per algorithm < the grid file's `[common]`
+< its `[algo.NAME]` < flags on the command line < the variant's ablation / η / `[variant.NAME]`
+flags. The multi-actor flags (`--actors`, `--workers`, `--eliminate-at`, `--compete-every`, `--eta`,
+`--single-env-after-elimination`) given on the command line or in `[common]` apply to the
+multi-actor algorithms only: TD3 and DDPG keep K=1, M=1 unless their own `[algo.td3]` (or a
+`[variant.NAME]` of theirs) says otherwise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import tomllib
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from mam_core.config import ALGOS, AlgoConfig
+from services import options
+from services.options import RunConfig
+from services.rundir import env_dirname
+
+ABLATIONS = {"no-ot": "no_ot", "no-wt": "no_wt"}
+MULTI_ACTOR_FLAGS = frozenset({"actors", "workers", "eliminate_at", "compete_every", "eta",
+                               "single_env_after_elimination", "no_ot", "no_wt", "shared_batch",
+                               "after_elimination", "skip_random_rounds"})
+RUN_FLAGS = frozenset({"sync_every", "checkpoint_every", "send_batch", "band", "save_replay", "learner_threads",
+                       "bias_every", "bias_rollouts", "bias_horizon"})
+_ALGO_FLAGS = frozenset(f.name for f in dataclasses.fields(AlgoConfig)) - {"algo", "seed"}
+FLAG_NAMES = _ALGO_FLAGS | RUN_FLAGS
+GRID_KEYS = {"name", "exp_dir", "envs", "algos", "seeds", "steps", "ablations", "etas", "common", "algo", "variant"}
+_VARIANT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,63}")
+
+
+class GridError(ValueError):
+    """The grid (flags or TOML file) is not valid."""
+
+
+def is_multi_actor(algo: str) -> bool:
+    return algo.startswith("ma-")
+
+
+# --- the grid --------------------------------------------------------------------------------
+
+
+@dataclass
+class Grid:
+    """What to run: envs × variants × seeds, each with `steps` env transitions."""
+
+    envs: tuple[str, ...]
+    algos: tuple[str, ...]
+    seeds: tuple[int, ...]
+    steps: int
+    ablations: tuple[str, ...] = ()
+    etas: tuple[float, ...] = ()
+    common: dict[str, Any] = field(default_factory=dict)  # every algorithm (multi-actor flags: MA only)
+    per_algo: dict[str, dict[str, Any]] = field(default_factory=dict)  # one algorithm, any flag
+    overrides: dict[str, Any] = field(default_factory=dict)  # command-line flags, like `common`, applied last
+    name: str = "experiment"
+    named: dict[str, tuple[str, dict[str, Any]]] = field(default_factory=dict)  # [variant.NAME]: (algo, flags)
+    only: tuple[str, ...] = ()  # --variants: run these variants only (empty: all)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "envs": list(self.envs), "algos": list(self.algos), "seeds": list(self.seeds),
+                "steps": self.steps, "ablations": list(self.ablations), "etas": list(self.etas),
+                "common": _jsonable(self.common), "per_algo": _jsonable(self.per_algo),
+                "overrides": _jsonable(self.overrides),
+                "variants": {n: {"algo": a, **_jsonable(f)} for n, (a, f) in self.named.items()},
+                "only": list(self.only)}
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, Mapping):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One run of the grid. `flags` are the option values on top of the algorithm's defaults."""
+
+    env: str
+    variant: str
+    algo: str
+    seed: int
+    steps: int
+    flags: tuple[tuple[str, Any], ...] = ()
+
+    @property
+    def path(self) -> Path:
+        """Run directory relative to the experiment directory."""
+        return Path(env_dirname(self.env)) / self.variant / f"seed{self.seed}"
+
+    @property
+    def label(self) -> str:
+        return f"{self.env}/{self.variant}/seed{self.seed}"
+
+    def options(self) -> dict[str, Any]:
+        """Values for `options.build_run_config` (what `mam run` would get as flags)."""
+        out: dict[str, Any] = {k: list(v) if isinstance(v, tuple) else v for k, v in self.flags}
+        out.update(env=self.env, algo=self.algo, steps=self.steps, seed=self.seed)
+        return out
+
+    def run_config(self, run_name: str) -> RunConfig:
+        return options.build_run_config({**self.options(), "run": run_name}, None)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"path": str(self.path), "env": self.env, "variant": self.variant, "algo": self.algo,
+                "seed": self.seed, "steps": self.steps, "flags": _jsonable(dict(self.flags))}
+
+
+def _norm_key(key: str) -> str:
+    return key.strip().replace("-", "_")
+
+
+def normalize_flags(flags: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """Flag names with `_` (TOML may use `-`), None dropped, lists as tuples; unknown names rejected."""
+    out: dict[str, Any] = {}
+    for key, value in flags.items():
+        k = _norm_key(key)
+        if value is None:
+            continue
+        if k not in FLAG_NAMES:
+            hint = " (set it in the grid: envs/algos/seeds/steps)" if k in ("env", "env_id", "algo", "seed",
+                                                                              "steps", "run") else ""
+            raise GridError(f"{where}: unknown option {key!r}{hint}")
+        if k == "hidden" and isinstance(value, str):
+            value = tuple(int(h) for h in value.split(",") if h.strip())
+        out[k] = tuple(value) if isinstance(value, list) else value
+    return out
+
+
+def parse_seeds(value: Any) -> tuple[int, ...]:
+    """`10` or "10": seeds 0..9; "0,3,7" or [0, 3, 7]: those; "5-9": 5..9 inclusive; "0-3,7"."""
+    if isinstance(value, bool):
+        raise GridError(f"seeds: {value!r} is not a count or a list")
+    if isinstance(value, int):
+        if value < 1:
+            raise GridError("seeds: the count must be >= 1")
+        return tuple(range(value))
+    if isinstance(value, (list, tuple)):
+        seeds = tuple(int(s) for s in value)
+    elif isinstance(value, str):
+        text = value.strip()
+        if re.fullmatch(r"\d+", text):
+            return parse_seeds(int(text))
+        items: list[int] = []
+        for part in (p.strip() for p in text.split(",")):
+            m = re.fullmatch(r"(\d+)\s*-\s*(\d+)", part)
+            if m and int(m.group(2)) >= int(m.group(1)):
+                items += range(int(m.group(1)), int(m.group(2)) + 1)
+            elif re.fullmatch(r"\d+", part):
+                items.append(int(part))
+            else:
+                raise GridError(f"seeds: {value!r} is not a count N, or a list of seeds and ranges A-B")
+        seeds = tuple(items)
+    else:
+        raise GridError(f"seeds: {value!r} is not a count, a range or a list")
+    if not seeds or any(s < 0 for s in seeds) or len(set(seeds)) != len(seeds):
+        raise GridError(f"seeds: need distinct non-negative seeds, got {value!r}")
+    return seeds
+
+
+def _list(value: Any, what: str) -> tuple[str, ...]:
+    if value is None:
+        return ()
+    if isinstance(value, str):
+        items = [v.strip() for v in value.split(",")]
+    elif isinstance(value, (list, tuple)):
+        items = [str(v).strip() for v in value]
+    else:
+        raise GridError(f"{what}: expected a list or a comma-separated string, got {value!r}")
+    return tuple(v for v in items if v)
+
+
+def parse_etas(value: Any) -> tuple[float, ...]:
+    if value is None:
+        return ()
+    items = value if isinstance(value, (list, tuple)) else _list(value, "etas")
+    try:
+        etas = tuple(float(v) for v in items)
+    except ValueError as e:
+        raise GridError(f"etas: {value!r} is not a list of numbers") from e
+    if any(not 0.0 <= e < 1.0 for e in etas):
+        raise GridError("etas: every η must be in [0, 1)")
+    return etas
+
+
+def load_grid_file(path: Path) -> dict[str, Any]:
+    """A grid TOML file as a dict of grid keys (see deploy/experiments/*.toml)."""
+    if not path.is_file():
+        raise GridError(f"grid file {path} does not exist")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise GridError(f"{path}: {e}") from e
+    data = {_norm_key(k): v for k, v in data.items()}
+    unknown = set(data) - GRID_KEYS
+    if unknown:
+        raise GridError(f"{path}: unknown key(s) {sorted(unknown)}; algorithm options go in [common] or "
+                        f"[algo.NAME]")
+    data.setdefault("name", path.stem)
+    return data
+
+
+def make_grid(file: Mapping[str, Any] | None = None, **cli: Any) -> Grid:
+    """A validated Grid from a grid file's content and command-line values (the command line wins).
+
+    `cli` takes envs, algos, seeds, steps, ablations, etas, name and `flags` (algorithm options
+    that apply like `[common]`, after the file's sections).
+    """
+    file = dict(file or {})
+    get = lambda key: cli.get(key) if cli.get(key) is not None else file.get(key)  # noqa: E731
+    envs = _list(get("envs"), "envs")
+    algos = _list(get("algos"), "algos")
+    named = parse_named_variants(file.get("variant"))
+    if not envs:
+        raise GridError("no envs: give --envs (comma-separated) or `envs` in the grid file")
+    if not algos and not named:
+        raise GridError("no algos: give --algos (comma-separated), `algos` or [variant.NAME] tables in the grid file")
+    bad = [a for a in algos if a not in ALGOS]
+    if bad:
+        raise GridError(f"unknown algo(s) {bad}; choose from {', '.join(ALGOS)}")
+    if len(set(algos)) != len(algos) or len(set(envs)) != len(envs):
+        raise GridError("envs and algos must not repeat")
+    seeds = parse_seeds(get("seeds") if get("seeds") is not None else 1)
+    steps = get("steps")
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise GridError(f"steps: need a positive number of env transitions, got {steps!r}")
+    ablations = _list(get("ablations"), "ablations")
+    bad = [a for a in ablations if a not in ABLATIONS]
+    if bad:
+        raise GridError(f"unknown ablation(s) {bad}; choose from {', '.join(ABLATIONS)}")
+    etas = parse_etas(get("etas"))
+    common = normalize_flags(file.get("common") or {}, "[common]")
+    per_algo_raw = file.get("algo") or {}
+    if not isinstance(per_algo_raw, Mapping):
+        raise GridError("[algo.NAME] sections must be tables")
+    per_algo = {}
+    for name, flags in per_algo_raw.items():
+        if name not in ALGOS:
+            raise GridError(f"[algo.{name}]: unknown algo; choose from {', '.join(ALGOS)}")
+        if not isinstance(flags, Mapping):
+            raise GridError(f"[algo.{name}] must be a table of options")
+        per_algo[name] = normalize_flags(flags, f"[algo.{name}]")
+    overrides = normalize_flags(cli.get("flags") or {}, "command line")
+    name = str(cli.get("name") or file.get("name") or "experiment")
+    clash = set(named) & {n for n, _, _ in variant_flags(Grid(envs, algos, seeds, int(steps), ablations, etas))}
+    if clash:
+        raise GridError(f"[variant.NAME]: {sorted(clash)} already name(s) a variant of algos/ablations/etas")
+    grid = Grid(envs=envs, algos=algos, seeds=seeds, steps=int(steps), ablations=ablations, etas=etas,
+                common=common, per_algo=per_algo, overrides=overrides, name=name, named=named,
+                only=_list(cli.get("variants"), "variants"))
+    if grid.only:
+        known = [n for n, _, _ in variant_flags(grid)]
+        bad = [v for v in grid.only if v not in known]
+        if bad:
+            raise GridError(f"--variants: unknown variant(s) {bad}; the grid has {', '.join(known)}")
+    return grid
+
+
+def parse_named_variants(tables: Any) -> dict[str, tuple[str, dict[str, Any]]]:
+    """`[variant.NAME]` tables: each needs `algo` and may set any run flag. {name: (algo, flags)}."""
+    if tables is None:
+        return {}
+    if not isinstance(tables, Mapping):
+        raise GridError("[variant.NAME] sections must be tables")
+    out: dict[str, tuple[str, dict[str, Any]]] = {}
+    for name, table in tables.items():
+        if not _VARIANT_NAME.fullmatch(str(name)):
+            raise GridError(f"[variant.{name}]: a variant name is letters, digits, '_', '.', '+', '-' (at most 64)")
+        if not isinstance(table, Mapping):
+            raise GridError(f"[variant.{name}] must be a table of options")
+        table = {_norm_key(k): v for k, v in table.items()}
+        algo = table.pop("algo", None)
+        if algo not in ALGOS:
+            raise GridError(f"[variant.{name}]: `algo` must be one of {', '.join(ALGOS)}, got {algo!r}")
+        out[str(name)] = (str(algo), normalize_flags(table, f"[variant.{name}]"))
+    return out
+
+
+def _shared(flags: Mapping[str, Any], algo: str) -> dict[str, Any]:
+    """Flags for everyone: the multi-actor ones only reach the multi-actor algorithms."""
+    return {k: v for k, v in flags.items() if is_multi_actor(algo) or k not in MULTI_ACTOR_FLAGS}
+
+
+def variant_flags(grid: Grid) -> list[tuple[str, str, dict[str, Any]]]:
+    """(variant name, algo, flags) of every variant, in order, before removing duplicates."""
+    out = []
+    for algo in grid.algos:
+        base = {**_shared(grid.common, algo), **grid.per_algo.get(algo, {}), **_shared(grid.overrides, algo)}
+        out.append((algo, algo, base))
+        if not is_multi_actor(algo):
+            continue
+        for ablation in grid.ablations:
+            out.append((f"{algo}-{ablation}", algo, {**base, ABLATIONS[ablation]: True}))
+        for eta in grid.etas:
+            out.append((f"{algo}-eta{eta:g}", algo, {**base, "eta": eta}))
+    for name, (algo, flags) in grid.named.items():  # after the algos; its own flags win over all others
+        base = {**_shared(grid.common, algo), **grid.per_algo.get(algo, {}), **_shared(grid.overrides, algo)}
+        out.append((name, algo, {**base, **flags}))
+    return out
+
+
+def _identity(algo: str, flags: Mapping[str, Any], env: str, steps: int) -> str:
+    """What makes two variants the same run: the resolved config (η as applied, seed aside)."""
+    cfg = RunSpec(env, "x", algo, 0, steps, tuple(sorted(flags.items()))).run_config("identity")
+    a = cfg.algo.to_dict()
+    a.update(eta=cfg.algo.effective_eta, no_wt=False, seed=0)
+    d = cfg.to_dict()
+    d.update(algo=a, run="")
+    return json.dumps(d, sort_keys=True)
+
+
+def variants(grid: Grid) -> tuple[list[tuple[str, str, dict[str, Any]]], dict[str, str]]:
+    """The distinct variants and {duplicate name: the variant it equals}. Raises GridError when a
+    variant's options are invalid."""
+    kept: list[tuple[str, str, dict[str, Any]]] = []
+    aliases: dict[str, str] = {}
+    seen: dict[str, str] = {}
+    for name, algo, flags in variant_flags(grid):
+        try:
+            key = _identity(algo, flags, grid.envs[0], grid.steps)
+        except (ValueError, typer.BadParameter) as e:
+            raise GridError(f"variant {name}: {e}") from e
+        if key in seen:
+            aliases[name] = seen[key]
+            continue
+        seen[key] = name
+        kept.append((name, algo, flags))
+    if grid.only:
+        wanted = {aliases.get(v, v) for v in grid.only}
+        kept = [k for k in kept if k[0] in wanted]
+    return kept, aliases
+
+
+def plan(grid: Grid) -> list[RunSpec]:
+    """Every run of the grid, seed by seed (then env, then variant). Pure: touches no files."""
+    kept, _ = variants(grid)
+    return [RunSpec(env, name, algo, seed, grid.steps, tuple(sorted(flags.items())))
+            for seed in grid.seeds for env in grid.envs for name, algo, flags in kept]
+
+
+# --- as text --------------------------------------------------------------------------------
+
+
+def seeds_text(seeds: Sequence[int]) -> str:
+    """0,1,2,3,7 -> "0-3,7"."""
+    parts: list[str] = []
+    for s in sorted(seeds):
+        if parts and "-" in parts[-1] and int(parts[-1].split("-")[1]) == s - 1:
+            parts[-1] = f"{parts[-1].split('-')[0]}-{s}"
+        elif parts and "-" not in parts[-1] and int(parts[-1]) == s - 1:
+            parts[-1] = f"{parts[-1]}-{s}"
+        else:
+            parts.append(str(s))
+    return ",".join(parts)
+
+
+def flags_text(flags: Iterable[tuple[str, Any]]) -> str:
+    """Flags as on a command line: (("no_ot", True), ("hidden", (32, 32))) -> "--no-ot --hidden 32,32"."""
+    out = []
+    for k, v in flags:
+        name = "--" + k.replace("_", "-")
+        if v is True:
+            out.append(name)
+        elif v is not False:
+            out.append(f"{name} {','.join(map(str, v)) if isinstance(v, tuple) else v}")
+    return " ".join(out)

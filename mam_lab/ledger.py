@@ -1,0 +1,221 @@
+"""The ledger of `mam experiment`: compact records of finished runs, to be committed, and what
+a rerun resumes from.
+
+The ledger (`--ledger DIR`, default docs/results/<name>/runs relative to the current directory;
+`--no-ledger`: none) keeps a compact record of each finished run, to be committed:
+DIR/<env>/<variant>/seed<k>/ with config.json, summary.json, eval.jsonl, allocation.jsonl,
+bias.jsonl (where present), learner.jsonl thinned to LEARNER_ROWS rows and record.json (the commit
+the run ran at, with a dirty flag, versions, wall time, the spec, the exit status); no checkpoints,
+no logs. DIR/experiment.json lists every run planned into that ledger. A run recorded in the
+ledger counts as finished even when EXP_DIR does not have it (a fresh clone continues the grid).
+
+Resumable: a run whose `summary.json` exists, or whose record is in the ledger, is skipped (after
+checking that its config matches the grid); a run directory without either (an interrupted or
+failed run) is removed and redone. Runs are ordered seed by seed (all envs and variants of seed 0,
+then seed 1, ...), so a grid stopped early still has balanced results across algorithms.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from mam_lab.grid import Grid, GridError, RunSpec
+from mam_lab.provenance import ROOT, code_version, versions
+from services import rundir
+from services.options import write_json
+from services.rundir import read_json
+
+RECORD = rundir.RECORD  # written last: its presence marks a finished run in the ledger
+LEDGER_FILES = (rundir.CONFIG, rundir.SUMMARY, rundir.EVAL, rundir.ALLOCATION, rundir.BIAS)
+
+
+LEARNER_ROWS = 200  # learner.jsonl is thinned to at most this many rows in the ledger
+RECORD_FORMAT = 1
+
+
+def default_ledger(name: str) -> Path:
+    """docs/results/<exp name>/runs, relative to the current directory."""
+    return Path("docs") / "results" / name / "runs"
+
+
+def thin_indices(n: int, max_rows: int) -> list[int]:
+    """At most `max_rows` indices of 0..n-1, evenly spaced, always the first and the last."""
+    if max_rows < 2:
+        raise ValueError("max_rows must be >= 2")
+    if n <= max_rows:
+        return list(range(n))
+    return sorted({round(i * (n - 1) / (max_rows - 1)) for i in range(max_rows)})
+
+
+def thin_jsonl(src: Path, dest: Path, max_rows: int = LEARNER_ROWS) -> tuple[int, int]:
+    """Copy the JSON-object rows of `src` to `dest`, thinned (see thin_indices); (kept, of)."""
+    lines = []
+    for line in Path(src).read_text(encoding="utf-8", errors="replace").splitlines():
+        try:
+            if isinstance(json.loads(line), dict):
+                lines.append(line)
+        except json.JSONDecodeError:
+            continue
+    keep = thin_indices(len(lines), max_rows)
+    dest.write_text("".join(lines[i] + "\n" for i in keep), encoding="utf-8")
+    return len(keep), len(lines)
+
+
+def make_record(spec: RunSpec, run_dir: Path, *, code: Mapping[str, Any], exit_status: int,
+                run_wall_s: float | None, experiment: str, **extra: Any) -> dict[str, Any]:
+    """record.json of a finished run: which code ran it, with what, how long."""
+    summary = read_json(run_dir / rundir.SUMMARY)
+    return {"format": RECORD_FORMAT, "experiment": experiment, "path": spec.path.as_posix(),
+            "spec": spec.to_dict(), "commit": code.get("commit"), "dirty": bool(code.get("dirty")),
+            "modified": list(code.get("modified") or []), "versions": versions(), "exit_status": exit_status,
+            "wall_time_s": summary.get("wall_time_s"), "launcher_wall_time_s": summary.get("launcher_wall_time_s"),
+            "run_wall_s": None if run_wall_s is None else round(run_wall_s, 2),
+            "recorded": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **extra}
+
+
+def write_ledger_record(run_dir: Path, dest: Path, record: Mapping[str, Any],
+                        max_rows: int = LEARNER_ROWS) -> Path:
+    """Copy a finished run's compact record to `dest` (the run's directory in the ledger).
+
+    Files go to a temporary directory first, which then replaces `dest`: a reader sees the old
+    record or the new one, never half of it; record.json (with the files' sizes) comes last."""
+    dest = Path(dest)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dest.parent / f".{dest.name}.tmp-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir()
+    files: dict[str, int] = {}
+    for name in LEDGER_FILES:
+        if (run_dir / name).is_file():
+            shutil.copyfile(run_dir / name, tmp / name)
+    record = dict(record)
+    if (run_dir / rundir.LEARNER_LOG).is_file():
+        kept, total = thin_jsonl(run_dir / rundir.LEARNER_LOG, tmp / rundir.LEARNER_LOG, max_rows)
+        record["learner_rows"] = {"kept": kept, "of": total}
+    for p in sorted(tmp.iterdir()):
+        files[p.name] = p.stat().st_size
+    record["files"] = files
+    write_json(tmp / RECORD, record)
+    old = dest.parent / f".{dest.name}.old-{os.getpid()}"
+    if dest.exists():
+        dest.rename(old)
+    tmp.rename(dest)
+    if old.exists():
+        shutil.rmtree(old)
+    return dest
+
+
+def read_record(run_dir: Path) -> dict[str, Any]:
+    return read_json(Path(run_dir) / RECORD)
+
+
+def write_manifest(exp_dir: Path, grid: Grid, specs: Sequence[RunSpec], aliases: Mapping[str, str],
+                   ledger: Path | None = None, **extra: Any) -> None:
+    """EXP_DIR/experiment.json, and a copy in the ledger (its planned runs: the union over the
+    invocations that wrote to that ledger, so a subset run with --variants keeps the others)."""
+    path = Path(exp_dir) / rundir.EXPERIMENT
+    old = read_json(path)
+    body = {"name": grid.name, "grid": grid.to_dict(), "aliases": dict(aliases),
+            "runs": [s.to_dict() for s in specs], "versions": versions(),
+            "created": old.get("created") or time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "argv": sys.argv,
+            "ledger": str(Path(ledger).resolve()) if ledger is not None else None, **extra}
+    write_json(path, body)
+    if ledger is not None:
+        lpath = Path(ledger) / rundir.EXPERIMENT
+        lold = read_json(lpath)
+        runs = [r for r in lold.get("runs") or [] if isinstance(r, dict)]
+        have = {r.get("path") for r in runs}
+        runs += [r for r in body["runs"] if r["path"] not in have]
+        write_json(lpath, {**body, "runs": runs, "ledger": None, "exp_dir": None,
+                           "created": lold.get("created") or body["created"]})
+
+
+def backfill_ledger(done: Sequence[RunSpec], exp_dir: Path, ledger: Path, experiment: str,
+                     console: Console) -> None:
+    """Runs finished here but not in the ledger (a ledger added later, or a failed copy): copy them,
+    with the record written when they finished if there is one."""
+    for spec in done:
+        run_dir = Path(exp_dir) / spec.path
+        if in_ledger(spec, ledger) or not (run_dir / rundir.SUMMARY).is_file():
+            continue
+        record = read_record(run_dir)
+        if not record:  # finished before records existed: the commit is the one running now, flagged
+            record = make_record(spec, run_dir, code=code_version(ROOT), exit_status=0, run_wall_s=None,
+                                 experiment=experiment, backfilled=True)
+        try:
+            write_ledger_record(run_dir, Path(ledger) / spec.path, record)
+            console.print(f"ledger: copied {spec.label}" + (" (commit unknown: recorded as the current one)"
+                                                            if record.get("backfilled") else ""))
+        except OSError as e:
+            console.print(f"[yellow]ledger: could not copy {spec.label}: {e}[/]")
+
+
+# --- resuming --------------------------------------------------------------------------------
+
+
+def in_ledger(spec: RunSpec, ledger: Path | None) -> bool:
+    return ledger is not None and (Path(ledger) / spec.path / RECORD).is_file()
+
+
+def run_state(spec: RunSpec, exp_dir: Path, ledger: Path | None = None) -> str:
+    """'done' (summary.json in the experiment directory, or a record in the ledger), 'partial'
+    (a run directory without either) or 'todo'."""
+    d = Path(exp_dir) / spec.path
+    if (d / rundir.SUMMARY).is_file() or in_ledger(spec, ledger):
+        return "done"
+    return "partial" if d.exists() else "todo"
+
+
+def finished_dir(spec: RunSpec, exp_dir: Path, ledger: Path | None = None) -> Path | None:
+    """Where a finished run's config.json is: the experiment directory, else the ledger."""
+    d = Path(exp_dir) / spec.path
+    if (d / rundir.SUMMARY).is_file():
+        return d
+    if in_ledger(spec, ledger):
+        return Path(ledger) / spec.path
+    return None
+
+
+def config_mismatch(spec: RunSpec, run_dir: Path) -> list[str]:
+    """Differences between a finished run's config.json and what the grid asks for (device aside)."""
+    try:
+        have = json.loads((run_dir / rundir.CONFIG).read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return ["config.json missing or unreadable"]
+    want = spec.run_config("x").to_dict()
+    problems = []
+    for key in ("env_id", "steps"):
+        if have.get(key) != want[key]:
+            problems.append(f"{key}: run {have.get(key)!r}, grid {want[key]!r}")
+    have_algo = have.get("algo") if isinstance(have.get("algo"), dict) else {}
+    for key, value in want["algo"].items():
+        if key == "device" or key not in have_algo:  # a field newer than the run: not a mismatch
+            continue
+        if have_algo[key] != value:
+            problems.append(f"{key}: run {have_algo[key]!r}, grid {value!r}")
+    return problems
+
+
+def check_resume(specs: Sequence[RunSpec], exp_dir: Path, ledger: Path | None = None) -> None:
+    """Refuse to mix grids: every finished run (here or in the ledger) must match the grid's configuration."""
+    bad = []
+    for spec in specs:
+        d = finished_dir(spec, exp_dir, ledger)
+        if d is not None:
+            problems = config_mismatch(spec, d)
+            if problems:
+                bad.append(f"{d}: " + "; ".join(problems[:4]))
+    if bad:
+        raise GridError(f"{exp_dir} or the ledger {ledger} holds finished runs of a different grid (use another "
+                        "--exp-dir / --ledger, or remove them):\n  " + "\n  ".join(bad[:10]))

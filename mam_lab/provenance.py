@@ -1,0 +1,68 @@
+"""Which code and which libraries produced a result: the git commit of the code that runs (with a
+dirty flag) and the versions of the libraries that change results or figures. One `versions()`
+for the experiment records and the bench.
+"""
+
+from __future__ import annotations
+
+import platform
+import subprocess
+from collections.abc import Mapping
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]  # the code that runs (a checkout: mam_lab/ beside services/)
+
+# label -> distribution. Results: MuJoCo trajectories differ across releases, and so on.
+RESULT_LIBRARIES: dict[str, str] = {"mam": "mam", "torch": "torch", "numpy": "numpy", "gymnasium": "gymnasium",
+                                    "mujoco": "mujoco", "eclipse-zenoh": "eclipse-zenoh"}
+
+
+def code_version(root: Path | None = None) -> dict[str, Any]:
+    """The commit of the code that runs: {"commit": full hash or None, "dirty": tracked files
+    modified, "modified": [those files]}."""
+    root = root or ROOT
+    out: dict[str, Any] = {"commit": None, "dirty": False, "modified": []}
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10)
+        if head.returncode != 0 or not head.stdout.strip():
+            return out
+        out["commit"] = head.stdout.strip()
+        changed = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                                 capture_output=True, text=True, timeout=20)
+        if changed.returncode == 0:
+            out["modified"] = [line[3:] for line in changed.stdout.splitlines() if line.strip()]
+            out["dirty"] = bool(out["modified"])
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return out
+
+
+def commit_label(record: Mapping[str, Any]) -> str:
+    """"abc1234" or "abc1234+modified" (a dirty tree) or "unknown"."""
+    commit = record.get("commit")
+    if not isinstance(commit, str) or not commit:
+        return "unknown"
+    return commit[:12] + ("+modified" if record.get("dirty") else "")
+
+
+def versions(libraries: Mapping[str, str] = RESULT_LIBRARIES, *, missing: str | None = None,
+             commit: bool = True) -> dict[str, str]:
+    """{"python": ..., label: version of each distribution of `libraries`}; a distribution that is
+    not installed is left out, or reported as `missing`. With `commit`, "git": the short commit of
+    the code that runs, "+modified(files)" when tracked files are modified."""
+    out = {"python": platform.python_version()}
+    for label, dist in libraries.items():
+        try:
+            out[label] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            if missing is not None:
+                out[label] = missing
+    if commit:
+        code = code_version(ROOT)
+        if code["commit"]:
+            out["git"] = code["commit"][:7]
+            if code["dirty"]:  # tracked files modified: say so
+                out["git"] += "+modified(" + ",".join(code["modified"]) + ")"
+    return out

@@ -1,0 +1,305 @@
+"""Running the grid of `mam experiment`: P runs at once, each its own process pinned to its own
+cores, its outcome in its exit status; Ctrl-C (or SIGTERM) stops them all, and a rerun resumes.
+
+Every run of the grid is a full local cluster (`services.launcher.run_local`: learner, referee
+and M workers over loopback Zenoh), started as its own process (`python -m mam_lab.experiment_run`)
+whose exit status is the run's outcome (0 finished, 130 interrupted, else failed). `--parallel P`
+runs P of them at once (default: cores ÷ `--cores-per-run`, at least 1), each pinned by CPU
+affinity to its own len(cores) // P cores (every process of a run inherits it; the learner uses one
+torch thread). One progress view shows the grid and every run in progress; Ctrl-C (or SIGTERM)
+sends SIGTERM to every run, whose launcher stops its processes, and a rerun resumes.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+import traceback
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+from rich.console import Console
+
+from mam_lab.grid import RunSpec
+from mam_lab.ledger import RECORD, backfill_ledger, make_record, run_state, write_ledger_record
+from mam_lab.provenance import ROOT, code_version
+from mam_lab.view import GridView, hms
+from services import options, rundir
+from services.options import RunConfig, write_json
+from services.rundir import env_dirname, read_json
+
+STOP_WAIT_S = 60.0  # after SIGTERM, how long a run may take to stop before it is killed
+
+
+@dataclass
+class Launch:
+    """What a run process needs: `launch(job)` starts it and returns its Popen."""
+
+    spec: RunSpec
+    cfg: RunConfig
+    run_dir: Path
+    cores: tuple[int, ...]  # CPU affinity of the run (empty: not pinned)
+    plot: bool
+    log: IO[bytes]  # the run's launcher.log: the process's stdout and stderr
+
+
+Launcher = Callable[[Launch], subprocess.Popen]
+
+
+def start_run_process(job: Launch) -> subprocess.Popen:
+    """`python -m mam_lab.experiment_run RUN_DIR` (see there): one run, its outcome in the exit status.
+
+    Its own session (the terminal's Ctrl-C reaches the grid, which stops each run with SIGTERM) and
+    SIGTERM when the grid dies; the grid's code first on PYTHONPATH, so every run runs it."""
+    from services.launcher import _die_with_parent
+
+    write_json(job.run_dir / rundir.LAUNCH, {"config": job.cfg.to_dict(), "cores": list(job.cores) or None,
+                                           "plot": job.plot})
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH")) if p)
+    return subprocess.Popen([sys.executable, "-m", "mam_lab.experiment_run", str(job.run_dir.resolve())],
+                            stdout=job.log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+                            start_new_session=True, preexec_fn=_die_with_parent)
+
+
+def available_cores() -> list[int]:
+    return sorted(os.sched_getaffinity(0))
+
+
+def default_parallel(cores_per_run: int = 1, cores: Sequence[int] | None = None) -> int:
+    """What the machine affords: cores ÷ cores per run, at least 1."""
+    n = len(cores) if cores is not None else len(available_cores())
+    return max(1, n // max(1, cores_per_run))
+
+
+def core_slots(parallel: int, cores: Sequence[int] | None = None) -> list[tuple[int, ...]]:
+    """The cores of each of `parallel` concurrent runs: disjoint sets of len(cores) // parallel
+    cores; with more runs than cores, runs share single cores round-robin."""
+    if parallel < 1:
+        raise ValueError("parallel must be >= 1")
+    cores = sorted(cores if cores is not None else available_cores())
+    per = len(cores) // parallel
+    if per == 0:
+        return [(cores[i % len(cores)],) for i in range(parallel)]
+    return [tuple(cores[i * per:(i + 1) * per]) for i in range(parallel)]
+
+
+def run_name_for(spec: RunSpec, tag: str) -> str:
+    env = re.sub(r"[^A-Za-z0-9]+", "", spec.env.split("-")[0]).lower()[:16]
+    return options.check_run_name(f"x{tag}-{spec.variant}-{env}-s{spec.seed}"[:128])
+
+
+@dataclass
+class GridResult:
+    skipped: list[RunSpec] = field(default_factory=list)
+    finished: list[RunSpec] = field(default_factory=list)
+    failed: list[RunSpec] = field(default_factory=list)
+    interrupted: bool = False
+    elapsed_s: float = 0.0
+    run_wall_s: dict[str, float] = field(default_factory=dict)  # label -> wall time of its finished attempt
+
+
+def _keep_failure(exp_dir: Path, spec: RunSpec, run_dir: Path, attempt: int) -> Path | None:
+    """Copy a failed attempt's logs to EXP_DIR/failures/ before its directory is redone."""
+    dest = Path(exp_dir) / rundir.FAILURES / f"{env_dirname(spec.env)}_{spec.variant}_seed{spec.seed}_{attempt}_" \
+                                        f"{time.strftime('%Y%m%d-%H%M%S')}"
+    try:
+        dest.mkdir(parents=True, exist_ok=True)
+        for name in (rundir.LAUNCHER_LOG, rundir.CONFIG, rundir.TRANSPORT):
+            if (run_dir / name).is_file():
+                shutil.copy2(run_dir / name, dest / name)
+        if (run_dir / rundir.LOGS).is_dir():
+            shutil.copytree(run_dir / rundir.LOGS, dest / rundir.LOGS, dirs_exist_ok=True)
+        return dest
+    except OSError:
+        return None
+
+
+@dataclass
+class _Active:
+    spec: RunSpec
+    run_dir: Path
+    attempt: int
+    index: int
+    slot: int
+    cores: tuple[int, ...]
+    proc: subprocess.Popen
+    log: IO[bytes]
+    code: dict[str, Any]
+    started: float
+
+
+INTERRUPTED_STATUS = frozenset({130, -signal.SIGINT, -signal.SIGTERM})
+
+
+def _raise_keyboard_interrupt(signum: int, _frame: Any) -> None:
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+def run_grid(specs: Sequence[RunSpec], exp_dir: Path, console: Console, *, plot_runs: bool = True,
+             retries: int = 1, fail_fast: bool = False, launcher: Launcher | None = None,
+             tag: str | None = None, parallel: int = 1, cores: Sequence[Sequence[int]] | None = None,
+             ledger: Path | None = None, experiment: str = "experiment") -> GridResult:
+    """Run every spec not finished yet, `parallel` at a time, each as its own process; returns what
+    happened. `cores`: the affinity of each of the `parallel` slots (None: core_slots; [] per slot:
+    unpinned). A finished run's record goes to RUN_DIR/record.json and, with `ledger`, to the ledger.
+
+    Ctrl-C (or SIGTERM to the grid) sends SIGTERM to every run in progress and waits for them to stop."""
+    launch = launcher or start_run_process
+    exp_dir = Path(exp_dir)
+    tag = tag or f"{int(time.time()) % 100000:05d}"
+    parallel = max(1, int(parallel))
+    slots = [tuple(c) for c in cores] if cores is not None else core_slots(parallel)
+    if len(slots) < parallel:
+        raise ValueError(f"{parallel} runs at once need {parallel} core sets, got {len(slots)}")
+    order = {spec: i for i, spec in enumerate(specs)}
+    result = GridResult()
+    started = time.monotonic()
+    todo = []
+    for spec in specs:
+        (result.skipped if run_state(spec, exp_dir, ledger) == "done" else todo).append(spec)
+    if result.skipped:
+        console.print(f"resuming: {len(result.skipped)} of {len(specs)} runs already finished, skipped")
+        if ledger is not None:
+            backfill_ledger(result.skipped, exp_dir, ledger, experiment, console)
+    queue: deque[tuple[RunSpec, int]] = deque((spec, 1) for spec in todo)
+    index_of: dict[RunSpec, int] = {}
+    free = list(range(parallel))
+    active: dict[int, _Active] = {}
+    stopping = False
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _raise_keyboard_interrupt) if in_main else None
+
+    def start(spec: RunSpec, attempt: int, slot: int) -> None:
+        index = index_of.setdefault(spec, len(result.skipped) + len(index_of) + 1)
+        run_dir = exp_dir / spec.path
+        if run_dir.exists():  # a partial run (interrupted, or a failed attempt): redo it
+            shutil.rmtree(run_dir)
+        run_dir.mkdir(parents=True)
+        log = open(run_dir / rundir.LAUNCHER_LOG, "wb")
+        code = code_version(ROOT)
+        view.start_run(spec, run_dir, index, slot, slots[slot])
+        try:
+            proc = launch(Launch(spec, spec.run_config(run_name_for(spec, tag)), run_dir, slots[slot], plot_runs,
+                                 log))
+        except Exception:  # could not even start: a failed attempt
+            log.write(traceback.format_exc().encode())
+            log.close()
+            finish(_Active(spec, run_dir, attempt, index, slot, slots[slot], _NoProcess(), log, code,
+                           time.monotonic()), 1)
+            return
+        active[slot] = _Active(spec, run_dir, attempt, index, slot, slots[slot], proc, log, code, time.monotonic())
+
+    def finish(a: _Active, status: int) -> None:
+        nonlocal stopping
+        a.log.close()
+        free.append(a.slot)
+        free.sort()
+        took = time.monotonic() - a.started
+        summary = read_json(a.run_dir / rundir.SUMMARY)
+        if status == 0 and summary:
+            record = make_record(a.spec, a.run_dir, code=a.code, exit_status=status, run_wall_s=took,
+                                 experiment=experiment, attempt=a.attempt, cores=list(a.cores), parallel=parallel)
+            write_json(a.run_dir / RECORD, record)
+            where = ""
+            if ledger is not None:
+                try:
+                    write_ledger_record(a.run_dir, Path(ledger) / a.spec.path, record)
+                    where = " → ledger"
+                except OSError as e:  # the run is finished here; the next invocation copies it
+                    where = f" [yellow](ledger: {e})[/]"
+            finals = summary.get("final_returns") or []
+            best = max((f for f in finals if isinstance(f, (int, float))), default=None)
+            score = "–" if best is None else f"{best:.2f}"
+            view.end_run(a.spec, True, f"[green]✓[/] {a.spec.label}  final {score}  survivor "
+                                       f"{summary.get('survivor')}  {summary.get('env_steps', 0):,} steps  "
+                                       f"{hms(took)}{where}", slot=a.slot)
+            result.finished.append(a.spec)
+            result.run_wall_s[a.spec.label] = took
+            return
+        if status in INTERRUPTED_STATUS or (result.interrupted and status == -signal.SIGKILL):
+            result.interrupted = True
+            stopping = True
+            view.end_run(a.spec, False, f"[yellow]interrupted[/] {a.spec.label} (it is redone on resume)",
+                         count_failure=False, slot=a.slot)
+            return
+        kept = _keep_failure(exp_dir, a.spec, a.run_dir, a.attempt)
+        last = a.attempt > max(retries, 0)
+        view.end_run(a.spec, False, f"[red]✗[/] {a.spec.label} failed (exit status {status}, attempt {a.attempt}"
+                                    f"{'' if last or stopping else ', retrying'}); logs: {kept or a.run_dir}",
+                     count_failure=last, slot=a.slot)
+        if last:
+            result.failed.append(a.spec)
+            stopping = stopping or fail_fast
+        elif not stopping:
+            queue.appendleft((a.spec, a.attempt + 1))
+
+    def reap() -> None:
+        for slot, a in list(active.items()):
+            status = a.proc.poll()
+            if status is not None:
+                del active[slot]
+                finish(a, status)
+
+    try:
+        with GridView(console, specs, result.skipped) as view:
+            try:
+                while True:
+                    while queue and free and not stopping:
+                        spec, attempt = queue.popleft()
+                        start(spec, attempt, free.pop(0))
+                    if not active and (stopping or not queue):
+                        break
+                    time.sleep(0.2)
+                    reap()
+            except KeyboardInterrupt:
+                result.interrupted = stopping = True
+                view.progress.console.print(f"[yellow]interrupted: stopping {len(active)} run(s)[/]")
+            if active:  # interrupted (the grid or a run): stop every run in progress and wait for it
+                _stop_runs(active, reap)
+    finally:
+        if in_main:
+            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+    result.finished.sort(key=order.__getitem__)
+    result.failed.sort(key=order.__getitem__)
+    result.elapsed_s = time.monotonic() - started
+    return result
+
+
+class _NoProcess:
+    """Stands in for a process that could not be started."""
+
+    returncode = 1
+
+    def poll(self) -> int:
+        return 1
+
+
+def _stop_runs(active: dict[int, _Active], reap: Callable[[], None]) -> None:
+    """SIGTERM to every run (its launcher stops the run's processes), SIGKILL after STOP_WAIT_S or
+    at a second Ctrl-C; `reap` records each run as it ends."""
+    for a in active.values():
+        if a.proc.poll() is None:
+            a.proc.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + STOP_WAIT_S
+    try:
+        while active and time.monotonic() < deadline:
+            time.sleep(0.2)
+            reap()
+    except KeyboardInterrupt:
+        pass
+    for a in active.values():
+        if a.proc.poll() is None:
+            a.proc.kill()  # its children get SIGTERM from the kernel (PDEATHSIG)
+    for a in list(active.values()):
+        a.proc.wait()
+    reap()

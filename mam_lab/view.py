@@ -1,0 +1,177 @@
+"""The progress view of `mam experiment`: the grid's bar (runs, env steps, elapsed, ETA) and one
+line per run in progress, and the table of the planned runs."""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from mam_lab.grid import RunSpec, flags_text, seeds_text
+from mam_lab.ledger import run_state
+from services import rundir
+
+
+def _tail_row(path: Path, max_bytes: int = 16384) -> dict[str, Any] | None:
+    """The last complete JSON row of a JSONL file (None if there is none)."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, 2)
+            size = f.tell()
+            f.seek(max(0, size - max_bytes))
+            data = f.read().decode("utf-8", errors="replace")
+    except OSError:
+        return None
+    for line in reversed(data.splitlines()):
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(row, dict):
+            return row
+    return None
+
+
+def hms(seconds: float | None) -> str:
+    if seconds is None or not math.isfinite(seconds):
+        return "–"
+    s = int(max(seconds, 0))
+    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
+
+
+class GridView:
+    """Rich progress of the whole grid: runs done / total, env steps, elapsed, ETA, and one line per
+    run in progress (P of them with --parallel P).
+
+    The scheduler runs in the main thread; a background thread reads each current run's
+    learner.jsonl / eval.jsonl once a second.
+    """
+
+    def __init__(self, console: Console, specs: Sequence[RunSpec], done: Iterable[RunSpec]) -> None:
+        from rich.progress import BarColumn, Progress, TextColumn
+
+        self.console = console
+        self.total_runs = len(specs)
+        self.total_steps = sum(s.steps for s in specs)
+        done = list(done)
+        self.done_runs = len(done)
+        self.done_steps = sum(s.steps for s in done)
+        self.session_steps = 0  # finished this session (runs, counted by their budget)
+        self.failed = 0
+        self.started = time.monotonic()
+        self.current: dict[int, tuple[RunSpec, Path]] = {}  # slot -> the run in it
+        self.current_steps: dict[int, int] = {}
+        self.tasks: dict[int, Any] = {}  # slot -> progress task
+        self.lock = threading.Lock()
+        self.progress = Progress(TextColumn("{task.description}"), BarColumn(bar_width=28),
+                                 TextColumn("{task.fields[info]}"), console=console, refresh_per_second=2,
+                                 transient=False)
+        self.grid_task = self.progress.add_task("[bold]grid", total=max(self.total_steps, 1),
+                                                completed=self.done_steps, info="")
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._poll, name="grid-view", daemon=True)
+
+    def __enter__(self) -> "GridView":
+        self.progress.start()
+        self._thread.start()
+        self.refresh()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.refresh()
+        self.progress.stop()
+
+    def _running_steps(self) -> int:
+        return sum(self.current_steps.values())
+
+    def eta(self) -> float | None:
+        elapsed = time.monotonic() - self.started
+        steps = self.session_steps + self._running_steps()
+        if steps <= 0 or elapsed <= 0:
+            return None
+        remaining = self.total_steps - self.done_steps - self._running_steps()
+        return remaining / (steps / elapsed)
+
+    def grid_info(self) -> str:
+        failed = f" · [red]{self.failed} failed[/]" if self.failed else ""
+        running = f" · {len(self.current)} running" if len(self.current) > 1 else ""
+        return (f"{self.done_runs}/{self.total_runs} runs{running} · {self.done_steps + self._running_steps():,}/"
+                f"{self.total_steps:,} steps · elapsed {hms(time.monotonic() - self.started)} · "
+                f"ETA {hms(self.eta())}{failed}")
+
+    def refresh(self) -> None:
+        with self.lock:
+            self.progress.update(self.grid_task, completed=self.done_steps + self._running_steps(),
+                                 info=self.grid_info())
+
+    def start_run(self, spec: RunSpec, run_dir: Path, index: int, slot: int = 0, cores: Sequence[int] = ()) -> None:
+        where = f" [dim]cores {seeds_text(cores)}[/]" if cores else ""
+        with self.lock:
+            self.current[slot] = (spec, run_dir)
+            self.current_steps[slot] = 0
+            if slot not in self.tasks:
+                self.tasks[slot] = self.progress.add_task("", total=1, completed=0, info="")
+            self.progress.update(self.tasks[slot], description=f"run {index}: {spec.label}{where}",
+                                 total=spec.steps, completed=0, info="starting", visible=True)
+        self.refresh()
+
+    def end_run(self, spec: RunSpec, ok: bool, message: str, count_failure: bool = True, slot: int = 0) -> None:
+        with self.lock:
+            self.current.pop(slot, None)
+            self.current_steps.pop(slot, None)
+            if ok:
+                self.done_runs += 1
+                self.done_steps += spec.steps
+                self.session_steps += spec.steps
+            elif count_failure:
+                self.failed += 1
+            if slot in self.tasks:
+                self.progress.update(self.tasks[slot], visible=False)
+        self.progress.console.print(message)
+        self.refresh()
+
+    def _poll(self) -> None:
+        while not self._stop.wait(1.0):
+            with self.lock:
+                current = dict(self.current)
+            for slot, (spec, run_dir) in current.items():
+                row = _tail_row(run_dir / rundir.LEARNER_LOG) or {}
+                steps = row.get("env_steps") if isinstance(row.get("env_steps"), int) else 0
+                updates = row.get("updates") if isinstance(row.get("updates"), int) else 0
+                ev = _tail_row(run_dir / rundir.EVAL) or {}
+                means = [m for m in (ev.get("mean") or []) if isinstance(m, (int, float))]
+                best = f" · best eval {max(means):.1f}" if means else ""
+                with self.lock:
+                    if self.current.get(slot, (None,))[0] is not spec:
+                        continue
+                    self.current_steps[slot] = min(steps, spec.steps)
+                    self.progress.update(self.tasks[slot], completed=self.current_steps[slot],
+                                         info=f"{steps:,}/{spec.steps:,} steps · upd {updates:,}{best}")
+            self.refresh()
+
+
+def describe_plan(specs: Sequence[RunSpec], aliases: Mapping[str, str], exp_dir: Path, console: Console,
+                  ledger: Path | None = None) -> None:
+    from rich.table import Table
+
+    table = Table(title=f"{len(specs)} runs in {exp_dir}")
+    for h in ("env", "variant", "seeds", "steps", "options", "finished"):
+        table.add_column(h, overflow="fold")
+    groups: dict[tuple[str, str], list[RunSpec]] = {}
+    for s in specs:
+        groups.setdefault((s.env, s.variant), []).append(s)
+    for (env, variant), ss in groups.items():
+        done = sum(run_state(s, exp_dir, ledger) == "done" for s in ss)
+        table.add_row(env, variant, seeds_text([s.seed for s in ss]), f"{ss[0].steps:,}",
+                      flags_text(ss[0].flags) or "(paper defaults)", f"{done}/{len(ss)}")
+    console.print(table)
+    for dup, same in aliases.items():
+        console.print(f"[dim]{dup} is the same configuration as {same}: run once[/]")
