@@ -46,13 +46,13 @@ then seed 1, ...), so a grid stopped early still has balanced results across alg
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Any, Optional
 
 import typer
 from rich.console import Console
 
 from mam_core.config import ALGOS
-from mam_lab.grid import GridError, load_grid_file, make_grid, plan, seeds_text, variants
+from mam_lab.grid import GRID_DIMENSIONS, GridError, load_grid_file, make_grid, plan, seeds_text, variants
 from mam_lab.ledger import check_resume, default_ledger, write_manifest
 from mam_lab.provenance import ROOT, code_version, commit_label
 from mam_lab.scheduler import GridResult, core_slots, default_parallel, run_grid
@@ -62,7 +62,9 @@ from services import options
 # --- command ---------------------------------------------------------------------------------
 
 
+@options.run_options(exclude=tuple(GRID_DIMENSIONS))
 def experiment_command(
+    run_opts: dict[str, Any],
     config: Annotated[Optional[Path], typer.Option(
         "--config", help="grid TOML file (see deploy/experiments/); flags given here win over it")] = None,
     exp_dir: Annotated[Optional[Path], typer.Option(
@@ -73,20 +75,12 @@ def experiment_command(
     algos: Annotated[Optional[str], typer.Option("--algos", help=f"comma-separated, of {', '.join(ALGOS)}")] = None,
     seeds: Annotated[Optional[str], typer.Option("--seeds", help="N (seeds 0..N-1), A-B, or a list 0,3,7")] = None,
     steps: Annotated[Optional[int], typer.Option(
-        "--steps", help="budget of every run: env transitions received by the learner (all slots)")] = None,
+        "--steps", help="[T] budget of every run in schedule steps: iterations (--schedule paper) or "
+                        "transitions (equal-data)")] = None,
     ablations: Annotated[Optional[str], typer.Option(
         "--ablations", help="extra variants of each multi-actor algo: no-ot, no-wt (comma-separated)")] = None,
     etas: Annotated[Optional[str], typer.Option(
         "--etas", help="η sweep: one variant per value for each multi-actor algo, e.g. 0.05,0.1,0.2")] = None,
-    actors: options.Actors = None, workers: options.Workers = None, eliminate_at: options.EliminateAt = None,
-    compete_every: options.CompeteEvery = None, eta: options.Eta = None, eval_episodes: options.EvalEpisodes = None,
-    eval_every: options.EvalEvery = None, start_steps: options.StartSteps = None,
-    batch_size: options.BatchSize = None, utd: options.Utd = None, device: options.Device = None,
-    hidden: options.Hidden = None, single_env_after_elimination: options.SingleEnv = None,
-    bias_every: options.BiasEvery = None, bias_rollouts: options.BiasRollouts = None,
-    precision: options.Precision = None, schedule: options.Schedule = None, shared_batch: options.SharedBatch = None,
-    after_elimination: options.AfterElimination = None, skip_random_rounds: options.SkipRandomRounds = None,
-    bias_horizon: options.BiasHorizon = None,
     name: Annotated[Optional[str], typer.Option("--name", help="experiment name (default: the grid file's)")] = None,
     dry_run: Annotated[bool, typer.Option("--dry-run", help="print the planned runs and exit")] = False,
     retries: Annotated[int, typer.Option("--retries", help="attempts after a failed run")] = 1,
@@ -107,8 +101,9 @@ def experiment_command(
 ) -> None:
     """Run a grid of algorithms × seeds × envs through the distributed system; resumable.
 
-    The multi-actor flags (--actors, --workers, --eliminate-at, --compete-every, --eta,
-    --single-env-after-elimination) apply to ma-td3 / ma-ddpg only; the others to every run.
+    Every run option of `mam run` but the grid's own dimensions (env, algo, steps, seed, run name)
+    is a flag here too. The multi-actor flags (--actors, --workers, --eliminate-at, --compete-every,
+    --eta, --after-elimination, ...) apply to ma-td3 / ma-ddpg only; the others to every run.
     """
     import logging
 
@@ -116,13 +111,7 @@ def experiment_command(
     console = Console()
     try:
         file = load_grid_file(config) if config is not None else {}
-        flags = dict(actors=actors, workers=workers, eliminate_at=eliminate_at, compete_every=compete_every,
-                     eta=eta, eval_episodes=eval_episodes, eval_every=eval_every, start_steps=start_steps,
-                     batch_size=batch_size, utd=utd, device=device, hidden=hidden,
-                     single_env_after_elimination=single_env_after_elimination, bias_every=bias_every,
-                     bias_rollouts=bias_rollouts, precision=precision, schedule=schedule,
-                     shared_batch=shared_batch, after_elimination=after_elimination,
-                     skip_random_rounds=skip_random_rounds, bias_horizon=bias_horizon)
+        flags = run_opts  # every run option of the table but the grid's own dimensions
         grid = make_grid(file, envs=envs, algos=algos, seeds=seeds, steps=steps, ablations=ablations, etas=etas,
                          name=name, flags=flags, variants=variants_opt)
         specs = plan(grid)

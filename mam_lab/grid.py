@@ -18,7 +18,6 @@ multi-actor algorithms only: TD3 and DDPG keep K=1, M=1 unless their own `[algo.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import re
 import tomllib
@@ -29,19 +28,17 @@ from typing import Any
 
 import typer
 
-from mam_core.config import ALGOS, AlgoConfig
+from mam_core.config import ALGOS
 from services import options
 from services.options import RunConfig
 from services.rundir import env_dirname
 
 ABLATIONS = {"no-ot": "no_ot", "no-wt": "no_wt"}
-MULTI_ACTOR_FLAGS = frozenset({"actors", "workers", "eliminate_at", "compete_every", "eta",
-                               "single_env_after_elimination", "no_ot", "no_wt", "shared_batch",
-                               "after_elimination", "skip_random_rounds"})
-RUN_FLAGS = frozenset({"sync_every", "checkpoint_every", "send_batch", "band", "save_replay", "learner_threads",
-                       "bias_every", "bias_rollouts", "bias_horizon"})
-_ALGO_FLAGS = frozenset(f.name for f in dataclasses.fields(AlgoConfig)) - {"algo", "seed"}
-FLAG_NAMES = _ALGO_FLAGS | RUN_FLAGS
+# Run options a grid sets for itself (its dimensions), not as flags of a run.
+GRID_DIMENSIONS = frozenset({"env", "env_kwargs", "algo", "steps", "seed", "run"})
+# Flags of the multi-actor algorithms only: TD3 and DDPG keep K=1, M=1 unless their own sections say otherwise.
+MULTI_ACTOR_FLAGS = frozenset({o.name for o in options.RUN_OPTIONS if o.multi_actor} | {"actors", "workers"})
+FLAG_NAMES = frozenset(o.name for o in options.RUN_OPTIONS) - GRID_DIMENSIONS  # the option table, less the dimensions
 GRID_KEYS = {"name", "exp_dir", "envs", "algos", "seeds", "steps", "ablations", "etas", "common", "algo", "variant"}
 _VARIANT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,63}")
 

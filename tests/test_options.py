@@ -70,6 +70,17 @@ def test_the_option_table_drives_mam_run_and_mam_learner():
     assert table["eliminate_at"][1].startswith("[C] ")
     assert _run_option_flags(cli.app, "run") == table
     assert _run_option_flags(learner.app) == table
+    # `mam experiment`: the same options, less the grid's own dimensions (env, algo, steps, seed, run)
+    import typer as _typer
+
+    from mam_lab.experiment import experiment_command
+    from mam_lab.grid import FLAG_NAMES, GRID_DIMENSIONS
+
+    lab = _typer.Typer()
+    lab.command()(experiment_command)
+    grid_table = {k: v for k, v in table.items() if k not in GRID_DIMENSIONS}
+    assert {k: v for k, v in _run_option_flags(lab).items() if k not in GRID_DIMENSIONS} == grid_table
+    assert set(grid_table) <= FLAG_NAMES  # and a grid file takes every one of them
 
 
 def test_the_table_knows_every_algorithm_field():
