@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: venv install run test test-slow test-learning test-all bench clean
+.PHONY: venv install lint run test test-slow test-learning test-all bench clean
 
 venv: $(STAMP)
 
@@ -22,7 +22,10 @@ install: $(STAMP)
 run: $(STAMP)
 	$(VENV)/bin/mam run --config deploy/demo.toml $(RUN_ARGS)
 
-test: $(STAMP)
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+
+test: $(STAMP) lint
 	$(PY) -m pytest -q
 
 test-slow: $(STAMP)

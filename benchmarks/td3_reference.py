@@ -49,7 +49,8 @@ class TD3:
         self.critic_target = copy.deepcopy(self.critic)
         self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=3e-4)
         self.max_action, self.discount, self.tau = max_action, discount, tau
-        self.policy_noise, self.noise_clip, self.policy_freq = policy_noise * max_action, noise_clip * max_action, policy_freq
+        self.policy_noise, self.noise_clip = policy_noise * max_action, noise_clip * max_action
+        self.policy_freq = policy_freq
         self.total_it = 0
 
     def act(self, s: np.ndarray) -> np.ndarray:

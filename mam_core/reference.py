@@ -54,7 +54,8 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int,
     agent = MultiActorAgent(cfg, spec, device)
     clock = Schedule.for_run(cfg, steps)
     budget = clock.budget
-    buffer = ReplayBuffer(min(cfg.buffer_size, max(budget, cfg.batch_size)), spec.obs_dim, spec.act_dim, device, cfg.seed)
+    capacity = min(cfg.buffer_size, max(budget, cfg.batch_size))
+    buffer = ReplayBuffer(capacity, spec.obs_dim, spec.act_dim, device, cfg.seed)
     schedule = obsolescence_for(cfg)
     rng = np.random.default_rng(cfg.seed)
     result = ReferenceResult()
@@ -63,7 +64,8 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int,
     for i, env in enumerate(envs):
         env.action_space.seed(cfg.seed + 1000 * i)
     allocation = schedule.allocation(cfg.workers, rng)
-    result.allocations.append({"env_steps": 0, "slots": list(allocation), "probabilities": schedule.probabilities.tolist()})
+    result.allocations.append({"env_steps": 0, "slots": list(allocation),
+                               "probabilities": schedule.probabilities.tolist()})
     next_curve_eval = cfg.eval_every
 
     def evaluate(env_steps: int) -> list[float | None]:
@@ -74,7 +76,8 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int,
                 means.append(None)
                 returns.append([])
                 continue
-            r = evaluate_policy(lambda o, k=k: agent.act(o, k), env_id, cfg.eval_episodes, seed=cfg.seed + 10_000 + env_steps)
+            r = evaluate_policy(lambda o, k=k: agent.act(o, k), env_id, cfg.eval_episodes,
+                                seed=cfg.seed + 10_000 + env_steps)
             means.append(float(r.mean()))
             returns.append(r.tolist())
         row = {"env_steps": env_steps, "iterations": clock.units_at(env_steps), "updates": agent.updates,

@@ -70,6 +70,31 @@ def thin_jsonl(src: Path, dest: Path, max_rows: int = LEARNER_ROWS) -> tuple[int
     return len(keep), len(lines)
 
 
+def compact_allocation(src: Path, dest: Path) -> tuple[int, int]:
+    """Copy allocation.jsonl without its repeats: a "workers-changed" row that leaves round, P,
+    slots, elimination and survivor as the row before it says nothing new (the referee of commit
+    99feae5 re-published one every loop while workers waited after the elimination). Every round,
+    elimination and real change is kept. Returns (kept, of)."""
+    rows = [line for line in src.read_text(errors="replace").splitlines() if line.strip()]
+    kept: list[str] = []
+    last: tuple[Any, ...] | None = None
+    for line in rows:
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if not isinstance(row, dict):
+            continue
+        key = tuple(json.dumps(row.get(k), sort_keys=True) for k in
+                    ("round", "probabilities", "slots", "eliminated", "survivor"))
+        if row.get("reason") == "workers-changed" and key == last:
+            continue
+        kept.append(line)
+        last = key
+    dest.write_text("".join(line + "\n" for line in kept))
+    return len(kept), len(rows)
+
+
 def make_record(spec: RunSpec, run_dir: Path, *, code: Mapping[str, Any], exit_status: int,
                 run_wall_s: float | None, experiment: str, **extra: Any) -> dict[str, Any]:
     """record.json of a finished run: which code ran it, with what, how long."""
@@ -102,6 +127,9 @@ def write_ledger_record(run_dir: Path, dest: Path, record: Mapping[str, Any],
     if (run_dir / rundir.LEARNER_LOG).is_file():
         kept, total = thin_jsonl(run_dir / rundir.LEARNER_LOG, tmp / rundir.LEARNER_LOG, max_rows)
         record["learner_rows"] = {"kept": kept, "of": total}
+    if (run_dir / rundir.ALLOCATION).is_file():
+        kept, total = compact_allocation(run_dir / rundir.ALLOCATION, tmp / rundir.ALLOCATION)
+        record["allocation_rows"] = {"kept": kept, "of": total}
     for p in sorted(tmp.iterdir()):
         files[p.name] = p.stat().st_size
     record["files"] = files

@@ -332,7 +332,8 @@ def audit_transport(run_dir: Path) -> dict[str, Any]:
             if len(parts) == 2 and parts[0].isdigit() and parts[1].isdigit():
                 seen.setdefault(int(parts[0]), int(parts[1]))
         sent[f"{worker}/{incarnation}"] = sum(seen.values())
-    per_stream = {s: {"sent": sent.get(s, 0), "in_replay": in_replay.get(s, 0)} for s in sorted(set(sent) | set(in_replay))}
+    per_stream = {s: {"sent": sent.get(s, 0), "in_replay": in_replay.get(s, 0)}
+                  for s in sorted(set(sent) | set(in_replay))}
     audit = {
         "sent_rows": sum(sent.values()), "replay_rows": sum(in_replay.values()),
         "lost_rows": sum(max(d["sent"] - d["in_replay"], 0) for d in per_stream.values()),

@@ -26,7 +26,8 @@ def q_tensor(rows: list[list[float]]) -> torch.Tensor:
 @pytest.mark.parametrize("rows, eta, expected", [
     # K=2, n=2: coefficient η/(n(K-1)) = 0.1/2. k=0: 0.9·1 + 0.05·(5+7) = 1.5; k=1: 0.9·5 + 0.05·(1+3) = 4.7
     ([[1, 3], [5, 7]], 0.1, [1.5, 4.7]),
-    # K=3, n=2: coefficient 0.2/4 = 0.05. k=0: 0.8·1 + 0.05·24 = 2.0; k=1: 0.8·5 + 0.05·16 = 4.8; k=2: 0.8·2 + 0.05·16 = 2.4
+    # K=3, n=2: coefficient 0.2/4 = 0.05.
+    # k=0: 0.8·1 + 0.05·24 = 2.0; k=1: 0.8·5 + 0.05·16 = 4.8; k=2: 0.8·2 + 0.05·16 = 2.4
     ([[1, 3], [5, 7], [2, 10]], 0.2, [2.0, 4.8, 2.4]),
     # K=2, n=1: coefficient 0.5. k=0: 0.5·2 + 0.5·6 = 4; k=1: 0.5·6 + 0.5·2 = 4
     ([[2], [6]], 0.5, [4.0, 4.0]),
@@ -350,7 +351,8 @@ def test_many_updates_track_the_reference_td3(schedule):
             ref.train(s, a, r.unsqueeze(1), s2, torch.ones(64, 1))
     with torch.no_grad():
         for seq, net, member in ((ref.actor.net, agent.actor.net, 0), (ref.critic.q1, agent.critic.net, 0),
-                                 (ref.critic.q2, agent.critic.net, 1), (ref.actor_target.net, agent.actor_target.net, 0),
+                                 (ref.critic.q2, agent.critic.net, 1),
+                                 (ref.actor_target.net, agent.actor_target.net, 0),
                                  (ref.critic_target.q2, agent.critic_target.net, 1)):
             for i, lin in enumerate(linears(seq)):
                 torch.testing.assert_close(net.weights[i][member].T, lin.weight, rtol=0, atol=1e-5)

@@ -401,7 +401,8 @@ def two_hosts():
 
 
 STEPS, WORKERS = 1500, 2
-RUN_FLAGS = ["--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--schedule", "equal-data", "--steps", str(STEPS), "--workers", str(WORKERS),
+RUN_FLAGS = ["--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--schedule", "equal-data", "--steps", str(STEPS),
+             "--workers", str(WORKERS),
              "--hidden", "32,32", "--batch-size", "32", "--start-steps", "300", "--compete-every", "500",
              "--eliminate-at", "1000", "--eval-episodes", "3", "--seed", "3"]
 ACL_TRACE = {"RUST_LOG": "warn,zenoh::net::routing::interceptor=trace"}

@@ -534,7 +534,8 @@ def test_small_real_grid_in_parallel_then_report_then_resume_from_the_ledger(tmp
     exp, ledger = tmp_path / "exp", tmp_path / "ledger"
     env = dict(os.environ, COLUMNS="160", PYTHONWARNINGS="ignore")
     args = [sys.executable, "-m", "mam_lab.experiment", "--exp-dir", str(exp), "--envs", "AppleCollect-v0",
-            "--algos", "ma-ddpg,ddpg", "--seeds", "2", "--steps", "1500", "--hidden", "32,32", "--batch-size", "32",
+            "--algos", "ma-ddpg,ddpg", "--seeds", "2", "--steps", "1500", "--schedule", "equal-data",
+            "--hidden", "32,32", "--batch-size", "32",
             "--start-steps", "300", "--compete-every", "300", "--eliminate-at", "900", "--eval-every", "300",
             "--eval-episodes", "2", "--no-plot", "--no-report", "--parallel", "2", "--ledger", str(ledger)]
     first = subprocess.run(args, cwd=ROOT, env=env, text=True, capture_output=True, timeout=600)
@@ -967,3 +968,21 @@ def test_report_from_the_ledger_alone_and_from_a_fresh_clone(tmp_path):
     write_manifest(tmp_path / "again", grid, specs, {}, ledger)
     rep = build_report(tmp_path / "again", n_boot=200)
     assert sum(v.n for v in rep.envs["AppleCollect-v0"]) == 3
+
+
+def test_ledger_compacts_repeated_allocation_rows(tmp_path):
+    from mam_lab.ledger import compact_allocation
+
+    def row(reason, round_, slots, survivor=None, t=0.0):
+        return json.dumps({"t": t, "round": round_, "probabilities": [0.5, 0.5], "slots": slots,
+                           "eliminated": [False, False], "survivor": survivor, "reason": reason})
+
+    src, dest = tmp_path / "allocation.jsonl", tmp_path / "out.jsonl"
+    src.write_text("\n".join([
+        row("initial", 0, {"w0": 0}), row("workers-changed", 0, {"w0": 0, "w1": 1}),
+        row("workers-changed", 0, {"w0": 0, "w1": 1}, t=1.0),  # a repeat: dropped
+        row("round", 1, {"w0": 1, "w1": 1}), row("round", 1, {"w0": 1, "w1": 1}, t=2.0),  # rounds always kept
+        row("workers-changed", 1, {"w0": 1}), "not json", ""]) + "\n")
+    assert compact_allocation(src, dest) == (5, 7)
+    kept = [json.loads(line) for line in dest.read_text().splitlines()]
+    assert [r["reason"] for r in kept] == ["initial", "workers-changed", "round", "round", "workers-changed"]

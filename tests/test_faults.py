@@ -16,10 +16,10 @@ import torch
 from mam_core.agent import EnvSpec, MultiActorAgent
 from mam_core.config import AlgoConfig
 from services import bus, keys
-from services.codec import Allocation, LearnerStats
 from services.checkpoint import load_replay
+from services.codec import Allocation, LearnerStats
 from services.plot import read_jsonl
-from tests.e2e import ROOT, assert_exactly_once, load, processes_of, spawn, stop, unique_run
+from tests.e2e import ROOT, processes_of, spawn, stop, unique_run
 
 pytestmark = pytest.mark.slow
 
@@ -68,7 +68,8 @@ def cpu_seconds(pid: int) -> float:
 
 
 def start_run(tmp_path: Path, run: str, endpoint: str, steps: int, extra: list[str] = (), workers: int = 3):
-    learner = spawn("learner", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--schedule", "equal-data", "--steps", str(steps),
+    learner = spawn("learner", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--schedule", "equal-data",
+                    "--steps", str(steps),
                     "--start-steps", "300", "--compete-every", "500", "--eliminate-at", "1000000", *SMALL, *extra,
                     "--run", run, "--listen", endpoint, "--run-dir", str(tmp_path), log=tmp_path / "learner.log")
     referee = spawn("referee", "--run", run, "--connect", endpoint, "--run-dir", str(tmp_path),
@@ -90,7 +91,7 @@ def test_worker_killed_and_restarted(tmp_path: Path) -> None:
     learner, referee, ws = start_run(tmp_path, run, endpoint, steps=5000)
     view = RunView(run, endpoint)
     try:
-        view.wait(lambda: view.steps() > 1500 and (st := view.learner()).per_worker.get("w1", {}).get("received"),
+        view.wait(lambda: view.steps() > 1500 and view.learner().per_worker.get("w1", {}).get("received"),
                   what="1500 steps, some from w1")
         ws["w1"].send_signal(signal.SIGKILL)
         ws["w1"].wait()

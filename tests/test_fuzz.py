@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import re
 import time
 from collections import Counter
@@ -13,9 +12,18 @@ import numpy as np
 import pytest
 
 from services import bus, keys
-from services.codec import (SCHEMA_VERSION, Allocation, Done, Eval, LearnerStats, TransitionBatch, Weights, decode,
-                            encode)
-from tests.e2e import ROOT, assert_exactly_once, credit_overrun, load, processes_of, spawn, stop, unique_run
+from services.codec import (
+    SCHEMA_VERSION,
+    Allocation,
+    Done,
+    Eval,
+    LearnerStats,
+    TransitionBatch,
+    Weights,
+    decode,
+    encode,
+)
+from tests.e2e import assert_exactly_once, credit_overrun, load, processes_of, spawn, stop, unique_run
 
 PER_TOPIC = 10_000
 OBS, ACT, K = 2, 2, 3  # AppleCollect-v0, ma-ddpg
@@ -24,8 +32,9 @@ OBS, ACT, K = 2, 2, 3  # AppleCollect-v0, ma-ddpg
 def valid_messages(run: str) -> dict[str, bytes]:
     """One well-formed message per topic: the raw material that gets broken."""
     rows = 4
-    batch = TransitionBatch("w0", "fuzzinc", 0, 0, 0, np.zeros((rows, OBS), np.float32), np.zeros((rows, ACT), np.float32),
-                            np.zeros(rows, np.float32), np.zeros((rows, OBS), np.float32), np.zeros(rows, bool))
+    batch = TransitionBatch("w0", "fuzzinc", 0, 0, 0, np.zeros((rows, OBS), np.float32),
+                            np.zeros((rows, ACT), np.float32), np.zeros(rows, np.float32),
+                            np.zeros((rows, OBS), np.float32), np.zeros(rows, bool))
     params = {"w0": np.zeros((OBS, 32), np.float32), "b0": np.zeros((1, 32), np.float32),
               "w1": np.zeros((32, 32), np.float32), "b1": np.zeros((1, 32), np.float32),
               "w2": np.zeros((32, ACT), np.float32), "b2": np.zeros((1, ACT), np.float32)}
@@ -139,7 +148,8 @@ def test_fuzz_every_topic_while_a_run_goes_on(tmp_path: Path) -> None:
     fuzz = [(key, malformed(key, payload, rng, i, run)) for i in range(PER_TOPIC) for key, payload in base.items()]
     huge = rng.bytes(70 * 1024 * 1024)  # over every size cap
     fuzz += [(keys.transitions(run, "w0"), huge), (keys.weights(run, 0), huge)]
-    learner = spawn("learner", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--schedule", "equal-data", "--steps", str(steps),
+    learner = spawn("learner", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--schedule", "equal-data",
+                    "--steps", str(steps),
                     "--start-steps", "300", "--compete-every", "500", "--eliminate-at", "2000", "--hidden", "32,32",
                     "--batch-size", "32", "--eval-episodes", "3", "--run", run, "--listen", endpoint,
                     "--run-dir", str(tmp_path), log=tmp_path / "learner.log")

@@ -5,12 +5,10 @@ from __future__ import annotations
 import subprocess
 import sys
 
-import numpy as np
 import pytest
 import torch
 
 from mam_core.config import resolve
-from mam_core.obsolescence import allocation_probabilities
 from mam_core.reference import run_reference
 
 

@@ -9,15 +9,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from rich.console import Console
 
 from mam_core.config import resolve
 from mam_core.obsolescence import allocation_probabilities
 from mam_core.schedule import Schedule
-from rich.console import Console
-
 from services import bus, keys
-from services.monitor import watch
 from services.codec import Allocation, Weights
+from services.monitor import watch
 from tests.e2e import assert_exactly_once, credit_overrun, load, mam, processes_of, spawn, stop, unique_run
 
 SMALL = ["--hidden", "32,32", "--batch-size", "32", "--eval-episodes", "3"]
@@ -62,7 +61,8 @@ def check_rate_limiter(run: dict, start: int, utd: float, band: int, overrun: in
 def test_mam_run_apple_collect_end_to_end(tmp_path: Path) -> None:
     run_name, run_dir = unique_run("e2e-apple"), tmp_path / "run"
     a, c, m, start, steps = 400, 1600, 3, 400, 2400
-    proc = mam("run", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--schedule", "equal-data", "--steps", str(steps), "--workers", str(m),
+    proc = mam("run", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--schedule", "equal-data",
+               "--steps", str(steps), "--workers", str(m),
                "--actors", "3", "--compete-every", str(a), "--eliminate-at", str(c), "--start-steps", str(start),
                "--eval-every", "400", "--seed", "1", *SMALL, "--run", run_name, "--run-dir", str(run_dir))
     assert "elimination" in proc.stdout and "survivor" in proc.stdout
@@ -125,7 +125,8 @@ def test_mam_run_paper_schedule_accounting(tmp_path: Path) -> None:
 def test_mam_run_mujoco_end_to_end(tmp_path: Path) -> None:
     run_name, run_dir = unique_run("e2e-ip"), tmp_path / "run"
     a, c, m, start, steps = 500, 1500, 3, 500, 2500
-    mam("run", "--env", "InvertedPendulum-v5", "--algo", "ma-td3", "--schedule", "equal-data", "--steps", str(steps), "--workers", str(m),
+    mam("run", "--env", "InvertedPendulum-v5", "--algo", "ma-td3", "--schedule", "equal-data", "--steps", str(steps),
+        "--workers", str(m),
         "--actors", "2", "--compete-every", str(a), "--eliminate-at", str(c), "--start-steps", str(start),
         "--eval-every", "500", "--seed", "2", *SMALL, "--bias-every", "1250", "--bias-rollouts", "4",
         "--run", run_name, "--run-dir", str(run_dir))
