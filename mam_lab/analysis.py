@@ -352,6 +352,9 @@ def build_report(exp_dir: Path, n_boot: int = N_BOOT, seed: int = 0, axis: str =
     for env, vs in envs.items():
         common = common_bias_points([r for v in vs for r in v.runs])
         bias[env] = [b for b in (bias_stats(v.variant, v.runs, common) for v in vs) if b is not None]
+        # Where Q* < 0 the printed form flips the sign: the ÷|Q*| form beside it, labelled
+        bias[env] += [b for b in (bias_stats(f"{v.variant} (÷|Q*|)", v.runs, common, absolute=True) for v in vs
+                                  if any(r.bias != r.bias_abs for r in v.runs)) if b is not None]
     bias = {env: bs for env, bs in bias.items() if bs}
     meta = manifest(exp_dir)
     return Report(exp_dir, envs, bias, comparisons, aggregate, missing, meta, axis=axis,

@@ -151,7 +151,7 @@ def plot_bias(env: str, bs: Sequence[BiasStats], path: Path) -> Path | None:
                 label=f"{b.variant} (n={b.n})")
         ax.fill_between(b.points[ok], mean - std, mean + std, color=color, alpha=0.18, linewidth=0)
     ax.axhline(0.0, color="0.3", linewidth=0.8)
-    _label_steps_axes(ax, "bias rate $(\\hat Q - Q^*)/|Q^*|$ (Eq. 17)",
+    _label_steps_axes(ax, "bias rate $(\\hat Q - Q^*)/Q^*$ (Eq. 17; rows marked ÷|Q*|: $/|Q^*|$)",
                       f"{env}: estimation bias, mean over seeds ± 1 std")
     return _save(fig, path)
 

@@ -31,7 +31,8 @@ class RunRecord:
     summary: dict[str, Any]
     points: list[tuple[float, float]]
     allocation: list[dict[str, Any]] = field(default_factory=list)
-    bias: list[tuple[float, float]] = field(default_factory=list)  # (point, Eq. 17 rate) from bias.jsonl
+    bias: list[tuple[float, float]] = field(default_factory=list)  # (point, Eq. 17 rate as printed) from bias.jsonl
+    bias_abs: list[tuple[float, float]] = field(default_factory=list)  # the same, ÷|Q*|
     evals: list[tuple[float, float | None, float]] = field(default_factory=list)  # (env steps, iterations, score)
     record: dict[str, Any] = field(default_factory=dict)  # record.json (the commit it ran at), if any
 
@@ -108,6 +109,7 @@ def load_run(path: Path, env: str | None = None, variant: str | None = None) -> 
         points=eval_points(rows), evals=eval_triples(rows),
         allocation=read_jsonl(path / rundir.ALLOCATION),
         bias=bias_points(read_jsonl(path / rundir.BIAS)),
+        bias_abs=bias_points(read_jsonl(path / rundir.BIAS), absolute=True),
         record=read_json(path / rundir.RECORD))
 
 
@@ -128,8 +130,10 @@ class BiasStats:
                            for row in self.rates])
 
 
-def bias_stats(variant: str, runs: Sequence[RunRecord], points: Sequence[float] | None = None) -> BiasStats | None:
-    """`points`: only these (e.g. the points every run of the env measured), else every point."""
+def bias_stats(variant: str, runs: Sequence[RunRecord], points: Sequence[float] | None = None,
+               absolute: bool = False) -> BiasStats | None:
+    """`points`: only these (e.g. the points every run of the env measured), else every point.
+    `absolute`: the ÷|Q*| form (labelled so in `variant`)."""
     measured = [r for r in runs if r.bias]
     if not measured:
         return None
@@ -140,7 +144,7 @@ def bias_stats(variant: str, runs: Sequence[RunRecord], points: Sequence[float] 
         return None
     rates = np.full((len(measured), points.size), np.nan)
     for i, r in enumerate(measured):
-        for p, rate in r.bias:
+        for p, rate in (r.bias_abs if absolute else r.bias):
             j = np.searchsorted(points, p)
             if j < points.size and points[j] == p:
                 rates[i, j] = rate

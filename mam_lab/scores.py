@@ -129,16 +129,33 @@ def max_average_return(grid: np.ndarray, matrix: np.ndarray) -> MaxAverage:
     return MaxAverage(float(means[j]), float(np.std(column)), float(grid[full][j]))
 
 
-def bias_points(rows: list[dict[str, Any]]) -> list[tuple[float, float]]:
-    """(point, bias rate) per measurement of a run: the mean of Eq. 17 over the actors live at
-    that point (after the elimination: the survivor's). Points with no finite rate are left out,
-    and so are points before the first update (the critic is still its random initialisation)."""
+def bias_rate_of(bias: dict[str, Any], absolute: bool = False) -> float | None:
+    """Eq. 17 of a bias.jsonl row: (Q̂ − Q*)/Q* as printed, or ÷|Q*| (`absolute`). Rows since
+    issue #9 (they carry `horizon`) store the printed form in `bias_rate` and, where Q* < 0,
+    the other in `bias_rate_abs`; older rows stored the ÷|Q*| form in `bias_rate`."""
+    rate = _finite(bias.get("bias_rate"))
+    if rate is None:
+        return None
+    q_star = _finite(bias.get("q_true"))
+    negative = q_star is not None and q_star < 0
+    if "horizon" in bias:  # printed form stored
+        if absolute and negative:
+            return _finite(bias.get("bias_rate_abs", -rate))
+        return rate
+    return -rate if negative and not absolute else rate  # ÷|Q*| form stored
+
+
+def bias_points(rows: list[dict[str, Any]], absolute: bool = False) -> list[tuple[float, float]]:
+    """(point, bias rate) per measurement of a run: the mean of Eq. 17 (as printed, or ÷|Q*|
+    with `absolute`) over the actors live at that point (after the elimination: the survivor's).
+    Points with no finite rate are left out, and so are points before the first update (the
+    critic is still its random initialisation)."""
     by_point: dict[float, list[float]] = {}
     for r in rows:
         if r.get("updates") == 0:
             continue
         point = _finite(r.get("point", r.get("env_steps")))
-        rate = _finite(r["bias"].get("bias_rate")) if isinstance(r.get("bias"), dict) else None
+        rate = bias_rate_of(r["bias"], absolute) if isinstance(r.get("bias"), dict) else None
         if point is not None and rate is not None:
             by_point.setdefault(point, []).append(rate)
     return [(p, float(np.mean(v))) for p, v in sorted(by_point.items())]

@@ -180,3 +180,17 @@ def test_first_reach_and_bias_points_by_hand():
             {"env_steps": 200, "bias": {"bias_rate": -0.1}},  # older rows: env_steps is the point
             {"point": 300, "bias": {"bias_rate": None}}]  # no rate: left out
     assert bias_points(rows) == [(100.0, pytest.approx(0.3)), (200.0, -0.1)]
+
+
+def test_eq17_rows_of_every_commit_read_as_printed_or_absolute():
+    from mam_lab.scores import bias_rate_of
+
+    # since issue #9: the printed form (÷ Q*) in bias_rate, the ÷|Q*| form beside it where Q* < 0
+    new = {"q_estimate": -120.0, "q_true": -100.0, "bias_rate": 0.2, "bias_rate_abs": -0.2, "horizon": "critic"}
+    assert bias_rate_of(new) == 0.2 and bias_rate_of(new, absolute=True) == -0.2
+    # before: bias_rate held the ÷|Q*| form
+    old = {"q_estimate": -120.0, "q_true": -100.0, "bias_rate": -0.2}
+    assert bias_rate_of(old) == 0.2 and bias_rate_of(old, absolute=True) == -0.2
+    positive = {"q_estimate": 110.0, "q_true": 100.0, "bias_rate": 0.1}
+    assert bias_rate_of(positive) == bias_rate_of(positive, absolute=True) == 0.1
+    assert bias_rate_of({"bias_rate": float("nan")}) is None
