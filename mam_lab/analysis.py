@@ -165,7 +165,7 @@ class Verdict:
 
     @property
     def word(self) -> str:
-        return verdict_word(self.p)
+        return verdict_word(self.p, self.n_x, self.n_y)
 
     @property
     def mixed(self) -> bool:

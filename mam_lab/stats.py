@@ -174,12 +174,16 @@ def curve_band(curves: np.ndarray, n_boot: int = N_BOOT, confidence: float = CON
 # --- the verdict word ------------------------------------------------------------------------
 
 
-BETTER, WORSE, NOT_SEPARATED = "better", "worse", "not separated"
+BETTER, WORSE, NOT_SEPARATED, TOO_FEW = "better", "worse", "not separated", "too few runs"
+MIN_RUNS = 3  # per side: with fewer, a bootstrap interval of P(X > Y) can collapse onto 0 or 1
 
 
-def verdict_word(p: Interval) -> str:
+def verdict_word(p: Interval, n_x: int = MIN_RUNS, n_y: int = MIN_RUNS) -> str:
     """*better* only where the 95% CI of P(MA > baseline) lies above ½, *worse* where it lies
-    below, else *not separated* (also without a finite interval)."""
+    below, else *not separated* (also without a finite interval); *too few runs* while either
+    side has fewer than MIN_RUNS runs (one run against two gives the interval [1, 1])."""
+    if min(n_x, n_y) < MIN_RUNS:
+        return TOO_FEW
     if math.isfinite(p.lo) and p.lo > 0.5:
         return BETTER
     if math.isfinite(p.hi) and p.hi < 0.5:

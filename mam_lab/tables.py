@@ -131,8 +131,9 @@ def render_markdown(report: Report, figures: dict[str, list[Path]], out: Path) -
     grid = report.meta.get("grid") or {}
     if grid:
         lines.append(f"Grid: envs {grid.get('envs')}, algos {grid.get('algos')}, seeds {grid.get('seeds')}, "
-                     f"budget {_fmt(grid.get('steps') or math.nan, 0)} env transitions per run "
-                     f"(all slots together, the same for every algorithm).")
+                     f"budget T = {_fmt(grid.get('steps') or math.nan, 0)} schedule steps per run: iterations "
+                     f"under --schedule paper (M transitions and one update each before C, one of each after), "
+                     f"transitions under equal-data (see each row's env steps and updates).")
     versions = report.meta.get("versions") or {}
     if versions:
         lines.append("Versions: " + ", ".join(f"{k} {v}" for k, v in sorted(versions.items())) + ".")

@@ -869,6 +869,8 @@ def test_verdict_words():
     assert verdict_word(Interval(0.6, 0.5, 0.9)) == "not separated"  # the bound must be above 0.5
     assert verdict_word(Interval(0.4, 0.1, 0.5)) == "not separated"
     assert verdict_word(Interval(0.5, 0.2, 0.8)) == "not separated"
+    assert verdict_word(Interval(1.0, 1.0, 1.0), n_x=1, n_y=2) == "too few runs"  # one run: a degenerate CI
+    assert verdict_word(Interval(0.9, 0.7, 1.0), n_x=3, n_y=3) == "better"
     assert verdict_word(Interval(math.nan, math.nan, math.nan)) == "not separated"
 
 
