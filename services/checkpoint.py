@@ -13,14 +13,15 @@ import torch
 from mam_core.agent import MultiActorAgent
 from mam_core.policy import EnvSpec
 from mam_core.replay import ReplayBuffer, ReplayLog
+from services import rundir
 from services.options import RunConfig
 
-CHECKPOINT_FILE = "learner.pt"
-REPLAY_DIR = "replay"  # RUN_DIR/checkpoints/replay/chunk-<first>-<rows>.npz
+CHECKPOINT_FILE = rundir.LEARNER_CHECKPOINT
+REPLAY_DIR = rundir.REPLAY  # RUN_DIR/checkpoints/replay/chunk-<first>-<rows>.npz
 
 
 def replay_dir(run_dir: Path) -> Path:
-    return run_dir / "checkpoints" / REPLAY_DIR
+    return run_dir / rundir.CHECKPOINTS / REPLAY_DIR
 
 
 def save_checkpoint(run_dir: Path, agent: MultiActorAgent, buffer: ReplayBuffer, counters: dict[str, Any],
@@ -32,7 +33,7 @@ def save_checkpoint(run_dir: Path, agent: MultiActorAgent, buffer: ReplayBuffer,
     (`replay_log`: inserted, manifest, sampling rng). Chunks no checkpoint names any more are
     deleted only once this checkpoint is in place.
     """
-    path = run_dir / "checkpoints" / CHECKPOINT_FILE
+    path = run_dir / rundir.CHECKPOINTS / CHECKPOINT_FILE
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {"agent": agent.state_dict(), "counters": counters, "config": json.dumps(cfg.to_dict())}
     if replay_log is not None:
@@ -60,7 +61,7 @@ def load_replay(run_dir: Path, capacity: int | None = None, state: dict[str, Any
 
 
 def load_checkpoint(run_dir: Path) -> dict[str, Any]:
-    path = run_dir / "checkpoints" / CHECKPOINT_FILE
+    path = run_dir / rundir.CHECKPOINTS / CHECKPOINT_FILE
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
     return torch.load(path, weights_only=True, map_location="cpu")

@@ -24,12 +24,12 @@ from typing import Any
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from services import bus, keys
+from services import bus, keys, rundir
 from services.codec import Allocation, Eval, LearnerStats, MessageError
 from services.options import RunConfig, write_json
 
 STOP_GRACE_S = 15.0
-CHECKPOINT_FILE = "learner.pt"  # services.checkpoint.CHECKPOINT_FILE (not imported here: it pulls in torch)
+CHECKPOINT_FILE = rundir.LEARNER_CHECKPOINT
 PR_SET_PDEATHSIG = 1
 
 
@@ -119,7 +119,7 @@ class LocalCluster:
     done: bool = False  # the learner reported the budget reached
 
     def spawn(self, role: str, args: list[str]) -> Child:
-        log_path = self.run_dir / "logs" / f"{role}.log"
+        log_path = self.run_dir / rundir.LOGS / f"{role}.log"
         log_path.parent.mkdir(parents=True, exist_ok=True)
         with open(log_path, "ab") as out:
             proc = subprocess.Popen([sys.executable, "-m", f"services.{role.split('-')[0]}", *args],
@@ -131,10 +131,10 @@ class LocalCluster:
 
     def learner_args(self) -> list[str]:
         rd = str(self.run_dir)
-        if (self.run_dir / "checkpoints" / CHECKPOINT_FILE).is_file():
+        if (self.run_dir / rundir.CHECKPOINTS / CHECKPOINT_FILE).is_file():
             # Its endpoint is in config.json: it listens where the clients reconnect.
             return ["--resume", rd]
-        return ["--run-config", str(self.run_dir / "config.json"), "--listen", self.endpoint, "--run-dir", rd]
+        return ["--run-config", str(self.run_dir / rundir.CONFIG), "--listen", self.endpoint, "--run-dir", rd]
 
     def start_learner_and_referee(self) -> None:
         run, rd = self.cfg.run, str(self.run_dir)
@@ -155,7 +155,7 @@ class LocalCluster:
         """The learner has written its last checkpoint and transport.json and exited 0."""
         learner = self.child("learner")
         return (learner is not None and learner.proc.poll() == 0 and "learner" not in self.pending
-                and (self.run_dir / "transport.json").is_file())
+                and (self.run_dir / rundir.TRANSPORT).is_file())
 
     def needs_restart(self, c: Child) -> bool:
         rc = c.proc.returncode
@@ -164,11 +164,11 @@ class LocalCluster:
         if c.role != "learner" and self.finished():  # nothing left for it to do
             return False
         if c.role == "learner":  # exits 0 only when done (or stopped by the launcher)
-            return rc != 0 or not (self.run_dir / "transport.json").is_file()
+            return rc != 0 or not (self.run_dir / rundir.TRANSPORT).is_file()
         if rc == 0 or rc == -signal.SIGTERM:
             return False
         if c.role == "referee":
-            return not (self.run_dir / "summary.json").is_file()
+            return not (self.run_dir / rundir.SUMMARY).is_file()
         return not self.done  # a worker after done has nothing left to do
 
     def supervise(self) -> None:
@@ -245,7 +245,7 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
     port = bus.free_tcp_port()
     endpoint = bus.loopback_endpoint(port)
     cfg = RunConfig.from_dict({**cfg.to_dict(), "endpoint": endpoint})
-    write_json(run_dir / "config.json", cfg.to_dict())
+    write_json(run_dir / rundir.CONFIG, cfg.to_dict())
     cluster = LocalCluster(cfg, run_dir, endpoint, policy=policy or RestartPolicy(), console=console)
     console.print(f"[bold]run[/] {cfg.run}  [bold]env[/] {cfg.env_id}  [bold]algo[/] {cfg.algo.algo} "
                   f"K={cfg.algo.actors} M={cfg.algo.workers}  budget {cfg.steps:,} transitions")
@@ -277,7 +277,7 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
     for c in failed:
         console.print(f"[red]{c.role} exited with {describe_exit(c.proc.returncode)}[/]: see {c.log}")
     restarts = cluster.restart_counts()
-    summary_path = run_dir / "summary.json"
+    summary_path = run_dir / rundir.SUMMARY
     summary: dict[str, Any] = {}
     finished = cluster.finished() and gave_up is None and not interrupted
     if summary_path.is_file() and finished:
@@ -318,13 +318,13 @@ def audit_transport(run_dir: Path) -> dict[str, Any]:
     checkpoints). `lost_rows`: sent and not in the replay; `duplicated_rows`: in the replay more
     often than sent. Empty if the run has no transport.json.
     """
-    path = run_dir / "transport.json"
+    path = run_dir / rundir.TRANSPORT
     if not path.is_file():
         return {}
     transport = json.loads(path.read_text())
     in_replay: dict[str, int] = {k: int(v) for k, v in transport.get("rows_per_stream", {}).items()}
     sent: dict[str, int] = {}
-    for log_path in sorted((run_dir / "workers").glob("*.batches")):
+    for log_path in sorted((run_dir / rundir.WORKERS).glob("*.batches")):
         worker, _, incarnation = log_path.stem.rpartition("-")
         seen: dict[int, int] = {}
         for line in log_path.read_text(errors="replace").splitlines():

@@ -26,7 +26,7 @@ from mam_core.evaluation import estimation_bias
 from mam_core.pacing import CheckpointRule, Pacer
 from mam_core.replay import ReplayBuffer, ReplayLog
 from mam_core.schedule import Schedule
-from services import bus, keys, options, role, tb
+from services import bus, keys, options, role, rundir, tb
 from services.checkpoint import load_checkpoint, replay_dir, save_checkpoint
 from services.codec import Allocation, Done, LearnerStats, MessageError, TransitionSpec, Weights, decode, encode
 from services.intake import Intake
@@ -120,8 +120,8 @@ class Learner:
         self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
         self.inbox = bus.Inbox(maxsize=8192).subscribe(s, keys.transitions_all(run))
         self.board = tb.RunBoard(self.run_dir, "learner")  # RUN_DIR/tb/learner: the JSONL rows' scalars
-        self.log_writer = self.board.tee(JsonlWriter(self.run_dir / "learner.jsonl"), tb.learner_scalars)
-        self.bias_writer = (self.board.tee(JsonlWriter(self.run_dir / "bias.jsonl"), tb.bias_scalars)
+        self.log_writer = self.board.tee(JsonlWriter(self.run_dir / rundir.LEARNER_LOG), tb.learner_scalars)
+        self.bias_writer = (self.board.tee(JsonlWriter(self.run_dir / rundir.BIAS), tb.bias_scalars)
                             if self.cfg.bias_every else None)
         self.seq = 0
         self.publish_config()
@@ -339,7 +339,7 @@ class Learner:
         self.checkpoint()  # with the rows that came in after done: the replay holds every counted row
         self.wait_for_referee(msg)
         tracker = self.intake.tracker
-        write_json(self.run_dir / "transport.json", {
+        write_json(self.run_dir / rundir.TRANSPORT, {
             "env_steps": self.env_steps, "iterations": self.iterations, "updates": self.agent.updates,
             "lost": tracker.lost, "duplicates": tracker.duplicates, "rejected": self.rejected(),
             "recovered": tracker.recovered, "redundant": tracker.redundant,
@@ -400,7 +400,7 @@ def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None
     state = load_checkpoint(run_dir) if resume else None
     if state is not None:
         cfg = RunConfig.from_dict({**json.loads(state["config"]), "steps": cfg.steps})
-    write_json(run_dir / "config.json", cfg.to_dict())
+    write_json(run_dir / rundir.CONFIG, cfg.to_dict())
     with bus.session_scope(conf, retry_for=30.0) as session:  # a router may still be starting
         learner = Learner(cfg, session, run_dir, state)
         role.stop_on_signals(learner)
@@ -424,7 +424,7 @@ def learner_command(
     if run_config is not None:
         cfg = RunConfig.from_dict(json.loads(run_config.read_text()))
     elif resume is not None:
-        cfg = RunConfig.from_dict(json.loads((resume / "config.json").read_text()))
+        cfg = RunConfig.from_dict(json.loads((resume / rundir.CONFIG).read_text()))
     else:
         cfg = options.build_run_config(run_opts, config)
     steps = run_opts["steps"]

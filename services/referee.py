@@ -26,13 +26,13 @@ from mam_core.evaluation import eval_seed, evaluate_policy
 from mam_core.obsolescence import Obsolescence, best_actors, counts, obsolescence_for
 from mam_core.policy import EnvSpec, Policy
 from mam_core.schedule import Schedule
-from services import bus, keys, options, role, tb
+from services import bus, keys, options, role, rundir, tb
 from services.codec import Allocation, Eval, LearnerStats, MessageError
 from services.options import JsonlWriter, RunConfig, write_json
 
 log = logging.getLogger("mam.referee")
 
-STATE_FILE = "referee_state.json"
+STATE_FILE = rundir.REFEREE_STATE
 HEARTBEAT_S = 2.0  # the current allocation is re-published this often
 
 
@@ -96,8 +96,8 @@ class Referee:
         self.token = bus.declare_alive(s, run, "referee", self.id)
         self.report = role.RoleReport(s, run, "referee", self.id)
         self.board = tb.RunBoard(self.run_dir, "referee")  # RUN_DIR/tb/referee: the JSONL rows' scalars
-        self.alloc_log = self.board.tee(JsonlWriter(self.run_dir / "allocation.jsonl"), tb.allocation_scalars)
-        self.eval_log = self.board.tee(JsonlWriter(self.run_dir / "eval.jsonl"), tb.eval_scalars)
+        self.alloc_log = self.board.tee(JsonlWriter(self.run_dir / rundir.ALLOCATION), tb.allocation_scalars)
+        self.eval_log = self.board.tee(JsonlWriter(self.run_dir / rundir.EVAL), tb.eval_scalars)
         try:
             self._loop()
         finally:
@@ -214,6 +214,7 @@ class Referee:
         self.alloc_log.write({"t": round(time.monotonic() - self.started, 3), "round": self.schedule.round,
                               "env_steps": max(now_steps, steps),
                               "iterations": self.clock.units_at(max(now_steps, steps)),
+                              "updates": self.stats.updates if self.stats else 0,
                               "decided_at": steps, "returns": returns, "tie": tie,
                               "probabilities": [float(p) for p in self.schedule.probabilities], "counts": i_k,
                               "slots": dict(self.slots), "eliminated": [bool(e) for e in self.schedule.eliminated],
@@ -238,7 +239,7 @@ class Referee:
         survivor = self.schedule.survivor
         if survivor is None and any(m is not None for m in means):
             survivor = None if self.algo.actors > 1 else 0
-        write_json(self.run_dir / "summary.json", {
+        write_json(self.run_dir / rundir.SUMMARY, {
             "run": self.cfg.run, "env_id": self.cfg.env_id, "algo": self.algo.algo,
             "final_returns": means, "survivor": survivor, "env_steps": steps,
             "iterations": self.clock.units_at(steps), "schedule": self.algo.schedule,

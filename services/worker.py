@@ -26,7 +26,7 @@ import typer
 from mam_core.envs import make_env  # registers AppleCollect-v0; imports `module:EnvId` modules
 from mam_core.policy import EnvSpec
 from mam_core.schedule import Schedule
-from services import bus, keys, options, role
+from services import bus, keys, options, role, rundir
 from services.codec import Allocation, LearnerStats, MessageError, TransitionBatch
 from services.options import RunConfig, write_json
 
@@ -123,7 +123,7 @@ class Worker:
         self.done = bus.Latest.subscribe(s, keys.done(run))
         self.token = bus.declare_alive(s, run, "worker", self.id)
         if self.run_dir is not None:  # one line per batch, before it is put: what a killed worker had sent
-            path = self.run_dir / "workers" / f"{self.id}-{self.incarnation}.batches"
+            path = self.run_dir / rundir.WORKERS / f"{self.id}-{self.incarnation}.batches"
             path.parent.mkdir(parents=True, exist_ok=True)
             self.batch_log = open(path, "a", buffering=1)
         log.info("worker %s (incarnation %s) on %s, run %s", self.id, self.incarnation, self.cfg.env_id, run)
@@ -178,7 +178,7 @@ class Worker:
         """What this incarnation sent (compared with the learner's transport.json in tests)."""
         if self.run_dir is None:
             return
-        write_json(self.run_dir / "workers" / f"{self.id}-{self.incarnation}.json", {
+        write_json(self.run_dir / rundir.WORKERS / f"{self.id}-{self.incarnation}.json", {
             "worker": self.id, "incarnation": self.incarnation, "sent_rows": self.sent_rows,
             "batches": self.batch_seq, "rejected": self.rejects.counts(), **self.fault_counters()})
 

@@ -106,6 +106,8 @@ def test_mam_run_paper_schedule_accounting(tmp_path: Path) -> None:
     assert final["updates"] == clock.updates_allowed(env_steps) == run["transport"]["updates"]
     assert 400 <= final["updates"] <= 400 + overrun  # one update per iteration after the start
     assert run["summary"]["schedule"] == "paper" and run["summary"]["iterations"] >= t
+    for name in ("eval", "allocation", "learner"):  # every record carries the three counts
+        assert all({"env_steps", "iterations", "updates"} <= set(row) for row in run[name]), name
     rounds = [r for r in run["allocation"] if r["reason"] in ("round", "elimination")]
     assert [clock.units_at(r["decided_at"]) // a * a for r in rounds] == [100, 200, 300]
     for r, boundary in zip(rounds, (300, 600, 900)):  # barriers in transitions
