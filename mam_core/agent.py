@@ -35,17 +35,20 @@ def weighted_target(q_next: torch.Tensor, eta: float) -> torch.Tensor:
     return (1.0 - eta) * own + (eta / (n * (k - 1))) * others
 
 
-def weighted_target_per_batch(q_next: torch.Tensor, eta: float) -> torch.Tensor:
-    """Eq. 9 when every actor has its own mini-batch: q_next [K, n, K, B] holds Q'_ji(s'_k, ã_j)
-    (critic j, i on actor k's batch, with actor j's target action there) -> [K, B], row k on
-    actor k's batch: (1−η)·min_i Q'_ki(s'_k, ã_k) + η/(n(K−1))·Σ_{j≠k} Σ_i Q'_ji(s'_k, ã_j).
+def weighted_target_per_batch(q_next: torch.Tensor, eta: float, owners: torch.Tensor | None = None) -> torch.Tensor:
+    """Eq. 9 when every actor has its own mini-batch: q_next [K, n, L, B] holds Q'_ji(s'_l, ã_j)
+    (critic j, i on batch l, with actor j's target action there) -> [L, B], row l for the actor
+    that owns batch l (`owners[l]`; by default batch k is actor k's, L = K):
+    (1−η)·min_i Q'_ki(s'_l, ã_k) + η/(n(K−1))·Σ_{j≠k} Σ_i Q'_ji(s'_l, ã_j), k = owners[l].
     Equal to `weighted_target` when all K batches are the same."""
-    k, n, _, _ = q_next.shape
-    own = torch.diagonal(q_next.min(dim=1).values, dim1=0, dim2=1).T  # [K(k), B]
+    k, n, batches, _ = q_next.shape
+    owners = torch.arange(batches, device=q_next.device) if owners is None else owners
+    cols = torch.arange(batches, device=q_next.device)
+    own = q_next.min(dim=1).values[owners, cols]  # [L, B]
     if k == 1 or eta == 0.0:
         return own
-    per_actor = q_next.sum(dim=1)  # [K(j), K(k), B]
-    others = per_actor.sum(dim=0) - torch.diagonal(per_actor, dim1=0, dim2=1).T
+    per_actor = q_next.sum(dim=1)  # [K(j), L, B]
+    others = per_actor.sum(dim=0) - per_actor[owners, cols]
     return (1.0 - eta) * own + (eta / (n * (k - 1))) * others
 
 
@@ -166,6 +169,7 @@ class MultiActorAgent:
         self.live = torch.ones(k, device=self.device)  # actors that act and train (Eq. 7)
         self.critic_live = torch.ones(k, device=self.device)  # actors whose critics train (Eq. 5)
         self._live_flags = [True] * k
+        self._training_critics = list(range(k))  # actors whose critics train (critic_live), as a list
         # Algorithm 1 samples a mini-batch per actor; K = 1 is the same draw either way.
         self.batch_groups = k if k > 1 and not cfg.shared_batch else None
         self._tau_actor = torch.full((k, 1, 1), cfg.tau, device=self.device)
@@ -238,11 +242,22 @@ class MultiActorAgent:
             q_next = self.critic_target(next_obs.repeat_interleave(n, dim=0),
                                         self.critic.per_actor_actions(next_action))
             return critic_target(reward, not_done, q_next.view(k, n, -1), cfg.gamma, 0.0)
-        # Eq. 9 needs every critic j on actor k's next states with actor j's target action there.
-        flat = next_obs.reshape(k * b, -1)
-        next_action = self._smoothed(self.actor_target(flat))  # actor j on all K batches: [K, K·B, A]
-        q_next = self.critic_target(flat, self.critic.per_actor_actions(next_action))  # [K·n, K·B]
-        return critic_target(reward, not_done, q_next.view(k, n, k, b), cfg.gamma, self.eta)
+        # Eq. 9 needs every critic j on actor k's next states with actor j's target action there:
+        # K·n critics on K·B rows. Only the batches of actors whose critics still train count
+        # (after the elimination, usually the survivor's alone): the others' targets stay 0,
+        # masked out of the loss (critic_loss), so their rows are not computed.
+        owners = self._training_critics
+        rows = next_obs if len(owners) == k else next_obs[owners]
+        flat = rows.reshape(len(owners) * b, -1)
+        next_action = self._smoothed(self.actor_target(flat))  # actor j on the L batches: [K, L·B, A]
+        q_next = self.critic_target(flat, self.critic.per_actor_actions(next_action))  # [K·n, L·B]
+        index = torch.as_tensor(owners, device=self.device)
+        weighted = weighted_target_per_batch(q_next.view(k, n, len(owners), b), self.eta, index)
+        if len(owners) == k:
+            return reward + cfg.gamma * not_done * weighted
+        y = torch.zeros_like(reward)
+        y[index] = reward[index] + cfg.gamma * not_done[index] * weighted
+        return y
 
     # -- obsolescence ----------------------------------------------------------------------
     def eliminate(self, survivor: int) -> None:
@@ -268,6 +283,7 @@ class MultiActorAgent:
         self._live_flags = [j == survivor for j in range(k)]
         if self.cfg.after_elimination != "train-critics":
             self.critic_live.copy_(self.live)
+            self._training_critics = [survivor]
         if self.cfg.after_elimination == "no-weighting":
             self.eta = 0.0
         self._tau_actor.copy_(self.live.view(k, 1, 1) * self.cfg.tau)

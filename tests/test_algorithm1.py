@@ -302,3 +302,21 @@ def test_eq17_as_printed_and_the_absolute_form_differ_only_for_negative_q():
     assert bias_rate(110.0, 100.0) == bias_rate(110.0, 100.0, absolute=True) == pytest.approx(0.1)
     assert bias_rate(-120.0, -100.0) == pytest.approx(0.2)  # as printed: ÷ Q* (an under-estimate reads > 0)
     assert bias_rate(-120.0, -100.0, absolute=True) == pytest.approx(-0.2)
+
+
+def test_after_the_elimination_only_the_training_critics_batches_are_targeted():
+    """With frozen critics the survivor's Eq. 9 target is computed on its batch alone (K·n critics
+    on B rows instead of K·B); it equals the survivor's row of the full computation."""
+    agent = _agent(algo="ma-ddpg", eta=0.3)  # K = 3, no smoothing noise: the targets are deterministic
+    torch.manual_seed(1)
+    next_obs, reward, not_done = torch.randn(3, 8, 3), torch.randn(3, 8), torch.ones(3, 8)
+    agent.eliminate(2)
+    with torch.no_grad():
+        y = agent._targets(next_obs, reward, not_done, per_actor=True)
+        agent._training_critics = [0, 1, 2]  # what the full computation does
+        full = agent._targets(next_obs, reward, not_done, per_actor=True)
+    torch.testing.assert_close(y[2], full[2])
+    assert torch.count_nonzero(y[:2]) == 0  # the frozen actors' targets are not computed (masked in the loss)
+    trained = _agent(algo="ma-ddpg", eta=0.3, after_elimination="train-critics")
+    trained.eliminate(2)
+    assert trained._training_critics == [0, 1, 2]  # their critics keep training: every batch is targeted
