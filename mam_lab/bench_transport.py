@@ -43,7 +43,7 @@ def publisher_process(argv: list[str] | None = None) -> None:
         for seq in range(batches):
             o, a, r, o2, d = variants[seq % len(variants)]
             pub.put(TransitionBatch(wid, incarnation, seq, 0, -1, o, a, r, o2, d).to_bytes())
-        time.sleep(1.0)  # the last puts before close can be lost (ZENOH.md): let them drain
+        time.sleep(1.0)  # the last puts before close can be lost (docs/ZENOH-NOTES.md): let them drain
         pub.undeclare()
 
 
