@@ -68,12 +68,13 @@ def variant_order(name: str, planned: Sequence[str] = ()) -> tuple:
 
 def env_spacing(runs: Sequence[RunRecord], axis: str = "transitions") -> float:
     """Grid spacing of one env on `axis`: the largest evaluation spacing of its runs (eval_every,
-    in iterations: × the run's iterations per transition), else the median gap."""
+    which counts schedule steps: iterations under --schedule paper, where after C one iteration is
+    one transition, so it is the finest spacing on either axis), else the median gap."""
     every = []
     for r in runs:
         e = r.algo_config.get("eval_every")
         if isinstance(e, (int, float)) and e > 0:
-            every.append(float(e) * (r.iterations_per_transition() if axis == "iterations" else 1.0))
+            every.append(float(e))
     if every:
         return max(every)
     pts = [r.axis_points(axis) for r in runs]

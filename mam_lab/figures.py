@@ -64,10 +64,11 @@ def plot_env_curves(env: str, vs: Sequence[VariantStats], path: Path, n_boot: in
         ax.plot(grid, mean, color=color, linewidth=1.8, marker="o", markersize=2.5,
                 label=f"{v.variant} (n={v.n}{wall_text})")
         ax.fill_between(grid, lo, hi, color=color, alpha=0.18, linewidth=0)
-        c = v.runs[0].algo_config.get("eliminate_at")
-        k = v.runs[0].algo_config.get("actors") or 1
-        if isinstance(c, (int, float)) and axis == "iterations":
-            c = c * v.runs[0].iterations_per_transition()
+        algo = v.runs[0].algo_config
+        c = algo.get("eliminate_at")  # in schedule steps: iterations (paper) or transitions (equal-data)
+        k = algo.get("actors") or 1
+        if isinstance(c, (int, float)) and axis == "transitions" and algo.get("schedule") == "paper":
+            c = c * (algo.get("workers") or 1)  # C iterations of M transitions each
         if k > 1 and not v.runs[0].algo_config.get("no_ot") and isinstance(c, (int, float)) and 0 < c <= grid[-1]:
             ax.axvline(c, color=color, linestyle=":", linewidth=1.0)
     if is_apple_collect(env):

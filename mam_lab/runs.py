@@ -52,13 +52,6 @@ class RunRecord:
             return self.points
         return [(step if it is None else it, score) for step, it, score in self.evals]
 
-    def iterations_per_transition(self) -> float:
-        """From the last evaluation row with both counts (1 without iterations)."""
-        for step, it, _ in reversed(self.evals):
-            if it is not None and step > 0:
-                return it / step
-        return 1.0
-
     @property
     def commit(self) -> str:
         return commit_label(self.record)
