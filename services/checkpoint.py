@@ -53,7 +53,7 @@ def load_replay(run_dir: Path, capacity: int | None = None, state: dict[str, Any
     state = state if state is not None else load_checkpoint(run_dir)
     meta = state["replay_log"]
     cfg = RunConfig.from_dict(json.loads(state["config"]))
-    spec = EnvSpec.from_env_id(cfg.env_id)
+    spec = EnvSpec.from_env_id(cfg.env_id, cfg.env_kwargs)
     inserted = int(meta["inserted"])
     buffer = ReplayBuffer(capacity or max(inserted, 1), spec.obs_dim, spec.act_dim)
     ReplayLog(replay_dir(run_dir)).restore(buffer, meta["manifest"], inserted, json.loads(meta["rng"]))
