@@ -24,6 +24,7 @@ from typing import Any
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from mam_core.schedule import Schedule
 from services import bus, keys, rundir
 from services.codec import Allocation, Eval, LearnerStats, MessageError
 from services.options import RunConfig, write_json
@@ -248,7 +249,7 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
     write_json(run_dir / rundir.CONFIG, cfg.to_dict())
     cluster = LocalCluster(cfg, run_dir, endpoint, policy=policy or RestartPolicy(), console=console)
     console.print(f"[bold]run[/] {cfg.run}  [bold]env[/] {cfg.env_id}  [bold]algo[/] {cfg.algo.algo} "
-                  f"K={cfg.algo.actors} M={cfg.algo.workers}  budget {cfg.steps:,} transitions")
+                  f"K={cfg.algo.actors} M={cfg.algo.workers}  budget {budget_text(cfg)}")
     console.print(f"run dir {run_dir}   watch live: [cyan]mam watch --run {cfg.run} --connect {endpoint}[/]")
     started = time.monotonic()
     interrupted = False
@@ -346,6 +347,14 @@ def audit_transport(run_dir: Path) -> dict[str, Any]:
     return audit
 
 
+def budget_text(cfg: RunConfig) -> str:
+    """The budget as the user set it and in transitions: "4,000 iterations (16,000 transitions)"."""
+    transitions = Schedule.for_run(cfg.algo, cfg.steps).budget
+    if cfg.algo.schedule == "paper" and transitions != cfg.steps:
+        return f"{cfg.steps:,} iterations ({transitions:,} transitions)"
+    return f"{transitions:,} transitions"
+
+
 def describe_allocation(alloc: Allocation | None) -> str:
     if alloc is None:
         return "waiting for the referee"
@@ -382,7 +391,8 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
         try:
             with Progress(*columns, console=console, transient=False) as progress:
                 cluster.console = progress.console
-                task = progress.add_task("train", total=cfg.steps, info="starting")
+                budget = Schedule.for_run(cfg.algo, cfg.steps).budget  # in transitions, what the bar counts
+                task = progress.add_task("train", total=budget, info="starting")
                 while True:
                     cluster.supervise()
                     if cluster.finished():
@@ -409,7 +419,7 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                         try:
                             st = LearnerStats.from_bytes(item.payload)
                             info = f"upd {st.updates:,}  I={list(alloc.counts) if alloc else '-'}  {last_eval}"
-                            progress.update(task, completed=min(st.env_steps, cfg.steps), info=info)
+                            progress.update(task, completed=min(st.env_steps, budget), info=info)
                             if st.done and not cluster.done:
                                 cluster.done = True
                                 info = "done: final evaluation"
