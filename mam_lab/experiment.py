@@ -91,7 +91,8 @@ def experiment_command(
         "--parallel", help="runs at once, each its own process pinned to its own cores (default: cores ÷ "
                            "--cores-per-run, at least 1)")] = None,
     cores_per_run: Annotated[int, typer.Option("--cores-per-run", help="cores per run for the default --parallel")] = 1,
-    pin: Annotated[bool, typer.Option("--pin/--no-pin", help="CPU affinity per run (cores ÷ P each)")] = True,
+    pin: Annotated[bool, typer.Option(
+        "--pin/--no-pin", help="CPU affinity of each run's learner (cores ÷ P each)")] = True,
     ledger: Annotated[Optional[Path], typer.Option(
         "--ledger", help="directory of the compact records of finished runs (default docs/results/<name>/runs, "
                          "relative to the current directory); a run recorded there is finished")] = None,

@@ -1,8 +1,8 @@
 """One run of a `mam experiment` grid as its own process: `python -m mam_lab.experiment_run RUN_DIR`.
 
 `mam experiment` writes RUN_DIR/launch.json and starts this module once per run, with stdout and
-stderr going to RUN_DIR/launcher.log. It pins itself to the cores it was given (every process the
-run starts — learner, referee, workers — inherits the affinity), then trains the run with
+stderr going to RUN_DIR/launcher.log. Its learner is pinned to the cores it was given (the
+referee and workers float), then it trains the run with
 `services.launcher.run_local` (the same as `mam run`). Its exit status is the run's outcome:
 
     0    finished (summary.json written)
@@ -54,9 +54,13 @@ def main(argv: list[str]) -> int:
     stops: tuple[type[BaseException], ...] = (KeyboardInterrupt, _Stop)
     try:
         spec = json.loads((run_dir / LAUNCH_FILE).read_text())
-        cores = pin(spec.get("cores"))
-        if cores is not None:
-            print(f"pinned to cores {cores}", flush=True)
+        from services.launcher import LEARNER_CPUS_ENV
+
+        cores = spec.get("cores")
+        if cores:  # the learner, where a run spends its CPU, gets the run's cores; the rest float
+            os.environ[LEARNER_CPUS_ENV] = ",".join(str(int(c)) for c in cores)
+            print(f"pinned to cores {sorted(int(c) for c in cores)} (the learner; referee and workers float)",
+                  flush=True)
         from rich.console import Console
 
         from services.launcher import Interrupted, run_local

@@ -1,12 +1,13 @@
-"""Running the grid of `mam experiment`: P runs at once, each its own process pinned to its own
-cores, its outcome in its exit status; Ctrl-C (or SIGTERM) stops them all, and a rerun resumes.
+"""Running the grid of `mam experiment`: P runs at once, each its own process whose learner is
+pinned to its own cores, its outcome in its exit status; Ctrl-C (or SIGTERM) stops them all, and a rerun resumes.
 
 Every run of the grid is a full local cluster (`services.launcher.run_local`: learner, referee
 and M workers over loopback Zenoh), started as its own process (`python -m mam_lab.experiment_run`)
 whose exit status is the run's outcome (0 finished, 130 interrupted, else failed). `--parallel P`
-runs P of them at once (default: cores ÷ `--cores-per-run`, at least 1), each pinned by CPU
-affinity to its own len(cores) // P cores (every process of a run inherits it; the learner uses one
-torch thread). One progress view shows the grid and every run in progress; Ctrl-C (or SIGTERM)
+runs P of them at once (default: cores ÷ `--cores-per-run`, at least 1); each run's learner is
+pinned by CPU affinity to the run's own len(cores) // P cores and uses one torch thread, while its
+referee and workers (light, bursty) may use any core: measured faster than pinning whole runs
+(docs/PERFORMANCE.md). One progress view shows the grid and every run in progress; Ctrl-C (or SIGTERM)
 sends SIGTERM to every run, whose launcher stops its processes, and a rerun resumes.
 """
 

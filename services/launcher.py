@@ -13,10 +13,12 @@ RUN_DIR/logs/<role>.log (a restarted child appends to the same log).
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,6 +32,8 @@ from services.codec import Allocation, Eval, LearnerStats, MessageError
 from services.options import RunConfig, write_json
 
 STOP_GRACE_S = 15.0
+# `mam experiment --parallel`: the cores of a run's learner ("0,1"); its referee and workers float
+LEARNER_CPUS_ENV = "MAM_LEARNER_CPUS"
 CHECKPOINT_FILE = rundir.LEARNER_CHECKPOINT
 PR_SET_PDEATHSIG = 1
 
@@ -42,6 +46,25 @@ def _die_with_parent() -> None:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
     except OSError:
         pass
+
+
+def _child_setup(role: str) -> Callable[[], None]:
+    """What a child runs before exec: die with the launcher; the learner also takes the cores
+    named in LEARNER_CPUS_ENV (set by `mam experiment --parallel`: P runs' learners, where the
+    CPU goes, do not fight, while the light referee and workers use whatever core is free —
+    measured faster than pinning whole runs, docs/PERFORMANCE.md)."""
+    cpus = os.environ.get(LEARNER_CPUS_ENV, "") if role == "learner" else ""
+    cores = {int(c) for c in cpus.split(",") if c.strip().isdigit()}
+
+    def setup() -> None:
+        _die_with_parent()
+        if cores:
+            try:
+                os.sched_setaffinity(0, cores)
+            except OSError:
+                pass
+
+    return setup
 
 
 class Interrupted(Exception):
@@ -125,7 +148,7 @@ class LocalCluster:
         with open(log_path, "ab") as out:
             proc = subprocess.Popen([sys.executable, "-m", f"services.{role.split('-')[0]}", *args],
                                     stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                    start_new_session=True, preexec_fn=_die_with_parent)
+                                    start_new_session=True, preexec_fn=_child_setup(role))
         child = Child(role, proc, log_path, list(args))
         self.children = [c for c in self.children if c.role != role] + [child]
         return child

@@ -988,3 +988,16 @@ def test_ledger_compacts_repeated_allocation_rows(tmp_path):
     assert compact_allocation(src, dest) == (5, 7)
     kept = [json.loads(line) for line in dest.read_text().splitlines()]
     assert [r["reason"] for r in kept] == ["initial", "workers-changed", "round", "round", "workers-changed"]
+
+
+def test_only_the_learner_of_a_parallel_run_is_pinned(monkeypatch):
+    """`mam experiment --parallel`: the run's cores go to its learner; referee and workers float."""
+    from services.launcher import LEARNER_CPUS_ENV, _child_setup
+
+    every = sorted(os.sched_getaffinity(0))
+    monkeypatch.setenv(LEARNER_CPUS_ENV, str(every[0]))
+    code = [sys.executable, "-c", "import os; print(sorted(os.sched_getaffinity(0)))"]
+    learner = subprocess.run(code, preexec_fn=_child_setup("learner"), capture_output=True, text=True, check=True)
+    worker = subprocess.run(code, preexec_fn=_child_setup("worker-0"), capture_output=True, text=True, check=True)
+    assert json.loads(learner.stdout) == [every[0]]
+    assert json.loads(worker.stdout) == every
