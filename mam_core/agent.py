@@ -169,7 +169,7 @@ class MultiActorAgent:
         self.live = torch.ones(k, device=self.device)  # actors that act and train (Eq. 7)
         self.critic_live = torch.ones(k, device=self.device)  # actors whose critics train (Eq. 5)
         self._live_flags = [True] * k
-        self._training_critics = list(range(k))  # actors whose critics train (critic_live), as a list
+        self._training_index = torch.arange(k, device=self.device)  # actors whose critics train (critic_live)
         # Algorithm 1 samples a mini-batch per actor; K = 1 is the same draw either way.
         self.batch_groups = k if k > 1 and not cfg.shared_batch else None
         self._tau_actor = torch.full((k, 1, 1), cfg.tau, device=self.device)
@@ -246,18 +246,27 @@ class MultiActorAgent:
         # K·n critics on K·B rows. Only the batches of actors whose critics still train count
         # (after the elimination, usually the survivor's alone): the others' targets stay 0,
         # masked out of the loss (critic_loss), so their rows are not computed.
-        owners = self._training_critics
-        rows = next_obs if len(owners) == k else next_obs[owners]
-        flat = rows.reshape(len(owners) * b, -1)
+        index = self._training_index
+        owners = len(index)
+        rows = next_obs if owners == k else next_obs.index_select(0, index)
+        flat = rows.reshape(owners * b, -1)
         next_action = self._smoothed(self.actor_target(flat))  # actor j on the L batches: [K, L·B, A]
         q_next = self.critic_target(flat, self.critic.per_actor_actions(next_action))  # [K·n, L·B]
-        index = torch.as_tensor(owners, device=self.device)
-        weighted = weighted_target_per_batch(q_next.view(k, n, len(owners), b), self.eta, index)
-        if len(owners) == k:
+        weighted = weighted_target_per_batch(q_next.view(k, n, owners, b), self.eta, index)
+        if owners == k:
             return reward + cfg.gamma * not_done * weighted
         y = torch.zeros_like(reward)
         y[index] = reward[index] + cfg.gamma * not_done[index] * weighted
         return y
+
+    @property
+    def _training_critics(self) -> list[int]:
+        """The actors whose critics still train, as a list (tests; the update uses the tensor)."""
+        return self._training_index.tolist()
+
+    @_training_critics.setter
+    def _training_critics(self, actors: list[int]) -> None:
+        self._training_index = torch.tensor(actors, device=self.device)
 
     # -- obsolescence ----------------------------------------------------------------------
     def eliminate(self, survivor: int) -> None:
@@ -283,7 +292,7 @@ class MultiActorAgent:
         self._live_flags = [j == survivor for j in range(k)]
         if self.cfg.after_elimination != "train-critics":
             self.critic_live.copy_(self.live)
-            self._training_critics = [survivor]
+            self._training_index = torch.tensor([survivor], device=self.device)
         if self.cfg.after_elimination == "no-weighting":
             self.eta = 0.0
         self._tau_actor.copy_(self.live.view(k, 1, 1) * self.cfg.tau)

@@ -1,12 +1,9 @@
 """`mam experiment`: a grid of algorithms × seeds × envs through the distributed system.
 
-Every run of the grid is a full local cluster (`services.launcher.run_local`: learner, referee
-and M workers over loopback Zenoh), started as its own process (`python -m mam_lab.experiment_run`)
-whose exit status is the run's outcome (0 finished, 130 interrupted, else failed). `--parallel P`
-runs P of them at once (default: cores ÷ `--cores-per-run`, at least 1), each pinned by CPU
-affinity to its own len(cores) // P cores (every process of a run inherits it; the learner uses one
-torch thread). One progress view shows the grid and every run in progress; Ctrl-C (or SIGTERM)
-sends SIGTERM to every run, whose launcher stops its processes, and a rerun resumes.
+The command only wires the pieces together: `mam_lab.grid` (which runs, with which flags, and the
+budget in schedule steps), `mam_lab.scheduler` (P runs at once, each its own process, Ctrl-C and
+resuming), `mam_lab.ledger` (the compact records of finished runs, which a fresh clone resumes
+from) and `mam_lab.view` (the progress view); their docstrings say how each works.
 
     EXP_DIR/experiment.json             the grid, the planned runs, versions, the ledger
     EXP_DIR/<env>/<variant>/seed<k>/    a run directory (config.json, eval.jsonl, summary.json, ...)
@@ -15,32 +12,8 @@ sends SIGTERM to every run, whose launcher stops its processes, and a rerun resu
     EXP_DIR/failures/...                logs of failed attempts
     EXP_DIR/report.md, EXP_DIR/figures/ `mam report EXP_DIR` (run at the end unless --no-report)
 
-The ledger (`--ledger DIR`, default docs/results/<name>/runs relative to the current directory;
-`--no-ledger`: none) keeps a compact record of each finished run, to be committed:
-DIR/<env>/<variant>/seed<k>/ with config.json, summary.json, eval.jsonl, allocation.jsonl,
-bias.jsonl (where present), learner.jsonl thinned to LEARNER_ROWS rows and record.json (the commit
-the run ran at, with a dirty flag, versions, wall time, the spec, the exit status); no checkpoints,
-no logs. DIR/experiment.json lists every run planned into that ledger. A run recorded in the
-ledger counts as finished even when EXP_DIR does not have it (a fresh clone continues the grid).
-
-Variants: each algorithm of `--algos` under its own name, and for every multi-actor algorithm
-(ma-td3, ma-ddpg) one variant per ablation (`<algo>-no-ot`, `<algo>-no-wt`) and per η of
-`--etas` (`<algo>-eta0.05`); then the grid file's named variants, `[variant.NAME]` tables, each
-with an `algo` and any run flags. A variant whose resolved configuration equals an earlier one (say
-`ma-td3-eta0.1`, which is `ma-td3`) is not run twice. `--variants a,b` runs only those.
-
-The budget (`--steps`, env transitions received by the learner from all slots together) is the
-same for every run of the grid. Flags: paper defaults per algorithm < the grid file's `[common]`
-< its `[algo.NAME]` < flags on the command line < the variant's ablation / η / `[variant.NAME]`
-flags. The multi-actor flags (`--actors`, `--workers`, `--eliminate-at`, `--compete-every`, `--eta`,
-`--single-env-after-elimination`) given on the command line or in `[common]` apply to the
-multi-actor algorithms only: TD3 and DDPG keep K=1, M=1 unless their own `[algo.td3]` (or a
-`[variant.NAME]` of theirs) says otherwise.
-
-Resumable: a run whose `summary.json` exists, or whose record is in the ledger, is skipped (after
-checking that its config matches the grid); a run directory without either (an interrupted or
-failed run) is removed and redone. Runs are ordered seed by seed (all envs and variants of seed 0,
-then seed 1, ...), so a grid stopped early still has balanced results across algorithms.
+Runs are ordered seed by seed (all envs and variants of seed 0, then seed 1, ...), so a grid
+stopped early still has balanced results across algorithms.
 """
 
 from __future__ import annotations

@@ -7,8 +7,9 @@ Variants: each algorithm of `--algos` under its own name, and for every multi-ac
 with an `algo` and any run flags. A variant whose resolved configuration equals an earlier one (say
 `ma-td3-eta0.1`, which is `ma-td3`) is not run twice. `--variants a,b` runs only those.
 
-The budget (`--steps`, env transitions received by the learner from all slots together) is the
-same for every run of the grid. Flags: paper defaults per algorithm < the grid file's `[common]`
+The budget (`--steps`) is the same T for every run of the grid, in schedule steps: iterations
+under `--schedule paper` (so a multi-actor run collects more transitions for the same updates),
+transitions under `equal-data`. Flags: paper defaults per algorithm < the grid file's `[common]`
 < its `[algo.NAME]` < flags on the command line < the variant's ablation / η / `[variant.NAME]`
 flags. The multi-actor flags (`--actors`, `--workers`, `--eliminate-at`, `--compete-every`, `--eta`,
 `--single-env-after-elimination`) given on the command line or in `[common]` apply to the

@@ -102,8 +102,14 @@ def _n_actors(*lists: Sequence[Any]) -> int:
 # --- plots ----------------------------------------------------------------------------------
 
 
+X_AXES = {"transitions": "env steps (transitions received by the learner)",
+          "iterations": "iterations (Algorithm 1: M transitions before C, one after)"}
+TRANSITIONS = X_AXES["transitions"]
+
+
 def plot_learning_curves(
-    evals: list[dict[str, Any]], survivor: int | None, elimination: float | None, title: str, path: Path
+    evals: list[dict[str, Any]], survivor: int | None, elimination: float | None, title: str, path: Path,
+    xlabel: str = TRANSITIONS,
 ) -> Path | None:
     """Mean evaluation return per actor with a ±1 std band over the evaluation episodes."""
     evals = _rows_with_steps(evals)
@@ -135,7 +141,7 @@ def plot_learning_curves(
                 label=_actor_label(k, survivor))
         ax.fill_between(x, m - s, m + s, color=color, alpha=0.18, linewidth=0)
     _mark_elimination(ax, elimination)
-    ax.set_xlabel(XLABEL)
+    ax.set_xlabel(xlabel)
     ax.set_ylabel("mean evaluation return")
     ax.set_title(f"Learning curves — {title}" if title else "Learning curves")
     ax.grid(alpha=0.3)
@@ -145,7 +151,7 @@ def plot_learning_curves(
 
 def plot_allocation(
     allocation: list[dict[str, Any]], last_step: float, survivor: int | None, elimination: float | None,
-    title: str, path: Path,
+    title: str, path: Path, xlabel: str = TRANSITIONS,
 ) -> Path | None:
     """I_k stacked (slots per actor, sums to M) and P_k, both held until the next allocation."""
     rows = [r for r in _rows_with_steps(allocation)
@@ -185,13 +191,13 @@ def plot_allocation(
     _mark_elimination(ax_p, elimination)
     ax_p.set_ylim(-0.02, 1.02)
     ax_p.set_ylabel("probability $P_k$ (Eq. 8)")
-    ax_p.set_xlabel(XLABEL)
+    ax_p.set_xlabel(xlabel)
     ax_p.grid(alpha=0.3)
     ax_p.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small")
     return _save(fig, path)
 
 
-def plot_bias(evals: list[dict[str, Any]], title: str, path: Path) -> Path | None:
+def plot_bias(evals: list[dict[str, Any]], title: str, path: Path, xlabel: str = TRANSITIONS) -> Path | None:
     """Estimation bias rate (Eq. 17) and the two Q values it compares."""
     rows = [r for r in _rows_with_steps(evals) if isinstance(r.get("bias"), dict)]
     if not rows:
@@ -215,13 +221,14 @@ def plot_bias(evals: list[dict[str, Any]], title: str, path: Path) -> Path | Non
     ax_rate.grid(alpha=0.3)
     ax_rate.legend(loc="best", fontsize="small")
     ax_q.set_ylabel("Q at start states")
-    ax_q.set_xlabel(XLABEL)
+    ax_q.set_xlabel(xlabel)
     ax_q.grid(alpha=0.3)
     ax_q.legend(loc="best", fontsize="small")
     return _save(fig, path)
 
 
-def plot_learner(learner: list[dict[str, Any]], target_utd: float | None, title: str, path: Path) -> Path | None:
+def plot_learner(learner: list[dict[str, Any]], target_utd: float | None, title: str, path: Path,
+                 xlabel: str = TRANSITIONS) -> Path | None:
     """Critic loss, actor loss, updates per transition and mean Q per actor over env steps."""
     rows = _rows_with_steps(learner)
     if not rows:
@@ -256,16 +263,11 @@ def plot_learner(learner: list[dict[str, Any]], target_utd: float | None, title:
         axes[3].legend(loc="best", fontsize="small")
     for ax in axes:
         ax.grid(alpha=0.3)
-    axes[-1].set_xlabel(XLABEL)
+    axes[-1].set_xlabel(xlabel)
     return _save(fig, path)
 
 
 # --- entry points ---------------------------------------------------------------------------
-
-
-X_AXES = {"transitions": "env steps (transitions received by the learner)",
-          "iterations": "iterations (Algorithm 1: M transitions before C, one after)"}
-XLABEL = X_AXES["transitions"]
 
 
 def on_axis(rows: list[dict[str, Any]], x: str) -> list[dict[str, Any]]:
@@ -282,13 +284,12 @@ def plot_run(run_dir: Path, x: str = "transitions") -> list[Path]:
 
     `x`: "transitions" (env steps received by the learner) or "iterations" (schedule steps);
     iteration plots get an `_iterations` suffix."""
-    global XLABEL
     if x not in X_AXES:
         raise ValueError(f"x must be one of {', '.join(X_AXES)}, not {x!r}")
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise FileNotFoundError(f"run directory not found: {run_dir}")
-    XLABEL = X_AXES[x]
+    xlabel = X_AXES[x]
     config = read_json(run_dir / rundir.CONFIG)
     summary = on_axis([read_json(run_dir / rundir.SUMMARY)], x)[0]
     evals = on_axis(read_jsonl(run_dir / rundir.EVAL), x)
@@ -309,10 +310,11 @@ def plot_run(run_dir: Path, x: str = "transitions") -> list[Path]:
     out = run_dir / PLOTS_DIR
     out.mkdir(exist_ok=True)
     written = [
-        plot_learning_curves(evals, survivor, elimination, title, out / f"learning_curves{suffix}.png"),
-        plot_allocation(allocation, last_step, survivor, elimination, title, out / f"allocation{suffix}.png"),
-        plot_bias(evals + on_axis(read_jsonl(run_dir / rundir.BIAS), x), title, out / f"bias{suffix}.png"),
-        plot_learner(learner, target_utd, title, out / f"learner{suffix}.png"),
+        plot_learning_curves(evals, survivor, elimination, title, out / f"learning_curves{suffix}.png", xlabel),
+        plot_allocation(allocation, last_step, survivor, elimination, title, out / f"allocation{suffix}.png",
+                        xlabel),
+        plot_bias(evals + on_axis(read_jsonl(run_dir / rundir.BIAS), x), title, out / f"bias{suffix}.png", xlabel),
+        plot_learner(learner, target_utd, title, out / f"learner{suffix}.png", xlabel),
     ]
     return [p for p in written if p is not None]
 
