@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from mam_core.accel import for_device
 from mam_core.config import AlgoConfig
 from mam_core.ensemble import ActorEnsemble, CriticEnsemble, soft_update
 from mam_core.policy import EnvSpec  # noqa: F401  (re-exported: EnvSpec lives with the torch-free code)
@@ -143,7 +144,8 @@ class MultiActorAgent:
         self.cfg = cfg
         self.spec = spec
         self.device = torch.device(device) if not isinstance(device, torch.device) else device
-        if self.device.type == "cpu":
+        self.accel = for_device(self.device)  # what only CUDA (or only the CPU) does: mam_core/accel.py
+        if self.accel.host_allocator_tuning:
             retain_freed_memory()
         self.eta = cfg.effective_eta
         k, n = cfg.actors, cfg.critics_per_actor
