@@ -14,15 +14,30 @@ from typing import Any
 
 import numpy as np
 
-from mam_lab.runs import BiasStats, RunRecord, bias_stats, collect_runs, common_bias_points, manifest, planned_runs
-from mam_lab.scores import MaxAverage, _finite, aligned_curves, first_reach, last_n_mean, max_average_return
+from mam_lab.runs import BiasStats, RunRecord, bias_stats, collect_runs, common_bias_points, manifest
+from mam_lab.scores import (
+    MaxAverage,
+    _finite,
+    aligned_curves,
+    auc_after,
+    final_return,
+    first_reach,
+    last_n_mean,
+    max_average_return,
+)
 from mam_lab.stats import (
     N_BOOT,
+    N_BOOT_VERDICT,
+    STABILITY_SEEDS,
     Interval,
+    RankTest,
+    VerdictResult,
+    decide,
+    holm_family,
     iqm_ci,
     mean_ci,
     probability_of_improvement_ci,
-    verdict_word,
+    rank_test,
     wilson_interval,
 )
 
@@ -105,6 +120,8 @@ class VariantStats:
     axis: str = "transitions"
     reached: list[tuple[float, float | None] | None] = field(default_factory=list)  # AppleCollect, per run
     curves_by_axis: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # axis -> (grid, curves)
+    deployed_final: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per run: the headline score
+    deployed_auc: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per run: AUC after start-steps
 
     @property
     def n(self) -> int:
@@ -150,27 +167,71 @@ SINGLE_ACTOR_BASELINE = {"ma-td3": "td3", "ma-ddpg": "ddpg"}
 
 @dataclass(frozen=True)
 class Verdict:
-    """One multi-actor variant against the single-actor baseline of its family, on one env."""
+    """One multi-actor variant against the single-actor baseline of its family, on one env.
+
+    The verdict rests on the deployed actor's final return (`final`); the same rules applied to
+    its AUC after the random phase are in `auc`. Best-of-K (the best live actor's last-10 IQM) is
+    a secondary, labelled figure."""
 
     env: str
     variant: str
     baseline: str
     n_x: int
     n_y: int
-    p: Interval  # P(variant > baseline), last-10 scores
-    iqm_x: Interval
+    final: VerdictResult  # on the deployed actor's final return (mean of its last FINAL_N evaluations)
+    auc: VerdictResult  # on its AUC after the random phase
+    final_x: np.ndarray  # per run
+    final_y: np.ndarray
+    auc_x: np.ndarray
+    auc_y: np.ndarray
+    iqm_x: Interval  # best-of-K last-10 IQM (secondary)
     iqm_y: Interval
     wall_x: float  # mean wall-clock seconds per run
     wall_y: float
     commits: dict[str, int]  # over the runs of both rows
+    planned_x: int | None = None  # runs planned (experiment.json / grid file), where known
+    planned_y: int | None = None
+
+    @property
+    def p(self) -> Interval:
+        return self.final.p
 
     @property
     def word(self) -> str:
-        return verdict_word(self.p, self.n_x, self.n_y)
+        return self.final.word
 
     @property
     def mixed(self) -> bool:
         return len(self.commits) > 1
+
+    @property
+    def complete(self) -> bool:
+        return all(p is None or n >= p for n, p in ((self.n_x, self.planned_x), (self.n_y, self.planned_y)))
+
+
+@dataclass(frozen=True)
+class PendingRow:
+    """A planned comparison with runs missing: how many of its runs are in the ledger."""
+
+    env: str
+    variant: str
+    baseline: str
+    have_x: int
+    planned_x: int
+    have_y: int
+    planned_y: int
+
+    @property
+    def have(self) -> int:
+        return self.have_x + self.have_y
+
+    @property
+    def planned(self) -> int:
+        return self.planned_x + self.planned_y
+
+    def text(self) -> str:
+        return (f"{self.have} of {self.planned} runs in the ledger ({self.variant} {self.have_x}/{self.planned_x}, "
+                f"{self.baseline} {self.have_y}/{self.planned_y})")
 
 
 def baseline_of(v: VariantStats, vs: Sequence[VariantStats]) -> VariantStats | None:
@@ -186,24 +247,49 @@ def baseline_of(v: VariantStats, vs: Sequence[VariantStats]) -> VariantStats | N
     return cands[0] if cands else None
 
 
-def verdicts(envs: dict[str, list[VariantStats]], n_boot: int = N_BOOT, seed: int = 0) -> list[Verdict]:
-    out = []
+def verdicts(envs: dict[str, list[VariantStats]], n_boot: int = N_BOOT_VERDICT,
+             seeds: Sequence[int] | None = None, planned: dict[tuple[str, str], int] | None = None) -> list[Verdict]:
+    """Each multi-actor variant against its family's K=1 baseline in the same env: the exact
+    one-sided rank tests on the deployed actor's final return and AUC, Holm-adjusted over the rows
+    that share a baseline (per env, metric and direction), and P(variant > baseline)'s bootstrap CI
+    (`n_boot` resamples) under each of `seeds` (default 0..STABILITY_SEEDS−1)."""
+    seeds = list(range(STABILITY_SEEDS)) if seeds is None else list(seeds)
+    planned = planned or {}
+    pairs: list[tuple[str, VariantStats, VariantStats]] = []
     for env, vs in envs.items():
         for v in vs:
             b = baseline_of(v, vs)
-            if b is None:
-                continue
-            x, y = v.last10[np.isfinite(v.last10)], b.last10[np.isfinite(b.last10)]
-            if not x.size or not y.size:
-                continue
-            commits = dict(v.commits)
-            for c, n in b.commits.items():
-                commits[c] = commits.get(c, 0) + n
-            wx, wy = v.wall_times(), b.wall_times()
-            out.append(Verdict(env, v.variant, b.variant, x.size, y.size,
-                               probability_of_improvement_ci([x], [y], n_boot, seed=seed), v.iqm, b.iqm,
-                               float(wx.mean()) if wx.size else math.nan, float(wy.mean()) if wy.size else math.nan,
-                               commits))
+            if b is not None:
+                pairs.append((env, v, b))
+
+    def finite(a: np.ndarray) -> np.ndarray:
+        return a[np.isfinite(a)]
+
+    tests: dict[tuple[str, str, str], RankTest] = {}  # (metric, env, variant)
+    for metric in ("final", "auc"):
+        families: dict[tuple[str, str], list[tuple[str, VariantStats, VariantStats]]] = {}
+        for env, v, b in pairs:
+            families.setdefault((env, b.variant), []).append((env, v, b))
+        for fam in families.values():
+            raw = [rank_test(finite(getattr(v, f"deployed_{metric}")), finite(getattr(b, f"deployed_{metric}")))
+                   for _, v, b in fam]
+            for (env, v, _), t in zip(fam, holm_family(raw)):
+                tests[(metric, env, v.variant)] = t
+    out = []
+    for env, v, b in pairs:
+        fx, fy = finite(v.deployed_final), finite(b.deployed_final)
+        ax, ay = finite(v.deployed_auc), finite(b.deployed_auc)
+        commits = dict(v.commits)
+        for c, n in b.commits.items():
+            commits[c] = commits.get(c, 0) + n
+        wx, wy = v.wall_times(), b.wall_times()
+        out.append(Verdict(
+            env, v.variant, b.variant, fx.size, fy.size,
+            decide(fx, fy, tests[("final", env, v.variant)], n_boot, seeds),
+            decide(ax, ay, tests[("auc", env, v.variant)], n_boot, seeds),
+            fx, fy, ax, ay, v.iqm, b.iqm,
+            float(wx.mean()) if wx.size else math.nan, float(wy.mean()) if wy.size else math.nan, commits,
+            planned.get((env, v.variant)), planned.get((env, b.variant))))
     return out
 
 
@@ -218,6 +304,7 @@ class Report:
     meta: dict[str, Any]
     axis: str = "transitions"
     verdicts: list[Verdict] = field(default_factory=list)
+    pending: list[PendingRow] = field(default_factory=list)  # planned comparisons with runs missing
     notes: list[str] = field(default_factory=list)  # e.g. runs of one row at different commits
     axes: tuple[str, ...] = ("transitions",)  # the learning curves drawn
 
@@ -230,6 +317,17 @@ def _mean_of(runs: Sequence[RunRecord], key: str) -> float:
 
 def is_apple_collect(env: str) -> bool:
     return env.lower().startswith("applecollect")
+
+
+def start_of(run: RunRecord) -> float:
+    """The run's random phase (--start-steps, in schedule steps), 0 where the config lacks it."""
+    v = _finite(run.algo_config.get("start_steps"))
+    return v if v is not None else 0.0
+
+
+def budget_of(run: RunRecord) -> float | None:
+    """The run's budget T in schedule steps (config.json `steps`), None where it lacks it."""
+    return _finite(run.config.get("steps"))
 
 
 def variant_stats(env: str, variant: str, runs: list[RunRecord], spacing: float, n_boot: int = N_BOOT,
@@ -247,6 +345,10 @@ def variant_stats(env: str, variant: str, runs: list[RunRecord], spacing: float,
         if other not in by_axis:
             by_axis[other] = aligned_curves([r.axis_points(other) for r in runs], sp)
     final = np.asarray([np.nan if r.final_score is None else r.final_score for r in runs])
+    sched = (spacings or {}).get("iterations") or (spacings or {}).get("transitions") or spacing
+    deployed_final = np.asarray([final_return(r.deployed_xy(), sched) for r in runs], dtype=float)
+    deployed_auc = np.asarray([auc_after(r.deployed_xy(), sched, start_of(r), budget_of(r)) for r in runs],
+                              dtype=float)
     successes, success = 0, None
     reached: list[tuple[float, float | None] | None] = []
     if is_apple_collect(env):
@@ -263,7 +365,8 @@ def variant_stats(env: str, variant: str, runs: list[RunRecord], spacing: float,
         success=success, successes=successes,
         updates=_mean_of(runs, "updates"), env_steps=_mean_of(runs, "env_steps"),
         wall_time_s=_mean_of(runs, "wall_time_s"), launcher_wall_time_s=_mean_of(runs, "launcher_wall_time_s"),
-        axis=axis, reached=reached, curves_by_axis=by_axis)
+        axis=axis, reached=reached, curves_by_axis=by_axis, deployed_final=deployed_final,
+        deployed_auc=deployed_auc)
 
 
 def comparison_pairs(variants: Sequence[str]) -> list[tuple[str, str]]:
@@ -277,14 +380,80 @@ def comparison_pairs(variants: Sequence[str]) -> list[tuple[str, str]]:
     return pairs
 
 
-def build_report(exp_dir: Path, n_boot: int = N_BOOT, seed: int = 0, axis: str = "transitions") -> Report:
+@dataclass(frozen=True)
+class PlannedRun:
+    """A run of the plan (experiment.json or a grid file): enough to pair a variant with its baseline."""
+
+    path: str
+    env: str
+    variant: str
+    algo: str
+    actors: int
+
+
+def planned_specs(exp_dir: Path, grid_file: Path | None = None) -> list[PlannedRun]:
+    """The runs planned for an experiment: experiment.json's (or its ledger's), and with `grid_file`
+    those of that grid file (mam_lab.grid.plan), the union in that order."""
+    out: list[PlannedRun] = []
+    plan_rows = manifest(exp_dir).get("runs")
+    for r in plan_rows if isinstance(plan_rows, list) else []:
+        if isinstance(r, dict) and isinstance(r.get("path"), str):
+            parts = Path(r["path"]).parts
+            flags = r.get("flags") if isinstance(r.get("flags"), dict) else {}
+            algo = str(r.get("algo") or "")
+            out.append(PlannedRun(r["path"], str(r.get("env") or (parts[0] if parts else "?")),
+                                  str(r.get("variant") or (parts[1] if len(parts) > 1 else "?")), algo,
+                                  int(flags.get("actors") or (2 if algo.startswith("ma-") else 1))))
+    if grid_file is not None:
+        from mam_lab.grid import load_grid_file, make_grid, plan
+
+        have = {p.path for p in out}
+        for spec in plan(make_grid(load_grid_file(Path(grid_file)))):
+            if spec.path.as_posix() not in have:
+                out.append(PlannedRun(spec.path.as_posix(), spec.env, spec.variant, spec.algo,
+                                      spec.run_config("plan").algo.actors))
+    return out
+
+
+def pending_rows(planned: Sequence[PlannedRun], have: dict[tuple[str, str], int]) -> list[PendingRow]:
+    """Each planned multi-actor variant with its family's K=1 baseline (the variant named like the
+    algorithm first) where either side has fewer runs finished than planned."""
+    count: dict[tuple[str, str], int] = {}
+    first: dict[tuple[str, str], PlannedRun] = {}
+    for p in planned:
+        count[(p.env, p.variant)] = count.get((p.env, p.variant), 0) + 1
+        first.setdefault((p.env, p.variant), p)
+    out = []
+    for (env, variant), p in first.items():
+        base = SINGLE_ACTOR_BASELINE.get(p.algo)
+        if base is None or p.actors <= 1:
+            continue
+        cands = [q for q in first.values() if q.env == env and q.algo == base and q.actors == 1]
+        cands.sort(key=lambda q: q.variant != base)
+        if not cands:
+            continue
+        b = cands[0]
+        hx, hy = have.get((env, variant), 0), have.get((env, b.variant), 0)
+        px, py = count[(env, variant)], count[(env, b.variant)]
+        if hx < px or hy < py:
+            out.append(PendingRow(env, variant, b.variant, hx, px, hy, py))
+    return out
+
+
+def build_report(exp_dir: Path, n_boot: int = N_BOOT, seed: int = 0, axis: str = "transitions",
+                 verdict_boot: int = N_BOOT_VERDICT, stability_seeds: int = STABILITY_SEEDS,
+                 grid_file: Path | None = None) -> Report:
     """All statistics of an experiment directory, a ledger, or a folder holding the ledger in runs/
-    (no files written, nothing rerun). Tables on the x-axis `axis` (transitions or iterations)."""
+    (no files written, nothing rerun; a directory that does not exist has no runs). Tables on the
+    x-axis `axis` (transitions or iterations). The verdicts use `verdict_boot` bootstrap resamples
+    under seeds 0..`stability_seeds`−1; `grid_file` adds that grid's runs to the plan (rows not
+    finished say how many of their runs are in the ledger)."""
     if axis not in AXES:
         raise ValueError(f"axis must be one of {AXES}")
     exp_dir = Path(exp_dir)
-    runs = collect_runs(exp_dir)
-    planned = planned_runs(exp_dir)
+    runs = collect_runs(exp_dir) if exp_dir.is_dir() else []
+    plan_full = planned_specs(exp_dir, grid_file)
+    planned = [p.path for p in plan_full]
     plan_variants: list[str] = []
     for p in planned:
         parts = Path(p).parts
@@ -359,4 +528,19 @@ def build_report(exp_dir: Path, n_boot: int = N_BOOT, seed: int = 0, axis: str =
     bias = {env: bs for env, bs in bias.items() if bs}
     meta = manifest(exp_dir)
     return Report(exp_dir, envs, bias, comparisons, aggregate, missing, meta, axis=axis,
-                  verdicts=verdicts(envs, n_boot, seed), notes=notes, axes=axes)
+                  verdicts=verdicts(envs, verdict_boot, range(stability_seeds), planned_count(plan_full)),
+                  notes=notes, axes=axes, pending=pending_rows(plan_full, have_count(runs)))
+
+
+def planned_count(planned: Sequence[PlannedRun]) -> dict[tuple[str, str], int]:
+    out: dict[tuple[str, str], int] = {}
+    for p in planned:
+        out[(p.env, p.variant)] = out.get((p.env, p.variant), 0) + 1
+    return out
+
+
+def have_count(runs: Sequence[RunRecord]) -> dict[tuple[str, str], int]:
+    out: dict[tuple[str, str], int] = {}
+    for r in runs:
+        out[(r.env, r.variant)] = out.get((r.env, r.variant), 0) + 1
+    return out

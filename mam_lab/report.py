@@ -7,9 +7,19 @@ the ledger in `runs/` (`docs/results/<exp>`). Only finished runs (with `summary.
 planned in `experiment.json` but not finished are listed as missing. Nothing is rerun.
 
 The report opens with a **Verdict**: each multi-actor variant against the K=1 baseline of its
-family (TD3 / DDPG) in the same env: P(variant > baseline) with its 95% CI, both IQMs with CIs,
-wall-clock time per run, and *better* (CI lower bound > 0.5), *worse* (upper bound < 0.5) or *not
-separated*. Each run's record.json names the commit it ran at; rows whose runs differ get a note.
+family (TD3 / DDPG) in the same env, on the **deployed actor** (mam_lab.scores.deployed_points: the
+survivor after the elimination C, before C the actor ranked best at the latest competition, scored
+only on evaluation episodes that played no part in selecting it). Per row: the deployed actor's
+final return (mean of its last 3 evaluations) and AUC after the random phase per side,
+P(variant > baseline) of the final returns with a bootstrap 95% CI (`--verdict-boot`, at least
+10,000 resamples), the exact one-sided permutation test's p in each direction, raw and
+Holm-adjusted over the rows sharing a baseline, the stability over `--stability-seeds` bootstrap
+seeds, and the word (mam_lab.stats.verdict_word): *better* only with the CI above ½ and the Holm
+p below 0.05 under every seed, *worse* the mirror image, *too few runs* below 5 runs a side, else
+*not separated*; the word the same rules give on the AUC; best-of-K last-10 IQMs as a labelled
+secondary column; wall-clock time per run. A planned row with runs missing says how many of its
+runs are in the ledger (`--config GRID.toml` plans a grid that has not started). Each run's
+record.json names the commit it ran at; rows whose runs differ get a note.
 Tables are on one x-axis (`--x transitions` (default) or `iterations`, which rows of older runs
 lack: their env transitions stand in) and say which; learning curves are drawn on both.
 
@@ -51,17 +61,20 @@ import typer
 
 from mam_lab.analysis import AXES, Report, build_report
 from mam_lab.figures import plot_bias, plot_env_allocation, plot_env_curves, plot_iqm
-from mam_lab.stats import N_BOOT
+from mam_lab.stats import N_BOOT, N_BOOT_VERDICT, STABILITY_SEEDS
 from mam_lab.tables import print_tables, render_markdown
 from services import rundir
 
 
 def write_report(exp_dir: Path, out: Path | None = None, n_boot: int = N_BOOT, seed: int = 0,
-                 figures: bool = True, axis: str = "transitions") -> tuple[Report, Path, list[Path]]:
+                 figures: bool = True, axis: str = "transitions", verdict_boot: int = N_BOOT_VERDICT,
+                 stability_seeds: int = STABILITY_SEEDS, grid_file: Path | None = None,
+                 ) -> tuple[Report, Path, list[Path]]:
     """Build the report, write the Markdown file and the PNGs; returns (report, markdown, PNGs)."""
     exp_dir = Path(exp_dir)
     out = Path(out) if out is not None else exp_dir / rundir.REPORT
-    report = build_report(exp_dir, n_boot=n_boot, seed=seed, axis=axis)
+    report = build_report(exp_dir, n_boot=n_boot, seed=seed, axis=axis, verdict_boot=verdict_boot,
+                          stability_seeds=stability_seeds, grid_file=grid_file)
     report.meta = {**report.meta, "n_boot": n_boot}
     fig_dir = out.parent / rundir.FIGURES
     written: dict[str, list[Path]] = {}
@@ -102,19 +115,36 @@ def report_command(
     x: Annotated[str, typer.Option("--x", help="x-axis of the tables: transitions (env transitions) or "
                                               "iterations (Algorithm 1's count; transitions for older runs)")
                  ] = "transitions",
+    verdict_boot: Annotated[int, typer.Option(
+        "--verdict-boot", help="bootstrap resamples of P(improvement) behind each verdict (at least 10,000)")
+                            ] = N_BOOT_VERDICT,
+    stability_seeds: Annotated[int, typer.Option(
+        "--stability-seeds", help="bootstrap seeds 0..N-1 the verdict must agree over (else 'not separated')")
+                               ] = STABILITY_SEEDS,
+    config: Annotated[Optional[Path], typer.Option(
+        "--config", help="grid TOML file whose runs count as planned too: a row not finished says how many of "
+                         "its runs are in the ledger (EXP_DIR may then not exist yet)")] = None,
 ) -> None:
     """Tables (last-10 mean, IQM and P(improvement) with 95% CIs, Table 4's max average return,
     updates, wall time, Eq. 17 bias) and figures (learning curves with CI bands, allocation, bias) of an experiment."""
     from rich.console import Console
 
     console = Console()
-    if not Path(exp_dir).is_dir():
+    if not Path(exp_dir).is_dir() and config is None:
         raise typer.BadParameter(f"{exp_dir} is not a directory")
     if n_boot < 100:
         raise typer.BadParameter("--n-boot must be at least 100")
+    if verdict_boot < N_BOOT_VERDICT:
+        raise typer.BadParameter(f"--verdict-boot must be at least {N_BOOT_VERDICT:,}")
+    if stability_seeds < 1:
+        raise typer.BadParameter("--stability-seeds must be at least 1")
     if x not in AXES:
         raise typer.BadParameter(f"--x must be one of {', '.join(AXES)}")
-    report, md, pngs = write_report(exp_dir, out, n_boot=n_boot, seed=seed, figures=not no_figures, axis=x)
+    try:
+        report, md, pngs = write_report(exp_dir, out, n_boot=n_boot, seed=seed, figures=not no_figures, axis=x,
+                                        verdict_boot=verdict_boot, stability_seeds=stability_seeds, grid_file=config)
+    except ValueError as e:  # a grid file that does not load (GridError)
+        raise typer.BadParameter(str(e)) from e
     if not report.envs:
         console.print(f"[yellow]no finished runs under {exp_dir}[/]")
     print_tables(report, console)

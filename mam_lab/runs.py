@@ -14,7 +14,15 @@ from typing import Any
 import numpy as np
 
 from mam_lab.provenance import commit_label
-from mam_lab.scores import _finite, best_live_score, bias_points, eval_points, eval_triples
+from mam_lab.scores import (
+    DeployedPoint,
+    _finite,
+    best_live_score,
+    bias_points,
+    deployed_points,
+    eval_points,
+    eval_triples,
+)
 from services import rundir
 from services.rundir import read_json, read_jsonl
 
@@ -35,6 +43,11 @@ class RunRecord:
     bias_abs: list[tuple[float, float]] = field(default_factory=list)  # the same, ÷|Q*|
     evals: list[tuple[float, float | None, float]] = field(default_factory=list)  # (env steps, iterations, score)
     record: dict[str, Any] = field(default_factory=dict)  # record.json (the commit it ran at), if any
+    deployed: list[DeployedPoint] = field(default_factory=list)  # the deployed actor's scores, schedule-step axis
+
+    def deployed_xy(self) -> list[tuple[float, float]]:
+        """(schedule step, deployed actor's return): iterations, env transitions in rows without them."""
+        return [(d.x, d.score) for d in self.deployed]
 
     @property
     def key(self) -> str:
@@ -95,12 +108,13 @@ def load_run(path: Path, env: str | None = None, variant: str | None = None) -> 
         m = re.fullmatch(r"seed(\d+)", path.name)
         seed = int(m.group(1)) if m else 0
     rows = read_jsonl(path / rundir.EVAL)
+    allocation = read_jsonl(path / rundir.ALLOCATION)
     return RunRecord(
         env=env or str(config.get("env_id") or summary.get("env_id") or "?"),
         variant=variant or str(algo.get("algo") or summary.get("algo") or "?"),
         seed=seed, path=path, config=config, summary=summary,
         points=eval_points(rows), evals=eval_triples(rows),
-        allocation=read_jsonl(path / rundir.ALLOCATION),
+        allocation=allocation, deployed=deployed_points(rows, allocation, "iterations"),
         bias=bias_points(read_jsonl(path / rundir.BIAS)),
         bias_abs=bias_points(read_jsonl(path / rundir.BIAS), absolute=True),
         record=read_json(path / rundir.RECORD))

@@ -159,3 +159,164 @@ def bias_points(rows: list[dict[str, Any]], absolute: bool = False) -> list[tupl
         if point is not None and rate is not None:
             by_point.setdefault(point, []).append(rate)
     return [(p, float(np.mean(v))) for p, v in sorted(by_point.items())]
+
+
+# --- the deployed actor ----------------------------------------------------------------------
+
+
+SELECTION_PURPOSES = frozenset({"round", "elimination"})  # evaluations that selected an actor
+FINAL_N = 3  # the final return: mean of the deployed actor's last 3 evaluations
+
+
+def _x_of(row: dict[str, Any], axis: str) -> float | None:
+    """A row's place on `axis`: iterations (env transitions in rows without them) or env transitions
+    (allocation rows of old records carry `decided_at` too)."""
+    if axis == "iterations":
+        it = _finite(row.get("iterations"))
+        if it is not None:
+            return it
+    step = _finite(row.get("env_steps"))
+    return step if step is not None else _finite(row.get("decided_at"))
+
+
+def _actor_return(row: dict[str, Any], k: int) -> float | None:
+    """Actor k's mean return in an evaluation row (None where it was not evaluated)."""
+    means = row.get("mean")
+    if isinstance(means, list) and k < len(means):
+        value = _finite(means[k])
+        if value is not None:
+            return value
+    returns = row.get("returns")
+    if isinstance(returns, list) and k < len(returns) and isinstance(returns[k], list):
+        eps = [v for v in (_finite(e) for e in returns[k]) if v is not None]
+        if eps:
+            return float(np.mean(eps))
+    return None
+
+
+@dataclass(frozen=True)
+class Competition:
+    """A competition of the allocation log: where it happened and the actor it ranked best."""
+
+    x: float
+    best: int
+    reason: str  # "round" or "elimination"
+
+
+def competition_winner(row: dict[str, Any]) -> int | None:
+    """The actor a competition row ranks best: the survivor at the elimination; at a round the
+    actor with the highest return, a tie (the row's `tie`, or equal returns) going to the lowest
+    index. None without returns."""
+    if row.get("reason") == "elimination" and isinstance(row.get("survivor"), int):
+        return int(row["survivor"])
+    returns = row.get("returns")
+    if not isinstance(returns, list):
+        return None
+    vals = [(_finite(r), k) for k, r in enumerate(returns)]
+    vals = [(v, k) for v, k in vals if v is not None]
+    if not vals:
+        return None
+    tie = row.get("tie")
+    if isinstance(tie, list) and tie and all(isinstance(t, int) for t in tie):
+        return min(tie)
+    best = max(v for v, _ in vals)
+    return min(k for v, k in vals if v == best)
+
+
+def competitions(allocation: list[dict[str, Any]], axis: str = "iterations") -> list[Competition]:
+    """The competitions of a run (allocation rows with reason "round" or "elimination" that carry
+    `returns`), in file order."""
+    out = []
+    for row in allocation:
+        if row.get("reason") not in SELECTION_PURPOSES:
+            continue
+        x, best = _x_of(row, axis), competition_winner(row)
+        if x is not None and best is not None:
+            out.append(Competition(x, best, str(row["reason"])))
+    return out
+
+
+def initial_actor(allocation: list[dict[str, Any]]) -> int:
+    """The deployed actor before any competition: the actor the first allocation row's P prefers
+    (the largest P_k, lowest index on a tie; P is uniform at the start, so actor 0), else actor 0."""
+    for row in allocation:
+        probs = row.get("probabilities")
+        if isinstance(probs, list) and probs:
+            vals = [_finite(p) for p in probs]
+            if all(v is not None for v in vals):
+                best = max(vals)
+                return vals.index(best)
+        break
+    return 0
+
+
+@dataclass(frozen=True)
+class DeployedPoint:
+    """The deployed actor's score at one evaluation row."""
+
+    x: float  # on the axis asked for
+    actor: int
+    score: float
+    purpose: str | None  # the row's purpose (None in records older than it)
+
+
+def deployed_points(evals: list[dict[str, Any]], allocation: list[dict[str, Any]],
+                    axis: str = "iterations") -> list[DeployedPoint]:
+    """The deployed actor's return at each evaluation row that played no part in selecting it.
+
+    The deployed actor is the survivor after the elimination C and, before C, the actor ranked best
+    at the latest competition (competition_winner); before the first competition, initial_actor
+    (actor 0). A single-actor run has one actor, 0.
+
+    - Rows with a `purpose` (records since exact mode): "round" and "elimination" rows are the
+      competitions' own selection evaluations and are never scored; "curve" and "final" rows (on
+      episodes disjoint from the competitions') score the actor chosen by the latest competition
+      at or before them.
+    - Rows without `purpose` (older records): an evaluation at a competition's iteration *is* that
+      competition's selection evaluation, so it scores the actor chosen by the latest competition
+      strictly before it — the actor that was deployed while those episodes were played.
+
+    A row where the deployed actor has no return is left out."""
+    comps = sorted(competitions(allocation, axis), key=lambda c: c.x)
+    first = initial_actor(allocation)
+    out = []
+    for row in evals:
+        purpose = row.get("purpose")
+        purpose = purpose if isinstance(purpose, str) else None
+        if purpose in SELECTION_PURPOSES:
+            continue
+        x = _x_of(row, axis)
+        if x is None:
+            continue
+        if purpose is None:
+            before = [c for c in comps if c.x < x]
+        else:
+            before = [c for c in comps if c.x <= x]
+        actor = before[-1].best if before else first
+        score = _actor_return(row, actor)
+        if score is not None:
+            out.append(DeployedPoint(x, actor, score, purpose))
+    return out
+
+
+def final_return(points: Sequence[tuple[float, float]], spacing: float, n: int = FINAL_N) -> float:
+    """Mean of the last `n` grid points (see bucket_points) of a run's (x, score) points; NaN without any."""
+    return last_n_mean(points, spacing, n)
+
+
+def auc_after(points: Sequence[tuple[float, float]], spacing: float, start: float, end: float | None = None,
+              ) -> float:
+    """Area under the learning curve after the random phase, per unit of x: the trapezoid integral of
+    the grid points (bucket_points) with x ≥ `start` (and ≤ `end`), divided by the x range they
+    span, i.e. the mean return over the learning phase in return units. NaN with fewer than 2
+    points (one point: its score)."""
+    cells = [(x, s) for x, s in bucket_points(points, spacing).items()
+             if x >= start - 1e-9 and (end is None or x <= end + 1e-9)]
+    if not cells:
+        return math.nan
+    if len(cells) == 1:
+        return float(cells[0][1])
+    xs = np.asarray([c[0] for c in cells], dtype=float)
+    ys = np.asarray([c[1] for c in cells], dtype=float)
+    area = float(np.sum((xs[1:] - xs[:-1]) * (ys[1:] + ys[:-1]) / 2))
+    return area / float(xs[-1] - xs[0])

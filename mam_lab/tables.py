@@ -9,9 +9,9 @@ from typing import Any
 
 import numpy as np
 
-from mam_lab.analysis import SUCCESS_RETURN, Comparison, Report, VariantStats, Verdict
+from mam_lab.analysis import SUCCESS_RETURN, Comparison, PendingRow, Report, VariantStats, Verdict
 from mam_lab.runs import BiasStats
-from mam_lab.stats import N_BOOT, Interval
+from mam_lab.stats import N_BOOT, Interval, VerdictResult
 
 
 def _fmt(x: float, digits: int | None = None) -> str:
@@ -58,18 +58,65 @@ def _wall(v: float) -> str:
     return "–" if not math.isfinite(v) else f"{v:,.0f}"
 
 
-def verdict_rows(vd: Sequence[Verdict]) -> tuple[list[str], list[list[str]]]:
-    header = ["env", "variant", "vs", "runs", "P(variant > baseline) [95% CI]", "IQM variant [95% CI]",
-              "IQM baseline [95% CI]", "wall s/run variant / baseline", "verdict", "commit"]
+def _p(x: float) -> str:
+    if x is None or not math.isfinite(x):
+        return "–"
+    return f"{x:.3f}" if x >= 0.001 else f"{x:.1e}"
+
+
+def _mean_std(a: np.ndarray) -> str:
+    a = np.asarray(a, dtype=float)
+    a = a[np.isfinite(a)]
+    if not a.size:
+        return "–"
+    return f"{_fmt(float(a.mean()))} ± {_fmt(float(a.std()))}"
+
+
+def _runs_cell(v: Verdict) -> str:
+    text = f"{v.n_x} / {v.n_y}"
+    if not v.complete:
+        have = v.n_x + v.n_y
+        planned = (v.planned_x or v.n_x) + (v.planned_y or v.n_y)
+        text += f" ({have} of {planned} runs in the ledger)"
+    return text
+
+
+def _verdict_cells(r: VerdictResult) -> list[str]:
+    t = r.test
+    return [f"{_fmt(r.p.value, 2)} {_ci(r.p, 2)}", f"{_p(t.p_greater)} / {_p(t.p_greater_holm)}",
+            f"{_p(t.p_less)} / {_p(t.p_less_holm)}", r.stability_text(), f"*{r.word}*"]
+
+
+VERDICT_HEADER = ("env", "variant", "vs", "runs", "final return variant / baseline (mean ± std)",
+                  "AUC variant / baseline (mean ± std)", "P(variant > baseline) [95% CI]",
+                  "exact p variant > baseline (raw / Holm)", "exact p variant < baseline (raw / Holm)",
+                  "stability over bootstrap seeds", "verdict", "verdict on AUC",
+                  "best-of-K last-10 IQM variant / baseline (secondary)", "wall s/run variant / baseline", "commit")
+TERMINAL_COLUMNS = 11  # the terminal shows the first columns (to the verdict word); report.md has them all
+
+
+def verdict_rows(vd: Sequence[Verdict], pending: Sequence[PendingRow] = ()) -> tuple[list[str], list[list[str]]]:
+    """The verdict table: per row the deployed actor's final return and AUC per side, P(variant >
+    baseline) on the final return with its CI, the exact one-sided p (raw and Holm) in both
+    directions, the stability over bootstrap seeds, the verdict word (and the word the same rules
+    give on the AUC), then best-of-K as a labelled secondary column. `pending`: planned rows with
+    no verdict yet, each saying how many of its runs are in the ledger."""
+    header = list(VERDICT_HEADER)
     rows = []
     for v in vd:
         commit = (next(iter(v.commits)) if not v.mixed else
                   "**different commits**: " + ", ".join(f"{c} ({n})" for c, n in sorted(v.commits.items())))
         ratio = v.wall_x / v.wall_y if math.isfinite(v.wall_x) and math.isfinite(v.wall_y) and v.wall_y > 0 else None
-        rows.append([v.env, v.variant, v.baseline, f"{v.n_x} / {v.n_y}", f"{_fmt(v.p.value, 2)} {_ci(v.p, 2)}",
-                     f"{_fmt(v.iqm_x.value)} {_ci(v.iqm_x)}", f"{_fmt(v.iqm_y.value)} {_ci(v.iqm_y)}",
-                     f"{_wall(v.wall_x)} / {_wall(v.wall_y)}" + (f" (×{ratio:.2f})" if ratio else ""),
-                     f"*{v.word}*", commit])
+        p, pg, pl, stab, word = _verdict_cells(v.final)
+        rows.append([v.env, v.variant, v.baseline, _runs_cell(v),
+                     f"{_mean_std(v.final_x)} / {_mean_std(v.final_y)}", f"{_mean_std(v.auc_x)} / {_mean_std(v.auc_y)}",
+                     p, pg, pl, stab, word, f"*{v.auc.word}*", f"{_fmt(v.iqm_x.value)} / {_fmt(v.iqm_y.value)}",
+                     f"{_wall(v.wall_x)} / {_wall(v.wall_y)}" + (f" (×{ratio:.2f})" if ratio else ""), commit])
+    have = {(v.env, v.variant) for v in vd}
+    for r in pending:
+        if (r.env, r.variant) not in have:
+            word = "*not yet run*" if not r.have else "*too few runs*"
+            rows.append([r.env, r.variant, r.baseline, r.text()] + ["–"] * 6 + [word] + ["–"] * 4)
     return header, rows
 
 
@@ -116,6 +163,30 @@ def comparison_rows(comparisons: Sequence[Comparison]) -> tuple[list[str], list[
     return header, rows
 
 
+VERDICT_TEXT = (
+    "Each multi-actor variant against the K=1 baseline of its family in the same grid (TD3 for MA-TD3, DDPG for "
+    "MA-DDPG), on the **deployed actor**: the survivor after the elimination C and, before C, the actor ranked "
+    "best at the latest competition, scored only on evaluation episodes that played no part in selecting it "
+    "(rows of a competition's own evaluation score the actor chosen by the competition before it). *Final "
+    "return*: per run the mean of the deployed actor's last {final_n} evaluations; *AUC*: the area under its "
+    "curve from the end of the random phase (--start-steps) to the budget, divided by that span (a mean return). "
+    "P(variant > baseline) of the final returns with a bootstrap 95% CI ({verdict_boot:,} resamples, seed 0); "
+    "the exact one-sided permutation (Mann-Whitney) p in each direction, raw and Holm-adjusted over the rows "
+    "that share a baseline. *better* only where the CI's lower bound is above 0.5 **and** the Holm-adjusted p "
+    "(variant > baseline) is below 0.05, *worse* the mirror image, under each of {seeds} bootstrap seeds "
+    "(where the seeds disagree: *not separated*); *too few runs* below {min_runs} runs a side. Best-of-K "
+    "(the best live actor's last-10 score, a max over K before C) is a secondary column only.")
+
+
+def verdict_params(report: Report) -> dict[str, Any]:
+    from mam_lab.scores import FINAL_N
+    from mam_lab.stats import MIN_RUNS
+
+    n_boot = next((v.final.n_boot for v in report.verdicts), report.meta.get("verdict_boot") or 10_000)
+    seeds = next((len(v.final.words) for v in report.verdicts), report.meta.get("stability_seeds") or 20)
+    return {"final_n": FINAL_N, "verdict_boot": n_boot, "seeds": seeds, "min_runs": MIN_RUNS}
+
+
 def _md_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     esc = lambda s: str(s).replace("|", "\\|")  # noqa: E731
     lines = ["| " + " | ".join(esc(h) for h in header) + " |", "|" + "---|" * len(header)]
@@ -142,14 +213,9 @@ def render_markdown(report: Report, figures: dict[str, list[Path]], out: Path) -
                       f"(resume with the same `mam experiment` command): "
                       + ", ".join(f"`{m}`" for m in report.missing[:20])
                       + (" …" if len(report.missing) > 20 else "")]
-    if report.verdicts:
-        header, rows = verdict_rows(report.verdicts)
-        lines += ["", "## Verdict", "",
-                  "Each multi-actor variant against the K=1 baseline of its family in the same grid (TD3 for "
-                  "MA-TD3, DDPG for MA-DDPG): P(variant > baseline) of the per-run last-10 scores with a bootstrap "
-                  "95% CI, the IQM of those scores with 95% CIs, and the mean wall-clock time per run. *better* only "
-                  "where the CI's lower bound is above 0.5, *worse* where its upper bound is below 0.5, else *not "
-                  f"separated*. Last-10 scores on the {report.axis} axis.", "", _md_table(header, rows)]
+    if report.verdicts or report.pending:
+        header, rows = verdict_rows(report.verdicts, report.pending)
+        lines += ["", "## Verdict", "", VERDICT_TEXT.format(**verdict_params(report)), "", _md_table(header, rows)]
     if report.notes:
         lines += ["", "**Notes:**", ""] + [f"- {n}" for n in report.notes]
     lines += ["", f"Tables on the x-axis: **{AXIS_TEXT.get(report.axis, report.axis)}**; learning curves on "
@@ -219,9 +285,12 @@ def _rich_table(title: str, header: Sequence[str], rows: Sequence[Sequence[str]]
 
 
 def print_tables(report: Report, console: Any) -> None:
-    if report.verdicts:
-        console.print(_rich_table(f"Verdict (last-10 scores, x-axis {report.axis})", *verdict_rows(report.verdicts),
-                                  fold=True))
+    if report.verdicts or report.pending:
+        header, rows = verdict_rows(report.verdicts, report.pending)
+        console.print(_rich_table("Verdict (the deployed actor's final return; rules and more columns in report.md)",
+                                  header[:TERMINAL_COLUMNS], [r[:TERMINAL_COLUMNS] for r in rows], fold=True))
+    for r in report.pending:
+        console.print(f"[yellow]unfinished[/]: {r.env} {r.variant} vs {r.baseline}: {r.text()}")
     for note in report.notes:
         console.print(f"[yellow]note[/]: {note}")
     for env, vs in report.envs.items():
