@@ -31,15 +31,15 @@ import math
 import os
 import platform
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any, Callable
 
 import typer
 
-from mam_lab.bench_learner import bench_learner, bench_replay, profile_learner_step
+from mam_lab.bench_learner import VARIANTS, bench_learner, bench_replay, profile_learner_step
 from mam_lab.bench_runs import bench_collection, bench_e2e
-from mam_lab.bench_sizes import BenchSizes
+from mam_lab.bench_sizes import SHAPES, BenchSizes
 from mam_lab.bench_transport import bench_transport, bench_weights, profile_worker_step
 from mam_lab.provenance import versions
 
@@ -94,7 +94,11 @@ def machine(device: str, threads: int) -> dict[str, Any]:
     info: dict[str, Any] = {"device": device, "cpu": cpu_model(), "cpu_cores": os.cpu_count(),
                             "torch_threads": threads, "platform": platform.platform()}
     if device.startswith("cuda"):
+        from mam_core.accel import for_device
+
         info["gpu"] = torch.cuda.get_device_name(torch.device(device))
+        info["cuda"] = torch.version.cuda
+        info["gpu_bf16"] = for_device(device).bf16_supported()
     try:
         info["load_average_1min"] = round(os.getloadavg()[0], 2)
     except OSError:
@@ -116,8 +120,10 @@ EXTRA_PIECES = ("replay",)  # only when asked for: --only replay
 
 
 def run_bench(sizes: BenchSizes, pieces: tuple[str, ...] = PIECES, device: str = "auto", threads: int = 1,
-              log: Callable[[str], None] = print, profile: bool = False) -> dict[str, Any]:
-    """Every selected piece; one flat dict (the `--json` object)."""
+              log: Callable[[str], None] = print, profile: bool = False, variants: str = "default",
+              device_time: bool = False) -> dict[str, Any]:
+    """Every selected piece; one flat dict (the `--json` object). `variants` and `device_time`:
+    `bench_learner`'s."""
     unknown = set(pieces) - set(PIECES) - set(EXTRA_PIECES)
     if unknown:
         raise ValueError(f"unknown bench piece(s) {sorted(unknown)}; choose from {PIECES + EXTRA_PIECES}")
@@ -127,7 +133,7 @@ def run_bench(sizes: BenchSizes, pieces: tuple[str, ...] = PIECES, device: str =
                               "versions": versions(BENCH_LIBRARIES, missing="absent", commit=False),
                               "machine": machine(device, threads), "sizes": asdict(sizes)}
     if "learner" in pieces:
-        result.update(bench_learner(sizes, device, threads, log))
+        result.update(bench_learner(sizes, device, threads, log, variants=variants, device_time=device_time))
     if "e2e" in pieces:
         result.update(bench_e2e(sizes, device, threads, log))
     if "transport" in pieces:
@@ -164,6 +170,12 @@ ROWS: tuple[tuple[str, str], ...] = (
     ("learner_humanoid_k2_bf16_vs_td3", "  bf16, Humanoid"),
     ("learner_halfcheetah_k1_vs_td3", "K=1 ÷ TD3, HalfCheetah"),
     ("learner_halfcheetah_k3_vs_td3", "K=3 ÷ TD3, HalfCheetah"),
+    ("learner_halfcheetah_k3_shared_vs_td3", "K=3 --shared-batch ÷ TD3, HalfCheetah (--variants all)"),
+    ("learner_halfcheetah_k1_bf16_vs_td3", "K=1 bf16 ÷ TD3, HalfCheetah (--variants all)"),
+    ("learner_halfcheetah_k3_bf16_vs_td3", "K=3 bf16 ÷ TD3, HalfCheetah (--variants all)"),
+    ("learner_halfcheetah_k2_shared_bf16_vs_td3", "K=2 --shared-batch bf16 ÷ TD3, HalfCheetah (--variants all)"),
+    ("learner_halfcheetah_k2_device_ms_per_update", "K=2 device busy ms per update (--device-time)"),
+    ("learner_halfcheetah_td3_device_ms_per_update", "TD3 device busy ms per update (--device-time)"),
     ("learner_humanoid_k1_vs_td3", "K=1 ÷ TD3, Humanoid"),
     ("learner_humanoid_k2_vs_td3", "K=2 ÷ TD3, Humanoid"),
     ("learner_humanoid_k3_vs_td3", "K=3 ÷ TD3, Humanoid"),
@@ -225,6 +237,34 @@ def print_report(result: dict[str, Any], console: Any = None) -> None:
     console.print("versions: " + ", ".join(f"{k} {val}" for k, val in v.items()))
 
 
+def _ints(text: str) -> tuple[int, ...]:
+    return tuple(int(v) for v in text.split(",") if v.strip())
+
+
+def override_sizes(sizes: BenchSizes, ks: str | None = None, shapes: str | None = None, rounds: int | None = None,
+                   updates: int | None = None, hidden: str | None = None,
+                   batch_size: int | None = None) -> BenchSizes:
+    """`sizes` with the flags that were given (None: keep); ValueError on a bad value."""
+    changes: dict[str, Any] = {}
+    if ks is not None:
+        changes["learner_ks"] = _ints(ks)
+        if not changes["learner_ks"] or min(changes["learner_ks"]) < 1:
+            raise ValueError(f"--ks needs positive integers, not {ks!r}")
+    if shapes is not None:
+        changes["learner_shapes"] = tuple(s.strip() for s in shapes.split(",") if s.strip())
+        unknown = set(changes["learner_shapes"]) - set(SHAPES)
+        if unknown or not changes["learner_shapes"]:
+            raise ValueError(f"--shapes: choose among {','.join(SHAPES)}, not {shapes!r}")
+    for key, value in (("learner_rounds", rounds), ("learner_updates", updates), ("batch_size", batch_size)):
+        if value is not None:
+            if value < 1:
+                raise ValueError(f"{key} must be >= 1")
+            changes[key] = value
+    if hidden is not None:
+        changes["hidden"] = _ints(hidden)
+    return replace(sizes, **changes)
+
+
 app = typer.Typer(add_completion=False, help=__doc__)
 
 
@@ -241,6 +281,18 @@ def bench_command(
     profile: bool = typer.Option(False, "--profile", help="also profile one learner update and one worker step"),
     tiny: bool = typer.Option(False, "--tiny", hidden=True, help="smoke-test sizes: seconds, meaningless figures"),
     out: Path = typer.Option(None, "--out", help="also write the JSON object to this file"),
+    ks: str = typer.Option(None, "--ks", help="learner: comma-separated K values to time (default 1,2,3)"),
+    shapes: str = typer.Option(None, "--shapes", help=f"learner: env shapes among {','.join(SHAPES)}"),
+    variants: str = typer.Option("default", "--variants",
+                                 help="learner: default (every K per actor, K=2 shared and K=2 bf16) or all "
+                                      "(every K x per-actor/shared x fp32/bf16)"),
+    device_time: bool = typer.Option(False, "--device-time",
+                                     help="learner: also the device's busy ms per update (CUDA: kernel time "
+                                          "by torch.profiler; CPU: process CPU time)"),
+    rounds: int = typer.Option(None, "--rounds", help="learner: interleaved rounds (overrides the size)"),
+    updates: int = typer.Option(None, "--updates", help="learner: updates per contender per round"),
+    hidden: str = typer.Option(None, "--hidden", help="learner and runs: hidden sizes, e.g. 256,256"),
+    batch_size: int = typer.Option(None, "--batch-size", help="learner and runs: mini-batch size"),
 ) -> None:
     """Learner, end-to-end, transport and collection figures, each against its reference and target."""
     import logging
@@ -249,11 +301,18 @@ def bench_command(
 
     logging.basicConfig(level=logging.WARNING)
     sizes = BenchSizes.tiny() if tiny else BenchSizes.full() if full else BenchSizes.quick()
+    try:
+        sizes = override_sizes(sizes, ks=ks, shapes=shapes, rounds=rounds, updates=updates, hidden=hidden,
+                               batch_size=batch_size)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from e
+    if variants not in VARIANTS:
+        raise typer.BadParameter(f"--variants must be one of {', '.join(VARIANTS)}")
     pieces = tuple(p.strip() for p in only.split(",") if p.strip())
     console = Console(stderr=json_out)
     try:
         result = run_bench(sizes, pieces, device, threads, log=lambda s: console.print(f"[dim]{s}[/]"),
-                           profile=profile)
+                           profile=profile, variants=variants, device_time=device_time)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
     print_report(result, console)

@@ -46,8 +46,27 @@ def reference_td3(obs_dim: int, act_dim: int, max_action: float, hidden: tuple[i
     return td3
 
 
-def learner_contenders(shape: str, sizes: BenchSizes, device: str, seed: int = 0) -> dict[str, Callable[[], Any]]:
-    """One update step of each contender, sampling from the same replay buffer."""
+VARIANTS = ("default", "all")  # which MA-TD3 variants the learner bench times beside the reference
+
+
+def variant_names(ks: tuple[int, ...], variants: str = "default") -> list[str]:
+    """Contender names besides "td3": `k{K}` (a mini-batch per actor, fp32) for every K, then
+    `default`: `k2_shared` and `k2_bf16`; `all`: for every K a `_shared` (K > 1) and a `_bf16`
+    of each batch mode (`k{K}_bf16`, `k{K}_shared_bf16`)."""
+    if variants not in VARIANTS:
+        raise ValueError(f"unknown learner variants {variants!r}; choose from {VARIANTS}")
+    names = [f"k{k}" for k in ks]
+    if variants == "default":
+        return names + (["k2_shared", "k2_bf16"] if 2 in ks else [])
+    for k in ks:
+        names += [f"k{k}_shared"] * (k > 1) + [f"k{k}_bf16"] + [f"k{k}_shared_bf16"] * (k > 1)
+    return names
+
+
+def learner_contenders(shape: str, sizes: BenchSizes, device: str, seed: int = 0,
+                       variants: str = "default") -> dict[str, Callable[[], Any]]:
+    """One update step of each contender, sampling from the same replay buffer: the reference
+    TD3 ("td3") and the MA-TD3 variants of `variant_names`."""
     from mam_core.agent import EnvSpec, MultiActorAgent
     from mam_core.config import resolve
 
@@ -62,28 +81,28 @@ def learner_contenders(shape: str, sizes: BenchSizes, device: str, seed: int = 0
 
     out: dict[str, Callable[[], Any]] = {"td3": td3_step}
     spec = EnvSpec(obs_dim, act_dim, (max_action,) * act_dim)
-    for k in sizes.learner_ks:  # one mini-batch per actor (Algorithm 1, the default)
-        cfg = resolve("ma-td3", actors=k, hidden=sizes.hidden, batch_size=batch, seed=seed)
+    for name in variant_names(sizes.learner_ks, variants):
+        k = int(name[1:].split("_")[0])
+        # a mini-batch per actor (Algorithm 1, the default) or --shared-batch (one mini-batch for all
+        # actors: Eq. 9's target pass then runs on B rows, not K·B); the opt-in mixed precision
+        # (--precision bf16) against the same fp32 reference
+        cfg = resolve("ma-td3", actors=k, hidden=sizes.hidden, batch_size=batch, seed=seed,
+                      shared_batch=True if "_shared" in name else None,
+                      precision="bf16" if name.endswith("_bf16") else None)
         agent = MultiActorAgent(cfg, spec, device)
-        out[f"k{k}"] = (lambda a=agent: a.update(buf.sample(batch, a.batch_groups)))
-    if 2 in sizes.learner_ks:
-        # --shared-batch: one mini-batch for all actors (Eq. 9's target pass then runs on B rows, not K·B)
-        cfg = resolve("ma-td3", actors=2, hidden=sizes.hidden, batch_size=batch, seed=seed, shared_batch=True)
-        agent = MultiActorAgent(cfg, spec, device)
-        out["k2_shared"] = (lambda a=agent: a.update(buf.sample(batch)))
-        # the opt-in mixed precision (--precision bf16) against the same fp32 reference
-        cfg = resolve("ma-td3", actors=2, hidden=sizes.hidden, batch_size=batch, seed=seed, precision="bf16")
-        agent = MultiActorAgent(cfg, spec, device)
-        out["k2_bf16"] = (lambda a=agent: a.update(buf.sample(batch, a.batch_groups)))
+        out[name] = (lambda a=agent: a.update(buf.sample(batch, a.batch_groups)))
     return out
 
 
 def interleaved_rates(steps: dict[str, Callable[[], Any]], rounds: int, per_round: int,
-                      warmup: int = 4) -> dict[str, dict[str, list[float]]]:
+                      warmup: int = 4, sync: Callable[[], Any] | None = None) -> dict[str, dict[str, list[float]]]:
     """Rates (calls/s by wall clock and by process CPU time) per contender per round.
 
-    The order rotates every round so no contender always follows the same one.
+    The order rotates every round so no contender always follows the same one. `sync` (e.g.
+    `torch.cuda.synchronize`) runs before a contender's timer starts and before it stops, so
+    queued device work is counted where it was issued.
     """
+    sync = sync or (lambda: None)
     names = list(steps)
     for name in names:
         for _ in range(warmup):
@@ -94,12 +113,48 @@ def interleaved_rates(steps: dict[str, Callable[[], Any]], rounds: int, per_roun
         order = names[r % len(names):] + names[: r % len(names)]
         for name in order:
             f = steps[name]
+            sync()
             t, c = time.perf_counter(), time.process_time()
             for _ in range(per_round):
                 f()
+            sync()
             wall[name].append(per_round / max(time.perf_counter() - t, 1e-9))
             cpu[name].append(per_round / max(time.process_time() - c, 1e-9))
     return {"wall": wall, "cpu": cpu}
+
+
+def device_ms_per_update(step: Callable[[], Any], device: str, updates: int = 20) -> tuple[float, str]:
+    """The device's busy time per call of `step`, in ms, and what was measured.
+
+    CUDA: the summed durations of the kernels and copies that the calls ran on the GPU
+    (torch.profiler with CUPTI), over `updates` calls after a warm-up: the GPU's work, without
+    the gaps between kernels where it waited for the host. Else: the process's CPU time per
+    call (the CPU is the device).
+    """
+    import torch
+
+    for _ in range(3):
+        step()
+    if not device.startswith("cuda"):
+        c = time.process_time()
+        for _ in range(updates):
+            step()
+        return (time.process_time() - c) / updates * 1e3, "process cpu time"
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.cuda.synchronize()
+    try:
+        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+            for _ in range(updates):
+                step()
+            torch.cuda.synchronize()
+        busy_us = sum(e.time_range.elapsed_us() for e in prof.events()
+                      if e.device_type == torch.autograd.DeviceType.CUDA)
+    except Exception as e:  # a profiler that does not work there must not lose the bench's other figures
+        return float("nan"), f"cuda profiler failed: {type(e).__name__}: {e}"[:200]
+    if busy_us <= 0:
+        return float("nan"), "cuda profiler saw no device events"
+    return busy_us / updates / 1e3, "cuda kernels and copies (torch.profiler)"
 
 
 def ratio_of_medians_per_round(a: list[float], b: list[float]) -> float:
@@ -108,35 +163,46 @@ def ratio_of_medians_per_round(a: list[float], b: list[float]) -> float:
 
 
 def bench_learner(sizes: BenchSizes, device: str = "cpu", threads: int = 1, log: Callable[[str], None] = print,
-                  seed: int = 0) -> dict[str, Any]:
-    """MA-TD3 updates/s at K = sizes.learner_ks against the reference TD3, per env shape."""
+                  seed: int = 0, variants: str = "default", device_time: bool = False) -> dict[str, Any]:
+    """MA-TD3 updates/s at K = sizes.learner_ks against the reference TD3, per env shape.
+
+    Keys per shape and contender c (`variant_names`): `learner_<shape>_<c>_updates_per_s` and
+    `learner_<shape>_<c>_vs_td3` (median over rounds of the within-round ratio); per-actor fp32
+    contenders also `..._vs_td3_cpu_time`; `..._k<K>_per_actor_vs_shared` where both ran; with
+    `device_time`, `learner_<shape>_<c>_device_ms_per_update` (`device_ms_per_update`).
+    """
     import torch
 
     torch.set_num_threads(threads)
-    out: dict[str, Any] = {}
+    sync = torch.cuda.synchronize if device.startswith("cuda") else None
+    out: dict[str, Any] = {"learner_variants": variants, "learner_ks": list(sizes.learner_ks),
+                           "learner_rounds": sizes.learner_rounds, "learner_updates_per_round": sizes.learner_updates}
     for shape in sizes.learner_shapes:
-        log(f"learner: {shape} shapes, K={list(sizes.learner_ks)} vs reference TD3 "
-            f"({sizes.learner_rounds} rounds x {sizes.learner_updates} updates)")
-        rates = interleaved_rates(learner_contenders(shape, sizes, device, seed), sizes.learner_rounds,
-                                  sizes.learner_updates)
+        steps = learner_contenders(shape, sizes, device, seed, variants)
+        log(f"learner: {shape} shapes, {', '.join(steps)} ({sizes.learner_rounds} rounds x "
+            f"{sizes.learner_updates} updates, interleaved)")
+        rates = interleaved_rates(steps, sizes.learner_rounds, sizes.learner_updates, sync=sync)
         wall, cpu = rates["wall"], rates["cpu"]
         out[f"learner_{shape}_td3_updates_per_s"] = _median(wall["td3"])
-        for k in sizes.learner_ks:
-            out[f"learner_{shape}_k{k}_updates_per_s"] = _median(wall[f"k{k}"])
-            out[f"learner_{shape}_k{k}_vs_td3"] = ratio_of_medians_per_round(wall[f"k{k}"], wall["td3"])
-            out[f"learner_{shape}_k{k}_vs_td3_cpu_time"] = ratio_of_medians_per_round(cpu[f"k{k}"], cpu["td3"])
-        if "k2_shared" in wall:
-            out[f"learner_{shape}_k2_shared_updates_per_s"] = _median(wall["k2_shared"])
-            out[f"learner_{shape}_k2_shared_vs_td3"] = ratio_of_medians_per_round(wall["k2_shared"], wall["td3"])
-            out[f"learner_{shape}_k2_per_actor_vs_shared"] = ratio_of_medians_per_round(wall["k2"], wall["k2_shared"])
-        if "k2_bf16" in wall:
-            out[f"learner_{shape}_k2_bf16_updates_per_s"] = _median(wall["k2_bf16"])
-            out[f"learner_{shape}_k2_bf16_vs_td3"] = ratio_of_medians_per_round(wall["k2_bf16"], wall["td3"])
+        for name in (n for n in steps if n != "td3"):
+            out[f"learner_{shape}_{name}_updates_per_s"] = _median(wall[name])
+            out[f"learner_{shape}_{name}_vs_td3"] = ratio_of_medians_per_round(wall[name], wall["td3"])
+            if "_" not in name:
+                out[f"learner_{shape}_{name}_vs_td3_cpu_time"] = ratio_of_medians_per_round(cpu[name], cpu["td3"])
+            if f"{name}_shared" in wall and "_" not in name:
+                out[f"learner_{shape}_{name}_per_actor_vs_shared"] = ratio_of_medians_per_round(
+                    wall[name], wall[f"{name}_shared"])
+        if device_time:
+            for name, step in steps.items():
+                ms, source = device_ms_per_update(step, device, max(sizes.learner_updates, 10))
+                out[f"learner_{shape}_{name}_device_ms_per_update"] = ms
+                out["learner_device_time_source"] = source
     first = sizes.learner_shapes[0]
     if 2 in sizes.learner_ks:
         out["learner_k2_vs_td3"] = out[f"learner_{first}_k2_vs_td3"]
         out["learner_k2_vs_td3_shape"] = first
-        out["learner_k2_bf16_vs_td3"] = out[f"learner_{first}_k2_bf16_vs_td3"]
+        if f"learner_{first}_k2_bf16_vs_td3" in out:
+            out["learner_k2_bf16_vs_td3"] = out[f"learner_{first}_k2_bf16_vs_td3"]
     return out
 
 

@@ -122,3 +122,48 @@ def test_fast_layouts_compute_the_plain_mlp(rows: int) -> None:
     torch.testing.assert_close(q1[0], plain(1, actions[1]))
     shared = critic(obs, actions[0])  # one action shared by every member
     torch.testing.assert_close(shared, torch.stack([plain(e, actions[0]) for e in range(4)]))
+
+
+def test_learner_grid_of_variants_with_device_time() -> None:
+    """`--ks 1,2,3 --variants all --device-time`: every K per actor and shared, fp32 and bf16,
+    against the reference in the same rounds, with the device's busy time per update."""
+    from mam_lab.bench_learner import variant_names
+
+    names = variant_names((1, 2, 3), "all")
+    assert names[:3] == ["k1", "k2", "k3"] and "k1_shared" not in names
+    assert {"k1_bf16", "k2_shared", "k2_bf16", "k2_shared_bf16", "k3_shared", "k3_bf16", "k3_shared_bf16"} <= set(names)
+    assert variant_names((1, 2, 3)) == ["k1", "k2", "k3", "k2_shared", "k2_bf16"]  # what `mam bench` timed before
+    result = bench_json(start_bench("--only", "learner", "--ks", "1,2,3", "--variants", "all", "--device-time",
+                                    "--rounds", "2", "--updates", "2", "--hidden", "16,16", "--batch-size", "16"))
+    assert result["learner_ks"] == [1, 2, 3] and result["learner_variants"] == "all"
+    assert result["sizes"]["hidden"] == [16, 16] and result["sizes"]["batch_size"] == 16
+    assert result["learner_device_time_source"] == "process cpu time"
+    keys = ["learner_k2_vs_td3", "learner_k2_bf16_vs_td3", "learner_halfcheetah_td3_device_ms_per_update"]
+    for name in names:
+        keys += [f"learner_halfcheetah_{name}_updates_per_s", f"learner_halfcheetah_{name}_vs_td3",
+                 f"learner_halfcheetah_{name}_device_ms_per_update"]
+    assert_positive(result, keys + ["learner_halfcheetah_k3_per_actor_vs_shared"])
+
+
+def test_accel_switch() -> None:
+    """The one switch for CUDA-only paths: a CPU device takes none of them (CPU runs unchanged),
+    CUDA all of them; building one never initialises CUDA."""
+    import numpy as np
+    import torch
+
+    from mam_core.accel import for_device
+    from mam_core.replay import ReplayBuffer
+
+    cpu, cuda = for_device("cpu"), for_device("cuda:0")
+    assert (cpu.pin_memory, cpu.non_blocking, cpu.resident_replay, cpu.host_allocator_tuning) == (
+        False, False, False, True)
+    assert (cuda.pin_memory, cuda.non_blocking, cuda.resident_replay, cuda.host_allocator_tuning) == (
+        True, True, True, False)
+    assert for_device(torch.device("cpu")) is cpu and cpu.bf16_supported() is None and not cpu.cuda
+    assert not for_device("meta").resident_replay and not for_device("meta").host_allocator_tuning
+    buf = ReplayBuffer(64, 3, 2)
+    assert buf.accel is cpu and not buf.resident
+    buf.add_batch(np.ones((8, 3), np.float32), np.ones((8, 2), np.float32), np.ones(8, np.float32),
+                  np.ones((8, 3), np.float32), np.zeros(8, bool))
+    batch = buf.sample(4, groups=2)
+    assert batch["obs"].shape == (2, 4, 3) and batch["obs"].device.type == "cpu" and not batch["obs"].is_pinned()
