@@ -15,7 +15,10 @@ truth (checkpoints, statistics); sampling draws the same indices either way.
 
 from __future__ import annotations
 
+import hashlib
+import io
 import os
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -210,12 +213,19 @@ class ReplayLog:
     deleted. Once the ring has wrapped, chunks entirely older than the newest `capacity` rows
     leave the manifest and are deleted, so the directory holds at most about one buffer and
     one checkpoint interval of rows.
+
+    Every chunk is written durably (a temp file, fsync, rename, fsync of the directory) and its
+    sha256 is kept in `digests` (name -> hex) for the checkpoint's manifest
+    (services/checkpoint.py); `restore` verifies a chunk against a digest given with its manifest
+    entry (`[first, rows, sha256]`) before it parses a byte of it. `snapshot`/`rollback` undo an
+    `append` whose checkpoint could not be completed (a full disk): the chunk is deleted.
     """
 
     def __init__(self, directory: str | os.PathLike) -> None:
         self.directory = Path(directory)
         self.manifest: list[list[int]] = []
         self.persisted = 0  # rows ever inserted that a chunk in the manifest covers
+        self.digests: dict[str, str] = {}  # chunk file name -> sha256 (hex) of its bytes
 
     def path(self, first: int, rows: int) -> Path:
         return self.directory / f"{CHUNK_PREFIX}{first:012d}-{rows}.npz"
@@ -225,7 +235,8 @@ class ReplayLog:
 
         Rows that were inserted and already overwritten since the last call (the ring wrapped
         more than once between two checkpoints) cannot be written; they would not be in the
-        buffer anyway, and the manifest starts after them.
+        buffer anyway, and the manifest starts after them. On a write error (OSError) nothing
+        changes: the temp file is removed and the manifest stays as it was.
         """
         self.directory.mkdir(parents=True, exist_ok=True)
         start = max(self.persisted, buffer.inserted - buffer.size)
@@ -233,20 +244,35 @@ class ReplayLog:
         if stop > start:
             rows = buffer.rows_between(start, stop)
             path = self.path(start, stop - start)
-            tmp = path.with_name(path.name + ".tmp")
-            with open(tmp, "wb") as f:
-                np.savez(f, **rows)
-            os.replace(tmp, path)
+            data = io.BytesIO()
+            np.savez(data, **rows)
+            self.digests[path.name] = write_durably(path, data.getbuffer())
             self.manifest.append([start, stop - start])
         self.persisted = stop
         oldest = stop - buffer.capacity  # rows before this are no longer in the buffer
         self.manifest = [[f, n] for f, n in self.manifest if f + n > oldest]
         return [list(c) for c in self.manifest]
 
-    def prune(self) -> int:
-        """Delete chunk files that the current manifest does not name (call after the
-        checkpoint that holds the manifest is on disk). Returns how many were deleted."""
-        keep = {self.path(f, n).name for f, n in self.manifest}
+    def names(self, manifest: list[list[int]] | None = None) -> list[str]:
+        """The chunk file names of `manifest` (default: the current one)."""
+        return [self.path(int(c[0]), int(c[1])).name for c in (self.manifest if manifest is None else manifest)]
+
+    def snapshot(self) -> tuple[list[list[int]], int, dict[str, str]]:
+        return [list(c) for c in self.manifest], self.persisted, dict(self.digests)
+
+    def rollback(self, snapshot: tuple[list[list[int]], int, dict[str, str]]) -> None:
+        """Undo the appends since `snapshot`: their chunk files are deleted (a checkpoint failed)."""
+        manifest, persisted, digests = snapshot
+        keep = set(self.names(manifest))
+        for name in set(self.names()) - keep:
+            (self.directory / name).unlink(missing_ok=True)
+        self.manifest, self.persisted, self.digests = manifest, persisted, digests
+
+    def prune(self, keep: set[str] | frozenset[str] = frozenset()) -> int:
+        """Delete chunk files that neither the current manifest nor `keep` (names) names (call
+        after the checkpoint that holds the manifest is on disk; `keep`: the chunks of the
+        previous checkpoint generation). Returns how many were deleted."""
+        keep = set(self.names()) | set(keep)
         deleted = 0
         if not self.directory.is_dir():
             return 0
@@ -254,27 +280,31 @@ class ReplayLog:
             if p.name.startswith(CHUNK_PREFIX) and p.name not in keep:
                 p.unlink(missing_ok=True)
                 deleted += 1
+        self.digests = {k: v for k, v in self.digests.items() if k in keep}
         return deleted
 
-    def restore(self, buffer: ReplayBuffer, manifest: list[list[int]], inserted: int,
+    def restore(self, buffer: ReplayBuffer, manifest: list[list[Any]], inserted: int,
                 rng_state: dict[str, Any] | None = None) -> int:
         """Refill an empty `buffer` with the newest min(capacity, inserted) rows that
         `manifest` names, at the ring positions they had; returns the rows loaded.
 
-        Raises ValueError if a chunk is missing, malformed, or the manifest does not cover
-        those rows contiguously: a resumed learner must have every row its checkpoint counted.
+        A manifest entry is `[first, rows]` or `[first, rows, sha256]`; with a digest the chunk's
+        bytes are checked before they are parsed. Raises ValueError, naming the file, if a chunk
+        is missing, damaged (digest mismatch, not a readable .npz), malformed, or the manifest
+        does not cover those rows contiguously: a resumed learner must have every row its
+        checkpoint counted.
         """
         want_from = max(0, inserted - buffer.capacity)
-        chunks = sorted((int(f), int(n)) for f, n in manifest)
+        chunks = sorted((int(c[0]), int(c[1]), str(c[2]) if len(c) > 2 else None) for c in manifest)
         expected = want_from
         loaded = 0
-        for first, n in chunks:
+        for first, n, digest in chunks:
             if first + n <= want_from:
                 continue
             if first > expected or first + n > inserted:
                 raise ValueError(f"replay chunks do not cover rows [{want_from}, {inserted}): "
                                  f"chunk [{first}, {first + n}) after row {expected}")
-            rows = self._read(self.path(first, n), n, buffer)
+            rows = self._read(self.path(first, n), n, buffer, digest)
             skip = max(0, want_from - first)
             if skip:
                 rows = {k: v[skip:] for k, v in rows.items()}
@@ -288,19 +318,68 @@ class ReplayLog:
         buffer.pos = inserted % buffer.capacity
         if rng_state is not None:
             buffer.rng.bit_generator.state = rng_state
-        self.manifest = [[f, n] for f, n in chunks if f + n > want_from]
+        self.manifest = [[f, n] for f, n, _ in chunks if f + n > want_from]
+        self.digests = {self.path(f, n).name: d for f, n, d in chunks if d is not None and f + n > want_from}
         self.persisted = inserted
         return loaded
 
     @staticmethod
-    def _read(path: Path, n: int, buffer: ReplayBuffer) -> dict[str, np.ndarray]:
+    def _read(path: Path, n: int, buffer: ReplayBuffer, digest: str | None = None) -> dict[str, np.ndarray]:
         if not path.is_file():
             raise ValueError(f"replay chunk {path} is missing")
-        with np.load(path, allow_pickle=False) as z:
-            rows = {name: z[name] for name in PERSISTED}
+        try:
+            data = path.read_bytes()
+        except OSError as e:
+            raise ValueError(f"replay chunk {path} cannot be read: {e}") from None
+        if digest is not None and hashlib.sha256(data).hexdigest() != digest:
+            raise ValueError(f"replay chunk {path} is damaged: its sha256 does not match the checkpoint's manifest "
+                             f"({len(data)} bytes)")
+        try:
+            with np.load(io.BytesIO(data), allow_pickle=False) as z:
+                rows = {name: z[name] for name in PERSISTED}
+        except (zipfile.BadZipFile, ValueError, OSError, KeyError, EOFError) as e:
+            raise ValueError(f"replay chunk {path} is damaged: {type(e).__name__}: {e}") from None
         for name in PERSISTED:
             ref = getattr(buffer, name)
             a = rows[name]
             if a.dtype != ref.dtype or a.shape != (n, *ref.shape[1:]):
                 raise ValueError(f"{path}: {name} is {a.dtype}{list(a.shape)}, want {ref.dtype}{[n, *ref.shape[1:]]}")
         return rows
+
+
+def write_durably(path: Path, data: bytes | memoryview) -> str:
+    """Write `data` to `path` atomically and durably: a temp file beside it, fsync, rename, fsync
+    of the directory. Returns the sha256 (hex) of `data`. On any OSError the temp file is
+    removed and `path` is untouched (the error propagates)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        if e.filename is None:  # a failed write() names no file: name the one being written
+            raise OSError(e.errno, e.strerror, str(path)) from e
+        raise
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    fsync_dir(path.parent)
+    return hashlib.sha256(data).hexdigest()
+
+
+def fsync_dir(directory: Path) -> None:
+    """Make a rename in `directory` durable (best effort: some filesystems refuse)."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
