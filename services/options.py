@@ -112,6 +112,8 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
     _opt("checkpoint_every", int, "checkpoint every N updates (default 50000) ...", target=RUN),
     _opt("checkpoint_rows", int, "... or N transitions (default 20000) ...", target=RUN),
     _opt("checkpoint_seconds", float, "... or N seconds (default 60)", target=RUN),
+    _opt("stall_timeout", float, "seconds without a new transition or update before the run counts as stalled: "
+         "`mam run` logs what each side waits for and restarts the stuck child (0: no watchdog)", target=RUN),
     # TOML only: knobs of the algorithm and the services that no command line needs
     _opt("send_batch", int, "transitions per message from a worker", target=RUN, cli=False),
     _opt("band", int, "rate limiter tolerance in transitions (0: automatic)", target=RUN, cli=False),
@@ -204,6 +206,7 @@ class RunConfig:
     checkpoint_every: int = 50_000  # updates between checkpoints (and on exit) ...
     checkpoint_rows: int = 20_000  # ... or transitions received (bounds what workers keep for a resend) ...
     checkpoint_seconds: float = 60.0  # ... or seconds, whichever comes first
+    stall_timeout: float = 300.0  # no transition and no update for this long: stalled (0: no watchdog)
     send_batch: int = 32  # transitions per message from a worker
     band: int = 0  # rate limiter tolerance in transitions (0: automatic)
     save_replay: bool = True  # the replay buffer as append-only chunks beside the checkpoint
