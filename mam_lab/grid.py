@@ -7,6 +7,11 @@ Variants: each algorithm of `--algos` under its own name, and for every multi-ac
 with an `algo` and any run flags. A variant whose resolved configuration equals an earlier one (say
 `ma-td3-eta0.1`, which is `ma-td3`) is not run twice. `--variants a,b` runs only those.
 
+Seeds: `seeds` for every env, and a `[env-seeds]` table may give an env its own (`"Hopper-v5" = 10`,
+a count, a list or ranges as `seeds`); `--seeds` on the command line applies to every env. Order:
+seed by seed across envs (a grid stopped early is balanced), or `order = "env"`: all runs of the
+first env of `envs` (seed by seed), then the next.
+
 The budget (`--steps`) is the same T for every run of the grid, in schedule steps: iterations
 under `--schedule paper` (so a multi-actor run collects more transitions for the same updates),
 transitions under `equal-data`. Flags: paper defaults per algorithm < the grid file's `[common]`
@@ -40,7 +45,9 @@ GRID_DIMENSIONS = frozenset({"env", "env_kwargs", "algo", "steps", "seed", "run"
 # Flags of the multi-actor algorithms only: TD3 and DDPG keep K=1, M=1 unless their own sections say otherwise.
 MULTI_ACTOR_FLAGS = frozenset({o.name for o in options.RUN_OPTIONS if o.multi_actor} | {"actors", "workers"})
 FLAG_NAMES = frozenset(o.name for o in options.RUN_OPTIONS) - GRID_DIMENSIONS  # the option table, less the dimensions
-GRID_KEYS = {"name", "exp_dir", "envs", "algos", "seeds", "steps", "ablations", "etas", "common", "algo", "variant"}
+GRID_KEYS = {"name", "exp_dir", "envs", "algos", "seeds", "steps", "ablations", "etas", "common", "algo", "variant",
+             "env_seeds", "order"}
+ORDERS = ("seed", "env")
 _VARIANT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,63}")
 
 
@@ -71,6 +78,12 @@ class Grid:
     name: str = "experiment"
     named: dict[str, tuple[str, dict[str, Any]]] = field(default_factory=dict)  # [variant.NAME]: (algo, flags)
     only: tuple[str, ...] = ()  # --variants: run these variants only (empty: all)
+    env_seeds: dict[str, tuple[int, ...]] = field(default_factory=dict)  # [env-seeds]: an env's own seeds
+    order: str = "seed"  # "seed": seed by seed across envs; "env": env by env (in `envs` order)
+
+    def seeds_of(self, env: str) -> tuple[int, ...]:
+        """The seeds of one env: its [env-seeds] entry, else `seeds`."""
+        return self.env_seeds.get(env, self.seeds)
 
     def to_dict(self) -> dict[str, Any]:
         return {"name": self.name, "envs": list(self.envs), "algos": list(self.algos), "seeds": list(self.seeds),
@@ -78,7 +91,8 @@ class Grid:
                 "common": _jsonable(self.common), "per_algo": _jsonable(self.per_algo),
                 "overrides": _jsonable(self.overrides),
                 "variants": {n: {"algo": a, **_jsonable(f)} for n, (a, f) in self.named.items()},
-                "only": list(self.only)}
+                "only": list(self.only), "env_seeds": {e: list(v) for e, v in self.env_seeds.items()},
+                "order": self.order}
 
 
 def _jsonable(value: Any) -> Any:
@@ -238,6 +252,18 @@ def make_grid(file: Mapping[str, Any] | None = None, **cli: Any) -> Grid:
     if len(set(algos)) != len(algos) or len(set(envs)) != len(envs):
         raise GridError("envs and algos must not repeat")
     seeds = parse_seeds(get("seeds") if get("seeds") is not None else 1)
+    env_seeds: dict[str, tuple[int, ...]] = {}
+    if cli.get("seeds") is None:  # --seeds on the command line applies to every env
+        table = file.get("env_seeds") or {}
+        if not isinstance(table, Mapping):
+            raise GridError("[env-seeds] must be a table: env id = seeds (a count, a list or ranges)")
+        for env, value in table.items():
+            if env not in envs:
+                raise GridError(f"[env-seeds]: {env!r} is not one of the grid's envs {list(envs)}")
+            env_seeds[str(env)] = parse_seeds(value)
+    order = str(get("order") or "seed")
+    if order not in ORDERS:
+        raise GridError(f"order: {order!r}; choose from {', '.join(ORDERS)}")
     steps = get("steps")
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise GridError(f"steps: need a positive number of env transitions, got {steps!r}")
@@ -264,7 +290,7 @@ def make_grid(file: Mapping[str, Any] | None = None, **cli: Any) -> Grid:
         raise GridError(f"[variant.NAME]: {sorted(clash)} already name(s) a variant of algos/ablations/etas")
     grid = Grid(envs=envs, algos=algos, seeds=seeds, steps=int(steps), ablations=ablations, etas=etas,
                 common=common, per_algo=per_algo, overrides=overrides, name=name, named=named,
-                only=_list(cli.get("variants"), "variants"))
+                only=_list(cli.get("variants"), "variants"), env_seeds=env_seeds, order=order)
     if grid.only:
         known = [n for n, _, _ in variant_flags(grid)]
         bad = [v for v in grid.only if v not in known]
@@ -349,10 +375,17 @@ def variants(grid: Grid) -> tuple[list[tuple[str, str, dict[str, Any]]], dict[st
 
 
 def plan(grid: Grid) -> list[RunSpec]:
-    """Every run of the grid, seed by seed (then env, then variant). Pure: touches no files."""
+    """Every run of the grid: seed by seed (then env, then variant; an env runs only its own seeds,
+    see [env-seeds]), or with `order = "env"` env by env (each seed by seed). Pure: touches no files."""
     kept, _ = variants(grid)
+    if grid.order == "env":
+        cells = [(seed, env) for env in grid.envs for seed in grid.seeds_of(env)]
+    else:
+        every = sorted({s for env in grid.envs for s in grid.seeds_of(env)},
+                       key=lambda s: (s not in grid.seeds, grid.seeds.index(s) if s in grid.seeds else s))
+        cells = [(seed, env) for seed in every for env in grid.envs if seed in grid.seeds_of(env)]
     return [RunSpec(env, name, algo, seed, grid.steps, tuple(sorted(flags.items())))
-            for seed in grid.seeds for env in grid.envs for name, algo, flags in kept]
+            for seed, env in cells for name, algo, flags in kept]
 
 
 # --- as text --------------------------------------------------------------------------------

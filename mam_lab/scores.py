@@ -237,16 +237,17 @@ def competitions(allocation: list[dict[str, Any]], axis: str = "iterations") -> 
 
 
 def initial_actor(allocation: list[dict[str, Any]]) -> int:
-    """The deployed actor before any competition: the actor the first allocation row's P prefers
-    (the largest P_k, lowest index on a tie; P is uniform at the start, so actor 0), else actor 0."""
-    for row in allocation:
+    """The deployed actor before any competition: the actor the run's initial allocation prefers
+    (its "initial" row, else the first row that is not a competition: the largest P_k, the lowest
+    index on a tie; P is uniform at the start, so actor 0), else actor 0."""
+    rows = [r for r in allocation if r.get("reason") == "initial"]
+    rows += [r for r in allocation if r.get("reason") not in SELECTION_PURPOSES]
+    for row in rows[:1]:
         probs = row.get("probabilities")
         if isinstance(probs, list) and probs:
             vals = [_finite(p) for p in probs]
             if all(v is not None for v in vals):
-                best = max(vals)
-                return vals.index(best)
-        break
+                return vals.index(max(vals))
     return 0
 
 

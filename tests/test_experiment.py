@@ -197,7 +197,10 @@ def write_run(run_dir: Path, algo: str, seed: int, k: int, score, finished: bool
         if k > 1 and step < 1000:
             mean = [best - 10.0] * (k - 1) + [best]
             allocs.append({"env_steps": step + 3, "counts": [1] * (k - 1) + [2], "probabilities":
-                           [0.2] * (k - 1) + [1 - 0.2 * (k - 1)], "reason": "round"})
+                           [0.2] * (k - 1) + [1 - 0.2 * (k - 1)], "reason": "round", "returns": mean})
+        elif k > 1 and step == 1000:  # the elimination's competition: the best actor survives
+            allocs.append({"env_steps": step + 3, "probabilities": [0.0] * (k - 1) + [1.0], "reason": "elimination",
+                           "returns": [best - 10.0] * (k - 1) + [best], "survivor": k - 1})
         elif k > 1:
             mean = [None] * (k - 1) + [best]
         else:
@@ -380,6 +383,44 @@ def test_grid_files_in_deploy():
                         steps=20000, flags={"eliminate_at": 9000})
     specs = plan(reduced)
     assert len(specs) == 6 and specs[0].run_config("t").algo.eliminate_at == 9000
+
+
+def test_evidence_b_grid_per_env_seeds_and_order():
+    grid = make_grid(load_grid_file(ROOT / "deploy/experiments/evidence-b-table4.toml"))
+    specs = plan(grid)
+    # 5 HalfCheetah seeds and 10 Hopper seeds, 3 arms each: 45 runs, every HalfCheetah run first
+    assert len(specs) == 3 * 5 + 3 * 10
+    assert [s.env for s in specs] == ["HalfCheetah-v5"] * 15 + ["Hopper-v5"] * 30
+    assert [(s.seed, s.variant) for s in specs[:4]] == [(0, "td3"), (0, "ma-td3"), (0, "ma-td3-equal-data"),
+                                                        (1, "td3")]
+    assert {s.seed for s in specs if s.env == "Hopper-v5"} == set(range(10))
+    assert {s.steps for s in specs} == {100_000}
+    ma = next(s for s in specs if s.variant == "ma-td3").run_config("t").algo
+    eq = next(s for s in specs if s.variant == "ma-td3-equal-data").run_config("t").algo
+    td3 = next(s for s in specs if s.variant == "td3").run_config("t").algo
+    assert (ma.eliminate_at, ma.compete_every, ma.start_steps, ma.eval_every, ma.eval_episodes) == (
+        30000, 5000, 10000, 5000, 10)
+    assert (ma.schedule, eq.schedule, eq.eliminate_at) == ("paper", "equal-data", 30000)
+    assert (td3.actors, td3.workers, td3.start_steps, td3.eval_every, td3.eval_episodes) == (1, 1, 10000, 5000, 10)
+    assert grid.to_dict()["env_seeds"] == {"Hopper-v5": list(range(10))} and grid.to_dict()["order"] == "env"
+    # --seeds on the command line applies to every env
+    assert len(plan(make_grid(load_grid_file(ROOT / "deploy/experiments/evidence-b-table4.toml"), seeds="2"))) == 12
+
+
+def test_env_seeds_and_order_seed_by_seed(tmp_path):
+    f = tmp_path / "g.toml"
+    f.write_text('envs = ["Hopper-v5", "Ant-v5"]\nalgos = ["td3"]\nsteps = 10\nseeds = 2\n'
+                 '[env-seeds]\n"Ant-v5" = "0-3"\n')
+    specs = plan(make_grid(load_grid_file(f)))
+    # the default order: seed by seed, each env only its own seeds
+    assert [(s.seed, s.env) for s in specs] == [(0, "Hopper-v5"), (0, "Ant-v5"), (1, "Hopper-v5"), (1, "Ant-v5"),
+                                                (2, "Ant-v5"), (3, "Ant-v5")]
+    f.write_text('envs = ["Hopper-v5"]\nalgos = ["td3"]\nsteps = 10\n[env-seeds]\n"Ant-v5" = 3\n')
+    with pytest.raises(GridError, match="not one of the grid's envs"):
+        make_grid(load_grid_file(f))
+    f.write_text('envs = ["Hopper-v5"]\nalgos = ["td3"]\nsteps = 10\norder = "random"\n')
+    with pytest.raises(GridError, match="order"):
+        make_grid(load_grid_file(f))
 
 
 def test_grid_file_rejects_unknown_keys(tmp_path):
@@ -864,14 +905,15 @@ def test_named_variant_errors(tmp_path):
 
 
 def test_verdict_words():
-    assert verdict_word(Interval(0.8, 0.55, 0.95)) == "better"
-    assert verdict_word(Interval(0.2, 0.05, 0.45)) == "worse"
-    assert verdict_word(Interval(0.6, 0.5, 0.9)) == "not separated"  # the bound must be above 0.5
-    assert verdict_word(Interval(0.4, 0.1, 0.5)) == "not separated"
-    assert verdict_word(Interval(0.5, 0.2, 0.8)) == "not separated"
-    assert verdict_word(Interval(1.0, 1.0, 1.0), n_x=1, n_y=2) == "too few runs"  # one run: a degenerate CI
-    assert verdict_word(Interval(0.9, 0.7, 1.0), n_x=3, n_y=3) == "better"
-    assert verdict_word(Interval(math.nan, math.nan, math.nan)) == "not separated"
+    # the CI of P(MA > baseline) and the Holm-adjusted exact p (tests/test_verdict.py has the rest)
+    assert verdict_word(Interval(0.8, 0.55, 0.95), 5, 5, 0.01, 0.99) == "better"
+    assert verdict_word(Interval(0.2, 0.05, 0.45), 5, 5, 0.99, 0.01) == "worse"
+    assert verdict_word(Interval(0.6, 0.5, 0.9), 5, 5, 0.01, 0.99) == "not separated"  # the bound must be above 0.5
+    assert verdict_word(Interval(0.4, 0.1, 0.5), 5, 5, 0.99, 0.01) == "not separated"
+    assert verdict_word(Interval(0.5, 0.2, 0.8), 5, 5, 0.5, 0.5) == "not separated"
+    assert verdict_word(Interval(1.0, 1.0, 1.0), 1, 2, 0.0, 1.0) == "too few runs"  # one run: a degenerate CI
+    assert verdict_word(Interval(1.0, 1.0, 1.0), 3, 3, 0.05, 1.0) == "too few runs"  # 3 vs 3: least p is 1/20
+    assert verdict_word(Interval(math.nan, math.nan, math.nan), 5, 5, math.nan, math.nan) == "not separated"
 
 
 def test_wilson_interval_more_hand_computed_values():
@@ -897,30 +939,70 @@ def _set_record(run_dir: Path, commit: str, dirty: bool = False) -> None:
 def test_verdict_table_on_constructed_runs(tmp_path):
     exp = tmp_path / "exp"
     env = exp / "Toy-v0"
-    for seed in range(4):
+    for seed in range(5):
         write_run(env / "ma-td3" / f"seed{seed}", "ma-td3", seed, 2, lambda s, sd=seed: s / 100 + sd)  # above TD3
         write_run(env / "ma-td3-slow" / f"seed{seed}", "ma-td3", seed, 2, lambda s, sd=seed: s / 400 + 0.1 * sd)
         write_run(env / "ma-td3-same" / f"seed{seed}", "ma-td3", seed, 2, lambda s, sd=seed: s / 200 + sd - 1.5)
         write_run(env / "td3" / f"seed{seed}", "td3", seed, 1, lambda s, sd=seed: s / 200 + sd - 1.5)
         for v in ("ma-td3", "ma-td3-slow", "ma-td3-same", "td3"):
             _set_record(env / v / f"seed{seed}", "a" * 40)
-    _set_record(env / "td3" / "seed3", "b" * 40, dirty=True)  # one baseline run at another commit
+    _set_record(env / "td3" / "seed4", "b" * 40, dirty=True)  # one baseline run at another commit
+    planned = [f"Toy-v0/{v}/seed{s}" for s in range(6) for v in ("ma-td3", "ma-td3-slow", "ma-td3-same", "td3")]
+    write_json(exp / "experiment.json", {"name": "toy", "runs": [
+        {"path": p, "env": "Toy-v0", "variant": p.split("/")[1], "algo": "td3" if "/td3/" in p else "ma-td3",
+         "flags": {}} for p in planned]})
     report, md, _ = write_report(exp, n_boot=500, figures=False)
     by = {v.variant: v for v in report.verdicts}
     assert set(by) == {"ma-td3", "ma-td3-slow", "ma-td3-same"}
-    assert all(v.baseline == "td3" and v.env == "Toy-v0" and (v.n_x, v.n_y) == (4, 4) for v in by.values())
-    assert by["ma-td3"].p.value == 1.0 and by["ma-td3"].word == "better"
+    assert all(v.baseline == "td3" and v.env == "Toy-v0" and (v.n_x, v.n_y) == (5, 5) for v in by.values())
+    # the deployed actor's final return: the mean of the last 3 grid points 1800, 1900, 2000 (the best
+    # actor survived): ma-td3 (18 + 19 + 20)/3 + seed = 19 + seed; td3 (9 + 9.5 + 10)/3 + seed − 1.5 = 8 + seed
+    np.testing.assert_allclose(by["ma-td3"].final_x, [19, 20, 21, 22, 23])
+    np.testing.assert_allclose(by["ma-td3"].final_y, [8, 9, 10, 11, 12])
+    np.testing.assert_allclose(by["ma-td3-slow"].final_x, 4.75 + 0.1 * np.arange(5))
+    # complete separation 5 vs 5: raw exact p 1/252, Holm over the 3 rows sharing TD3: 3/252 < 0.05
+    assert by["ma-td3"].final.test.p_greater == pytest.approx(1 / 252)
+    assert by["ma-td3"].final.test.p_greater_holm == pytest.approx(3 / 252)
+    assert by["ma-td3"].p.value == 1.0 and by["ma-td3"].word == "better" and by["ma-td3"].final.stable
     assert by["ma-td3-slow"].p.value == 0.0 and by["ma-td3-slow"].word == "worse"
     assert by["ma-td3-same"].p.value == 0.5 and by["ma-td3-same"].word == "not separated"
-    assert by["ma-td3"].iqm_x.value == pytest.approx(iqm([15.5, 16.5, 17.5, 18.5]))
-    assert by["ma-td3"].wall_x == pytest.approx(np.mean([20, 21, 22, 23]))  # launcher wall time per run
-    assert by["ma-td3"].commits == {"a" * 12: 7, "b" * 12 + "+modified": 1} and by["ma-td3"].mixed
+    assert by["ma-td3"].iqm_x.value == pytest.approx(iqm([15.5, 16.5, 17.5, 18.5, 19.5]))  # best-of-K last-10
+    assert by["ma-td3"].wall_x == pytest.approx(np.mean([20, 21, 22, 23, 24]))  # launcher wall time per run
+    assert by["ma-td3"].commits == {"a" * 12: 9, "b" * 12 + "+modified": 1} and by["ma-td3"].mixed
     assert any("td3: runs at different commits" in n and "bbbbbbbbbbbb+modified (1)" in n for n in report.notes)
+    # 6 seeds planned, 5 finished: the row says how many of its runs are in the ledger
+    assert not by["ma-td3"].complete and (by["ma-td3"].planned_x, by["ma-td3"].planned_y) == (6, 6)
     text = md.read_text()
     assert text.index("## Verdict") < text.index("## Toy-v0")
-    assert "| Toy-v0 | ma-td3 | td3 | 4 / 4 | 1.00 [1.00, 1.00] |" in text and "*better*" in text
+    assert "| Toy-v0 | ma-td3 | td3 | 5 / 5 (10 of 12 runs in the ledger) |" in text
+    assert "| 1.00 [1.00, 1.00] | 0.004 / 0.012 |" in text and "same for 20/20 seeds | *better* |" in text
     assert "*worse*" in text and "*not separated*" in text and "**different commits**" in text
     assert "Tables on the x-axis: **env transitions" in text
+
+
+def test_report_of_a_grid_not_started_says_how_many_runs_are_in_the_ledger(tmp_path):
+    grid = tmp_path / "g.toml"
+    env = "AppleCollect-v1"
+    grid.write_text(f'name = "g"\nenvs = ["{env}"]\nsteps = 2000\n[env-seeds]\n"{env}" = 5\n'
+                    '[variant.td3]\nalgo = "td3"\n[variant.ma-td3]\nalgo = "ma-td3"\n')
+    report, md, _ = write_report(tmp_path / "nothing-yet", n_boot=200, figures=False, grid_file=grid)
+    assert not report.verdicts and len(report.pending) == 1
+    (row,) = report.pending
+    assert (row.variant, row.baseline, row.have, row.planned) == ("ma-td3", "td3", 0, 10)
+    assert row.text() == "0 of 10 runs in the ledger (ma-td3 0/5, td3 0/5)"
+    assert f"| {env} | ma-td3 | td3 | 0 of 10 runs in the ledger (ma-td3 0/5, td3 0/5) |" in md.read_text()
+    assert "*not yet run*" in md.read_text()
+    # two runs finished: still pending, with its count
+    for seed in range(2):
+        for algo, k in (("ma-td3", 2), ("td3", 1)):
+            d = tmp_path / "some" / env / algo / f"seed{seed}"
+            write_run(d, algo, seed, k, lambda s: s / 100)
+            cfg = json.loads((d / "config.json").read_text())
+            (d / "config.json").write_text(json.dumps({**cfg, "env_id": env}))
+    report, md, _ = write_report(tmp_path / "some", n_boot=200, figures=False, grid_file=grid)
+    assert report.pending[0].text() == "4 of 10 runs in the ledger (ma-td3 2/5, td3 2/5)"
+    assert report.verdicts[0].word == "too few runs"
+    assert "| 2 / 2 (4 of 10 runs in the ledger) |" in md.read_text()
 
 
 def test_iterations_axis_and_curves_on_both_axes(tmp_path):
