@@ -1,0 +1,350 @@
+"""The steps of benchmarks/gpu.sh that need Python: each writes one JSON object to --out.
+
+    python benchmarks/gpu_steps.py wheels-check --out FILE
+    python benchmarks/gpu_steps.py e2e --device cuda --seconds 150 --work DIR --out FILE [--collection exact]
+    python benchmarks/gpu_steps.py experiment --device cuda --parallel 8 --seconds 75 --work DIR --out FILE
+    python benchmarks/gpu_steps.py combine --bench B.json --e2e E.json [...] --out gpu.json
+
+`wheels-check` imports only the carried wheels' packages (mujoco, gymnasium, zenoh) and numpy, so
+it runs in a fresh venv that has nothing else. The others run the project's own commands (`mam run`,
+`mam experiment`) as child processes of this Python, stop them with SIGTERM (their launchers stop
+every process of the run and the learner checkpoints) and read the figures off the runs' own
+`learner.jsonl` rows: nothing here times the learner from the inside.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import signal
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+LEARNER_LOG = "learner.jsonl"  # services/rundir.py
+
+
+def write(path: str, obj: dict[str, Any]) -> None:
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(obj, indent=1, default=str, allow_nan=True) + "\n")
+
+
+# --------------------------------------------------------------------------- wheels
+
+
+def wheels_check(args: argparse.Namespace) -> dict[str, Any]:
+    """The carried wheels import and work: HalfCheetah-v5 steps, a Zenoh session puts and gets."""
+    import importlib.metadata as md
+
+    import gymnasium as gym
+    import mujoco
+    import numpy as np
+    import zenoh
+
+    out: dict[str, Any] = {"python": sys.version.split()[0], "executable": sys.executable,
+                           "versions": {d: md.version(d) for d in ("mujoco", "gymnasium", "eclipse-zenoh", "numpy")}}
+    out["mujoco_version"] = mujoco.__version__
+    env = gym.make("HalfCheetah-v5")
+    env.reset(seed=0)
+    env.action_space.seed(0)
+    n = args.steps
+    t0 = time.perf_counter()
+    for _ in range(n):
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        if terminated or truncated:
+            env.reset()
+    out["halfcheetah_steps_per_s"] = n / (time.perf_counter() - t0)
+    env.close()
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    got: list[bytes] = []
+    with zenoh.open(conf) as session:
+        sub = session.declare_subscriber("mam/gpu-check/x", lambda s: got.append(s.payload.to_bytes()))
+        time.sleep(0.2)
+        for i in range(10):
+            session.put("mam/gpu-check/x", np.int32(i).tobytes())
+        deadline = time.monotonic() + 5
+        while len(got) < 10 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        sub.undeclare()
+    out["zenoh_messages"] = len(got)
+    out["ok"] = len(got) == 10 and out["halfcheetah_steps_per_s"] > 0
+    return out
+
+
+# --------------------------------------------------------------------------- runs
+
+
+def read_rows(path: Path) -> list[dict[str, Any]]:
+    rows = []
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            try:
+                rows.append(json.loads(line))
+            except json.JSONDecodeError:  # the row being written when the run stopped
+                pass
+    return rows
+
+
+def last_row(path: Path) -> dict[str, Any] | None:
+    rows = read_rows(path)
+    return rows[-1] if rows else None
+
+
+class GpuSampler:
+    """`nvidia-smi` utilization and memory every `period` s in a thread (nothing where it is absent)."""
+
+    def __init__(self, period: float = 1.0) -> None:
+        self.samples: list[tuple[float, float, float]] = []  # (monotonic, util %, memory MiB)
+        self.available = shutil.which("nvidia-smi") is not None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(period,), daemon=True)
+
+    def __enter__(self) -> "GpuSampler":
+        if self.available:
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(5)
+
+    def _run(self, period: float) -> None:
+        while not self._stop.is_set():
+            try:
+                text = subprocess.run(["nvidia-smi", "--query-gpu=utilization.gpu,memory.used",
+                                       "--format=csv,noheader,nounits"], capture_output=True, text=True,
+                                      timeout=10).stdout
+                util, mem = (float(v) for v in text.strip().splitlines()[0].split(","))
+                self.samples.append((time.monotonic(), util, mem))
+            except (OSError, ValueError, IndexError, subprocess.SubprocessError):
+                pass
+            self._stop.wait(period)
+
+    def summary(self, start: float | None, end: float | None) -> dict[str, Any]:
+        if not self.available:
+            return {"nvidia_smi": False}
+        window = [s for s in self.samples if start is not None and end is not None and start <= s[0] <= end]
+        return {"nvidia_smi": True, "samples": len(window),
+                "util_mean_pct": statistics.fmean(s[1] for s in window) if window else None,
+                "memory_max_mib": max(s[2] for s in window) if window else None}
+
+
+def stop(proc: subprocess.Popen, grace: float) -> int:
+    """SIGTERM to the command (its launcher stops its processes), SIGKILL to its group after `grace`."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(grace)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)  # its own session (start_new_session): only what it started
+            proc.wait(10)
+    return proc.returncode
+
+
+def run_flags(args: argparse.Namespace) -> list[str]:
+    flags = ["--device", args.device, "--hidden", args.hidden, "--batch-size", str(args.batch_size),
+             "--start-steps", str(args.start_steps), "--eval-episodes", str(args.eval_episodes),
+             "--compete-every", str(args.compete_every), "--schedule", "paper", "--no-plot"]
+    if args.collection:
+        flags += ["--collection", args.collection]
+    return flags
+
+
+def e2e(args: argparse.Namespace) -> dict[str, Any]:
+    """`mam run --algo ma-td3` (K=2, M workers, paper schedule) for `seconds` of training after its
+    random start phase, then SIGTERM; rates from its learner.jsonl (one row a second)."""
+    work = Path(args.work)
+    run_dir = work / f"e2e-{args.collection or 'default'}"
+    shutil.rmtree(run_dir, ignore_errors=True)
+    run_dir.mkdir(parents=True)
+    cmd = [sys.executable, "-m", "services.cli", "run", "--env", args.env, "--algo", "ma-td3",
+           "--workers", str(args.workers), "--steps", str(args.steps), "--seed", "0", "--run-dir", str(run_dir),
+           "--run", f"gpu-e2e-{os.getpid()}-{args.collection or 'default'}", *run_flags(args)]
+    log = open(work / f"{run_dir.name}.log", "wb")
+    t0 = time.monotonic()
+    marks: dict[str, float] = {}
+    with GpuSampler() as gpu:
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                start_new_session=True, env=dict(os.environ, PYTHONWARNINGS="ignore"))
+        try:
+            while proc.poll() is None:
+                now = time.monotonic()
+                row = last_row(run_dir / LEARNER_LOG)
+                if row and row.get("env_steps", 0) > 0:
+                    marks.setdefault("first_transition", now)
+                if row and row.get("updates", 0) > 0:
+                    marks.setdefault("train_start", now)
+                if "train_start" in marks and now - marks["train_start"] >= args.seconds:
+                    break
+                if now - t0 > args.seconds + args.startup_timeout:
+                    marks["timed_out"] = now
+                    break
+                time.sleep(0.5)
+            marks["stop"] = time.monotonic()
+        finally:
+            rc = stop(proc, args.grace)
+            log.close()
+    rows = read_rows(run_dir / LEARNER_LOG)
+    train = [r for r in rows if r.get("updates", 0) > 0]
+    out: dict[str, Any] = {
+        "command": " ".join(cmd[3:]), "returncode": rc, "exited_by_itself": "stop" not in marks,
+        "collection": args.collection or "(no --collection option)", "workers": args.workers, "actors": 2,
+        "hidden": args.hidden, "batch_size": args.batch_size, "start_steps": args.start_steps,
+        "window_s": args.seconds, "rows": len(rows), "timed_out": "timed_out" in marks,
+        "startup_s": marks.get("first_transition", math.nan) - t0,
+        "random_phase_s": marks.get("train_start", math.nan) - marks.get("first_transition", math.nan),
+        "gpu": gpu.summary(marks.get("train_start"), marks.get("stop")),
+    }
+    if len(train) >= 2:
+        a, b = train[0], train[-1]
+        dt = b["t"] - a["t"]
+        out.update({"train_seconds": dt, "env_steps_per_s": (b["env_steps"] - a["env_steps"]) / dt,
+                    "updates_per_s": (b["updates"] - a["updates"]) / dt,
+                    "iterations_per_s": (b["iterations"] - a["iterations"]) / dt,
+                    "updates": b["updates"], "env_steps": b["env_steps"], "utd": b.get("utd"),
+                    "lost": b.get("lost"), "rejected": b.get("rejected")})
+    if rows:
+        out["all_env_steps_per_s"] = rows[-1]["env_steps"] / max(rows[-1]["t"], 1e-9)
+    return out
+
+
+def experiment(args: argparse.Namespace) -> dict[str, Any]:
+    """`mam experiment --parallel P` of GPU learners (a grid of ma-td3 and td3 seeds) for at most
+    `seconds`; grid throughput = transitions and updates of all its runs ÷ the command's wall time."""
+    work = Path(args.work)
+    exp_dir = work / "experiment"
+    shutil.rmtree(exp_dir, ignore_errors=True)
+    cmd = [sys.executable, "-m", "services.cli", "experiment", "--name", "gpu-grid", "--exp-dir", str(exp_dir),
+           "--envs", args.env, "--algos", args.algos, "--seeds", str(args.seeds), "--steps", str(args.steps),
+           "--parallel", str(args.parallel), "--no-report", "--no-ledger", *run_flags(args)]
+    log = open(work / "experiment.log", "wb")
+    t0 = time.monotonic()
+    with GpuSampler() as gpu:
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                start_new_session=True, env=dict(os.environ, PYTHONWARNINGS="ignore", COLUMNS="120"))
+        try:
+            proc.wait(args.seconds)
+        except subprocess.TimeoutExpired:
+            pass
+        wall = time.monotonic() - t0
+        finished_by_itself = proc.poll() is not None
+        rc = stop(proc, args.grace)
+        log.close()
+    runs = [last_row(p) for p in sorted(exp_dir.rglob(LEARNER_LOG))]
+    runs = [r for r in runs if r]
+    steps = sum(r["env_steps"] for r in runs)
+    updates = sum(r["updates"] for r in runs)
+    return {"command": " ".join(cmd[3:]), "returncode": rc, "finished_by_itself": finished_by_itself,
+            "parallel": args.parallel, "wall_s": wall, "runs_started": len(runs),
+            "runs_finished": len(list(exp_dir.rglob("summary.json"))),
+            "runs_per_hour": len(list(exp_dir.rglob("summary.json"))) / wall * 3600,
+            "env_steps": steps, "updates": updates, "grid_env_steps_per_s": steps / wall,
+            "grid_updates_per_s": updates / wall, "gpu": gpu.summary(t0, t0 + wall)}
+
+
+# --------------------------------------------------------------------------- the one JSON
+
+
+def load(path: str | None) -> dict[str, Any] | None:
+    if not path or not Path(path).is_file():
+        return None
+    return json.loads(Path(path).read_text().strip().splitlines()[-1] if path.endswith(".jsonl")
+                      else Path(path).read_text())
+
+
+def finite(x: Any) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x)
+
+
+def combine(args: argparse.Namespace) -> dict[str, Any]:
+    bench = load(args.bench) or {}
+    run = load(args.e2e) or {}
+    run_async = load(args.e2e_async)
+    grid = load(args.experiment)
+    shape = "halfcheetah"
+    k2_bench = bench.get(f"learner_{shape}_k2_updates_per_s")
+    k2_device_ms = bench.get(f"learner_{shape}_k2_device_ms_per_update")
+    ups = run.get("updates_per_s")
+    derived: dict[str, Any] = {
+        "k2_vs_td3": bench.get("learner_k2_vs_td3"),
+        "k2_bf16_vs_td3": bench.get("learner_k2_bf16_vs_td3"),
+        "e2e_env_steps_per_s": run.get("env_steps_per_s"),
+        "e2e_updates_per_s": ups,
+        # The learner's share of wall time inside update(): the run's updates/s over what the same
+        # update (K=2, a mini-batch per actor, same sizes) does back to back in the learner bench.
+        "learner_update_share": ups / k2_bench if finite(ups) and finite(k2_bench) else None,
+        # The device's busy share: the run's updates/s times the device's busy time per update as the
+        # bench measured it (CUDA: kernel time by torch.profiler; CPU: process CPU time).
+        "device_time_share": ups * k2_device_ms / 1e3 if finite(ups) and finite(k2_device_ms) else None,
+        "device_time_source": bench.get("learner_device_time_source"),
+        "nvidia_smi_util_mean_pct": (run.get("gpu") or {}).get("util_mean_pct"),
+        "exact_vs_async": (run["env_steps_per_s"] / run_async["env_steps_per_s"]
+                           if run_async and finite(run_async.get("env_steps_per_s")) and
+                           finite(run.get("env_steps_per_s")) else None),
+        "grid_env_steps_per_s": grid.get("grid_env_steps_per_s") if grid else None,
+    }
+
+    def goal(value: Any, target: float) -> bool | None:
+        return (value >= target) if finite(value) else None
+
+    goals = {"k2_vs_td3 >= 0.95 (CUDA)": goal(derived["k2_vs_td3"], 0.95),
+             "e2e_env_steps_per_s >= 1000 (paper schedule)": goal(derived["e2e_env_steps_per_s"], 1000.0)}
+    timings = load(args.timings) or {}
+    return {"dry_run": args.dry_run, "device": bench.get("device", args.device), "machine": bench.get("machine"),
+            "versions": bench.get("versions"), "setup": load(args.setup), "derived": derived, "goals": goals,
+            "learner_bench": bench, "e2e": run, "e2e_async": run_async, "experiment": grid,
+            "wheels_check": load(args.wheels), "timings_s": timings}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="step", required=True)
+    w = sub.add_parser("wheels-check")
+    w.add_argument("--steps", type=int, default=2000)
+    for name in ("e2e", "experiment"):
+        s = sub.add_parser(name)
+        s.add_argument("--device", default="cuda")
+        s.add_argument("--env", default="HalfCheetah-v5")
+        s.add_argument("--seconds", type=float, required=True)
+        s.add_argument("--work", required=True)
+        s.add_argument("--hidden", default="256,256")
+        s.add_argument("--batch-size", type=int, default=256)
+        s.add_argument("--start-steps", type=int, default=5000, help="iterations (paper schedule)")
+        s.add_argument("--compete-every", type=int, default=5000, help="[A] iterations")
+        s.add_argument("--eval-episodes", type=int, default=20)
+        s.add_argument("--collection", default=None, help="passed as --collection where mam run has it")
+        s.add_argument("--grace", type=float, default=60.0)
+        if name == "e2e":
+            s.add_argument("--workers", type=int, default=3)
+            s.add_argument("--steps", type=int, default=1_000_000, help="budget (iterations): not reached")
+            s.add_argument("--startup-timeout", type=float, default=240.0)
+        else:
+            s.add_argument("--parallel", type=int, default=8)
+            s.add_argument("--algos", default="ma-td3,td3")
+            s.add_argument("--seeds", type=int, default=4)
+            s.add_argument("--steps", type=int, default=20_000)
+    c = sub.add_parser("combine")
+    for opt in ("bench", "e2e", "e2e-async", "experiment", "wheels", "setup", "timings"):
+        c.add_argument(f"--{opt}")
+    c.add_argument("--device", default="cuda")
+    c.add_argument("--dry-run", action="store_true")
+    for s in sub.choices.values():
+        s.add_argument("--out", required=True)
+    args = p.parse_args()
+    step = {"wheels-check": wheels_check, "e2e": e2e, "experiment": experiment, "combine": combine}[args.step]
+    write(args.out, step(args))
+
+
+if __name__ == "__main__":
+    main()
