@@ -29,10 +29,11 @@ def run(
     logging.basicConfig(level=logging.WARNING)
     cfg = options.build_run_config(run_opts, config)
     options.check_precision(cfg)
-    summary = run_local(cfg, run_dir or Path("runs") / cfg.run, plot=not no_plot,
+    outcome: dict[str, Any] = {}
+    summary = run_local(cfg, run_dir or Path("runs") / cfg.run, plot=not no_plot, outcome=outcome,
                         policy=RestartPolicy(max_restarts=max_restarts, window_s=restart_window))
-    if not summary:
-        raise typer.Exit(1)
+    if not summary:  # 130 / 143 when SIGINT / SIGTERM stopped it (128 + the signal), else 1
+        raise typer.Exit(128 + int(outcome["signal"]) if outcome.get("signal") else 1)
 
 
 @app.command()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -27,11 +28,14 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from mam_core.schedule import Schedule
-from services import bus, keys, rundir
+from services import bus, keys, rundir, runlock
 from services.codec import Allocation, Eval, LearnerStats, MessageError
 from services.options import RunConfig, write_json
 
 STOP_GRACE_S = 15.0
+EXIT_WRITE_ERROR = 75  # the learner could not write its checkpoint (services/checkpoint.py, same value)
+LOW_DISK_BYTES = 1 << 20  # a child that dies with less than this free in the run directory: the disk is full
+MAX_STALL_ACTIONS = 2  # watchdog restarts in a row without progress; one more stall stops the run
 # `mam experiment --parallel`: the cores of a run's learner ("0,1"); its referee and workers float
 LEARNER_CPUS_ENV = "MAM_LEARNER_CPUS"
 CHECKPOINT_FILE = rundir.LEARNER_CHECKPOINT
@@ -70,9 +74,13 @@ def _child_setup(role: str) -> Callable[[], None]:
 class Interrupted(Exception):
     """SIGTERM / SIGINT reached the launcher."""
 
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
 
 def _raise_interrupted(signum: int, _frame: Any) -> None:
-    raise Interrupted(signal.Signals(signum).name)
+    raise Interrupted(signum)
 
 
 @dataclass
@@ -94,7 +102,15 @@ class RestartPolicy:
             raise ValueError("max_restarts must be >= 0 and the restart window > 0")
 
 
-class RoleKeepsDying(Exception):
+class RunStopped(Exception):
+    """The launcher stops the run (exit status 1) and says why."""
+
+
+class RunStalled(RunStopped):
+    """No progress for `stall_timeout` seconds, and restarting the stuck child did not help."""
+
+
+class RoleKeepsDying(RunStopped):
     """A child died more often than the restart policy allows."""
 
     def __init__(self, child: "Child", restarts: int, window_s: float) -> None:
@@ -141,21 +157,31 @@ class LocalCluster:
     pending: dict[str, tuple[float, Child]] = field(default_factory=dict)  # role -> (due, dead child)
     stopping: bool = False
     done: bool = False  # the learner reported the budget reached
+    lock_token: str = ""  # run.lock's token (services/runlock.py): lets the children into the run directory
+    # The stall watchdog (`check_stall`): the learner's last stats and when progress was last seen
+    last_stats: LearnerStats | None = None
+    last_stats_at: float | None = None
+    progress: tuple[int, int] = (-1, -1)  # (env_steps, updates)
+    progress_at: float = field(default_factory=time.monotonic)
+    stall_actions: int = 0  # watchdog restarts since progress was last seen
 
     def spawn(self, role: str, args: list[str]) -> Child:
         log_path = self.run_dir / rundir.LOGS / f"{role}.log"
         log_path.parent.mkdir(parents=True, exist_ok=True)
+        env = dict(os.environ, **{runlock.LOCK_ENV: self.lock_token}) if self.lock_token else None
         with open(log_path, "ab") as out:
             proc = subprocess.Popen([sys.executable, "-m", f"services.{role.split('-')[0]}", *args],
                                     stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                    start_new_session=True, preexec_fn=_child_setup(role))
+                                    start_new_session=True, preexec_fn=_child_setup(role), env=env)
         child = Child(role, proc, log_path, list(args))
         self.children = [c for c in self.children if c.role != role] + [child]
+        if role == "learner":  # its start-up counts as progress for the watchdog
+            self.progress_at, self.last_stats_at = time.monotonic(), None
         return child
 
     def learner_args(self) -> list[str]:
         rd = str(self.run_dir)
-        if (self.run_dir / rundir.CHECKPOINTS / CHECKPOINT_FILE).is_file():
+        if rundir.has_checkpoint(self.run_dir):  # a verified generation's manifest; none: start afresh
             # Its endpoint is in config.json: it listens where the clients reconnect.
             return ["--resume", rd]
         return ["--run-config", str(self.run_dir / rundir.CONFIG), "--listen", self.endpoint, "--run-dir", rd]
@@ -196,11 +222,14 @@ class LocalCluster:
         return not self.done  # a worker after done has nothing left to do
 
     def supervise(self) -> None:
-        """Restart children that died (after their backoff). Raises RoleKeepsDying."""
+        """Restart children that died (after their backoff), and act on a stall (check_stall).
+        Raises RunStopped (RoleKeepsDying, RunStalled, a fatal exit)."""
         now = time.monotonic()
+        self.check_stall(now)
         for c in list(self.children):
             if c.role in self.pending or c.proc.poll() is None or not self.needs_restart(c):
                 continue
+            self.fatal_exit(c)
             recent = [t for t in self.restarts.get(c.role, []) if now - t <= self.policy.window_s]
             if len(recent) >= self.policy.max_restarts:
                 raise RoleKeepsDying(c, len(recent), self.policy.window_s)
@@ -215,14 +244,84 @@ class LocalCluster:
             if not self.needs_restart(dead):  # e.g. the run finished meanwhile
                 continue
             self.restarts.setdefault(role, []).append(now)
-            with open(dead.log, "ab") as out:
-                out.write(f"\n--- mam run: {role} exited with {describe_exit(dead.proc.returncode)}; "
-                          f"restart {len(self.restarts[role])} ---\n".encode())
+            try:
+                with open(dead.log, "ab") as out:
+                    out.write(f"\n--- mam run: {role} exited with {describe_exit(dead.proc.returncode)}; "
+                              f"restart {len(self.restarts[role])} ---\n".encode())
+            except OSError as e:  # a full disk: say so, do not crash
+                self._print(f"[red]cannot write to {dead.log}: {e.strerror or e} ({disk_free(self.run_dir)} free)[/]")
             args = self.learner_args() if role == "learner" else dead.args
-            new = self.spawn(role, args)
+            try:
+                new = self.spawn(role, args)
+            except OSError as e:
+                raise RunStopped(f"cannot restart {role}: {e} ({disk_free(self.run_dir)} free in {self.run_dir})") \
+                    from None
             what = " (resuming from its checkpoint)" if role == "learner" and "--resume" in args else ""
             self._print(f"[yellow]restarted[/] {role}{what}: pid {new.proc.pid}, "
                         f"restart {len(self.restarts[role])} of this run")
+
+    def fatal_exit(self, c: Child) -> None:
+        """RunStopped for an exit that a restart cannot mend: the learner cannot write its
+        checkpoint (EXIT_WRITE_ERROR), a child refused the run directory, the disk is full."""
+        rc = c.proc.returncode
+        if rc == EXIT_WRITE_ERROR or (rc != 0 and free_bytes(self.run_dir) < LOW_DISK_BYTES):
+            line = last_line(c.log, "stopping:")
+            raise RunStopped(f"{c.role} cannot write to {self.run_dir} ({disk_free(self.run_dir)} free there)"
+                             f"{': ' + line if line else ''}; the last verified checkpoint is intact; see {c.log}")
+        if rc == runlock.EXIT_REFUSED:
+            line = last_line(c.log, "refusing")
+            raise RunStopped(f"{c.role} refused to start{': ' + line if line else ''}; see {c.log}")
+
+    def observe(self, st: LearnerStats) -> None:
+        """The learner's stats, for the stall watchdog."""
+        now = time.monotonic()
+        self.last_stats, self.last_stats_at = st, now
+        if (st.env_steps, st.updates) != self.progress:
+            self.progress, self.progress_at, self.stall_actions = (st.env_steps, st.updates), now, 0
+
+    def check_stall(self, now: float) -> None:
+        """The watchdog: no new transition and no new update for `stall_timeout` seconds. It prints
+        what each side waits for and SIGKILLs the stuck child (supervise restarts it, the learner
+        with --resume); after MAX_STALL_ACTIONS such restarts without progress RunStalled stops
+        the run with the diagnosis."""
+        limit = self.cfg.stall_timeout
+        if limit <= 0 or self.done or self.stopping or self.pending or now - self.progress_at < limit:
+            return
+        diagnosis, victims = self.diagnose(now)
+        if self.stall_actions >= MAX_STALL_ACTIONS or not victims:
+            raise RunStalled(f"the run is stalled: {diagnosis}"
+                             + (f"; {self.stall_actions} watchdog restarts did not help" if self.stall_actions else ""))
+        self.stall_actions += 1
+        self._print(f"[red]stalled[/]: {diagnosis}: restarting {', '.join(c.role for c in victims)}")
+        for c in victims:
+            if c.proc.poll() is None:
+                c.proc.kill()  # SIGKILL also ends a frozen (SIGSTOPped) process
+        self.progress_at = now  # a full period for the restarted children
+
+    def diagnose(self, now: float) -> tuple[str, list[Child]]:
+        """What the run waits for (from the learner's last stats) and the children to restart."""
+        limit = self.cfg.stall_timeout
+        learner, referee = self.child("learner"), self.child("referee")
+        workers = [c for c in self.children if c.role.startswith("worker") and c.proc.poll() is None]
+        st, age = self.last_stats, (now - self.last_stats_at) if self.last_stats_at is not None else None
+        head = f"no new transition or update for {now - self.progress_at:.0f} s"
+        ref = "referee " + ("running" if referee is not None and referee.proc.poll() is None else "down")
+        if st is None or age is None or age > limit:
+            seen = "never" if age is None else f"not for {age:.0f} s"
+            return (f"{head}; learner stats: {seen} (the learner is frozen, blocked or cut off); {ref}",
+                    [learner] if learner is not None and learner.proc.poll() is None else [])
+        s = Schedule.for_run(self.cfg.algo, self.cfg.steps)
+        free = min(s.budget, max(s.transitions_consumed(st.updates), s.random_until) + self.cfg.tolerance)
+        room = st.accept_until - st.env_steps
+        facts = (f"learner at {st.env_steps:,}/{s.budget:,} transitions, {st.updates:,} updates, credit accept_until "
+                 f"{st.accept_until:,} (room {room:,}), versions {list(st.versions)}, {st.workers} workers, "
+                 f"rejected {dict(st.rejected) or 'none'}, {ref}")
+        if room <= 0 and st.accept_until < free:
+            return (f"{head}; {facts}: the credit stops at a round barrier, waiting for the referee's allocation",
+                    [referee] if referee is not None and referee.proc.poll() is None else [learner])
+        if room <= 0:
+            return f"{head}; {facts}: the credit is used up and the learner does not update", [learner]
+        return f"{head}; {facts}: the credit is open and no transitions arrive from the workers", workers
 
     def restart_counts(self) -> dict[str, int]:
         return {c.role: len(self.restarts.get(c.role, [])) for c in self.children}
@@ -265,29 +364,50 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
 
     `outcome`, when given, gets "interrupted": whether SIGINT / SIGTERM stopped the run."""
     console = console or Console()
-    run_dir.mkdir(parents=True, exist_ok=True)
+    try:  # one run per directory: refused before anything is written (services/runlock.py)
+        lock = runlock.lock_run(run_dir, cfg.run)
+    except runlock.RunInUse as e:
+        console.print(f"[red]{e}[/]")
+        if outcome is not None:
+            outcome["interrupted"] = False
+        return {}
+    try:
+        return _run_locked(cfg, run_dir, console, plot, outcome, policy, lock)
+    finally:
+        lock.release()
+
+
+def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, outcome: dict[str, Any] | None,
+                policy: RestartPolicy | None, lock: runlock.DirLock) -> dict[str, Any]:
     port = bus.free_tcp_port()
     endpoint = bus.loopback_endpoint(port)
     cfg = RunConfig.from_dict({**cfg.to_dict(), "endpoint": endpoint})
-    write_json(run_dir / rundir.CONFIG, cfg.to_dict())
-    cluster = LocalCluster(cfg, run_dir, endpoint, policy=policy or RestartPolicy(), console=console)
+    try:
+        write_json(run_dir / rundir.CONFIG, cfg.to_dict())
+    except OSError as e:
+        console.print(f"[red]cannot write {run_dir / rundir.CONFIG}: {e.strerror or e} ({disk_free(run_dir)} free)[/]")
+        return {}
+    cluster = LocalCluster(cfg, run_dir, endpoint, policy=policy or RestartPolicy(), console=console,
+                           lock_token=lock.token)
     console.print(f"[bold]run[/] {cfg.run}  [bold]env[/] {cfg.env_id}  [bold]algo[/] {cfg.algo.algo} "
                   f"K={cfg.algo.actors} M={cfg.algo.workers}  budget {budget_text(cfg)}")
     console.print(f"run dir {run_dir}   watch live: [cyan]mam watch --run {cfg.run} --connect {endpoint}[/]")
     started = time.monotonic()
     interrupted = False
-    gave_up: RoleKeepsDying | None = None
+    gave_up: RunStopped | None = None
     previous = {sig: signal.signal(sig, _raise_interrupted) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         cluster.start_learner_and_referee()
         try:
             if follow(cfg, endpoint, cluster, console):
                 cluster.wait(60.0, supervise=True)  # referee (final evaluation) and workers exit on their own
-        except RoleKeepsDying as e:
+        except RunStopped as e:
             gave_up = e
             console.print(f"[red]stopping the run: {e}[/]")
-        except (Interrupted, KeyboardInterrupt):
+        except (Interrupted, KeyboardInterrupt) as e:
             interrupted = True
+            if outcome is not None:
+                outcome["signal"] = e.signum if isinstance(e, Interrupted) else signal.SIGINT
             console.print("[yellow]interrupted: stopping all processes (the learner writes a checkpoint)[/]")
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -330,6 +450,29 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
             console.print(f"transport: {t['sent_rows']:,} rows sent, {t['replay_rows']:,} in the replay, "
                           f"{t['lost_rows']} lost, {t['duplicated_rows']} duplicated")
     return summary
+
+
+def free_bytes(path: Path) -> int:
+    try:
+        return shutil.disk_usage(path).free
+    except OSError:
+        return 1 << 62
+
+
+def disk_free(path: Path) -> str:
+    n = free_bytes(path)
+    return f"{n / (1 << 20):.1f} MiB" if n >= 1 << 20 else f"{n / 1024:.1f} KiB"
+
+
+def last_line(path: Path, needle: str) -> str:
+    """The last line of a log holding `needle` ("" if none, or unreadable)."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(max(f.seek(0, 2) - 65536, 0))
+            lines = [ln for ln in f.read().decode(errors="replace").splitlines() if needle in ln]
+    except OSError:
+        return ""
+    return lines[-1].strip()[-400:] if lines else ""
 
 
 def audit_transport(run_dir: Path) -> dict[str, Any]:
@@ -441,6 +584,7 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                     if item is not None:
                         try:
                             st = LearnerStats.from_bytes(item.payload)
+                            cluster.observe(st)  # the stall watchdog (supervise -> check_stall)
                             info = f"upd {st.updates:,}  I={list(alloc.counts) if alloc else '-'}  {last_eval}"
                             progress.update(task, completed=min(st.env_steps, budget), info=info)
                             if st.done and not cluster.done:

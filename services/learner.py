@@ -26,12 +26,11 @@ from mam_core.evaluation import estimation_bias
 from mam_core.pacing import CheckpointRule, Pacer
 from mam_core.replay import ReplayBuffer, ReplayLog
 from mam_core.schedule import Schedule
-from services import bus, keys, options, role, rundir, tb
-from services.checkpoint import load_checkpoint, replay_dir, save_checkpoint
+from services import bus, keys, options, role, rundir, runlock, tb
+from services.checkpoint import exit_on_write_error, load_checkpoint, replay_dir, save_checkpoint
 from services.codec import Allocation, Done, LearnerStats, MessageError, TransitionSpec, Weights, decode, encode
 from services.intake import Intake
 from services.options import JsonlWriter, RunConfig, write_json
-from services.policy_export import write_policy
 
 log = logging.getLogger("mam.learner")
 
@@ -137,6 +136,10 @@ class Learner:
     def _loop(self) -> None:
         self.publish_weights(all_actors=True)
         self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
+        if self.env_steps == 0:  # at once, and again when the random phase ends: a learner killed early resumes
+            self.checkpoint()
+        random_phase_checkpoint = self.env_steps < self.schedule.random_until
+        self._progress, self._progress_at, self._stall_logged = (-1, -1), time.monotonic(), 0.0
         sync = role.Every(self.cfg.sync_every, start=self.agent.updates)  # counts updates
         stats, heartbeat, log_row = role.Every(STATS_PERIOD_S), role.Every(HEARTBEAT_S), role.Every(LOG_PERIOD_S)
         self.rates, self._rate_base = (0.0, 0.0), (self.env_steps, self.agent.updates, time.monotonic())
@@ -158,6 +161,10 @@ class Learner:
                 self.write_log(now)
             if self.checkpoints.due(self.agent.updates, self.env_steps, now):
                 self.checkpoint()
+            elif random_phase_checkpoint and self.env_steps >= self.schedule.random_until:
+                random_phase_checkpoint = False
+                self.checkpoint()
+            self.watch_stall(now)
             if not self.referee_seen and self.referees.live():
                 self.referee_seen = True
             if budget_done and self.agent.updates >= self.updates_allowed():
@@ -170,6 +177,28 @@ class Learner:
         # Stopped by a signal: keep a usable checkpoint; the run is not done.
         self.write_log()
         self.checkpoint()
+
+    def watch_stall(self, now: float) -> None:
+        """The split learner's stall watchdog: no transition and no update for `stall_timeout`
+        seconds logs what it waits for (once per period); `mam run` acts on stalls itself."""
+        progress = (self.env_steps, self.agent.updates)
+        if progress != self._progress:
+            self._progress, self._progress_at = progress, now
+            return
+        limit = self.cfg.stall_timeout
+        if limit <= 0 or now - self._progress_at < limit or now - self._stall_logged < limit:
+            return
+        self._stall_logged = now
+        until, barrier, referee = self.accept_until(), self.pacer.barrier(), bool(self.referees.live())
+        if until > self.env_steps:
+            waits = f"transitions: credit open to {until}, {len(self.workers.live())} workers live"
+        elif barrier is not None and referee and until >= barrier:
+            waits = f"the referee's allocation for the round at {barrier} transitions (credit at the barrier)"
+        else:
+            waits = f"updates: credit used up at {until} (updates allowed {self.updates_allowed()})"
+        log.warning("stalled for %.0f s at %d transitions, %d updates: waiting for %s; versions %s, referee %s, "
+                    "rejected %s", now - self._progress_at, self.env_steps, self.agent.updates, waits,
+                    list(self.agent.versions), "live" if referee else "gone", self.rejected() or "none")
 
     def ingest(self, items: list[bus.Received]) -> None:
         self.env_steps += self.intake.ingest(items, self.agent.versions)
@@ -308,11 +337,11 @@ class Learner:
         started = time.monotonic()
         counters = {"env_steps": self.env_steps, "per_worker": json.dumps(self.intake.tracker.per_sender()),
                     "stream_rows": json.dumps(self.intake.stream_rows)}
-        path = save_checkpoint(self.run_dir, self.agent, self.buffer, counters, self.cfg, self.replay_log)
+        path = save_checkpoint(self.run_dir, self.agent, self.buffer, counters, self.cfg, self.replay_log,
+                               survivor=self.survivor)  # with policy.npz, in a verified generation
         self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
         if self.replay_log is not None:  # only now on disk: workers may drop what it holds
             self.acked = self.intake.checkpointed_prefixes()
-        write_policy(self.run_dir, self.cfg, self.agent, self.env_steps, self.survivor)  # policy.npz (numpy)
         log.info("checkpoint %s at %d updates, %d transitions (%.2f s)", path, self.agent.updates, self.env_steps,
                  time.monotonic() - started)
 
@@ -396,15 +425,25 @@ class Learner:
 
 
 def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None:
-    run_dir.mkdir(parents=True, exist_ok=True)
-    state = load_checkpoint(run_dir) if resume else None
-    if state is not None:
-        cfg = RunConfig.from_dict({**json.loads(state["config"]), "steps": cfg.steps})
-    write_json(run_dir / rundir.CONFIG, cfg.to_dict())
-    with bus.session_scope(conf, retry_for=30.0) as session:  # a router may still be starting
-        learner = Learner(cfg, session, run_dir, state)
-        role.stop_on_signals(learner)
-        learner.serve()
+    try:  # one learner per run directory and per run name: refused before anything is written
+        lock = runlock.lock_role(run_dir, "learner", cfg.run)
+    except runlock.RunInUse as e:
+        log.error("%s", e)
+        raise SystemExit(runlock.EXIT_REFUSED) from None
+    with lock, exit_on_write_error(run_dir):  # a full disk: one line naming the path, exit EXIT_WRITE_ERROR
+        state = load_checkpoint(run_dir) if resume else None
+        if state is not None:
+            cfg = RunConfig.from_dict({**json.loads(state["config"]), "steps": cfg.steps})
+        with bus.session_scope(conf, retry_for=30.0) as session:  # a router may still be starting
+            try:
+                runlock.refuse_live_learner(session, cfg.run)
+            except runlock.RunInUse as e:
+                log.error("%s", e)
+                raise SystemExit(runlock.EXIT_REFUSED) from None
+            write_json(run_dir / rundir.CONFIG, cfg.to_dict())
+            learner = Learner(cfg, session, run_dir, state)
+            role.stop_on_signals(learner)
+            learner.serve()
 
 
 app = typer.Typer(add_completion=False, help=__doc__)

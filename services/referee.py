@@ -260,8 +260,14 @@ class Referee:
 
 
 def main(run: str, conf: Any, run_dir: Path) -> None:
-    run_dir.mkdir(parents=True, exist_ok=True)
-    with bus.session_scope(conf, retry_for=30.0) as session:
+    from services import runlock
+
+    try:  # one referee per run directory, none in a directory another `mam run` owns
+        lock = runlock.lock_role(run_dir, "referee", run)
+    except runlock.RunInUse as e:
+        log.error("%s", e)
+        raise SystemExit(runlock.EXIT_REFUSED) from None
+    with lock, bus.session_scope(conf, retry_for=30.0) as session:
         cfg = role.fetch_config(session, run, bus.RejectLog(log, "config"))
         referee = Referee(cfg, session, run_dir)
         role.stop_on_signals(referee)

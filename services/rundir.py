@@ -12,7 +12,10 @@ looks for, so a rename is one edit. Plain string constants: importing this modul
     RUN_DIR/allocation.jsonl       allocation rounds (I_k, P_k)
     RUN_DIR/bias.jsonl             Eq. 17 bias measurements (runs with --bias-every)
     RUN_DIR/checkpoints/learner.pt the learner's checkpoint; checkpoints/replay/ its replay chunks;
-    RUN_DIR/checkpoints/policy.npz the exported policy (mam_core.policy.POLICY_FILE)
+    RUN_DIR/checkpoints/policy.npz the exported policy (mam_core.policy.POLICY_FILE); both are links
+                                   to the newest generation's learner-<g>.pt and policy-<g>.npz,
+                                   which manifest-<g>.json verifies (services/checkpoint.py)
+    RUN_DIR/run.lock, learner.lock, referee.lock   who owns the directory (services/runlock.py)
     RUN_DIR/logs/<role>.log        each process's output (`mam run`)
     RUN_DIR/workers/               per-worker batch logs and end records
     RUN_DIR/plots/                 `mam plot` PNGs
@@ -47,6 +50,7 @@ BIAS = "bias.jsonl"
 CHECKPOINTS = "checkpoints"
 LEARNER_CHECKPOINT = "learner.pt"  # in CHECKPOINTS
 REPLAY = "replay"  # in CHECKPOINTS: the replay buffer's chunk log
+MANIFEST_GLOB = "manifest-*.json"  # in CHECKPOINTS: one per verified checkpoint generation
 LOGS = "logs"
 WORKERS = "workers"
 PLOTS = "plots"
@@ -68,6 +72,11 @@ FAILURES = "failures"
 def env_dirname(env: str) -> str:
     """An env id as a directory name (EXP_DIR/<env>/<variant>/seed<k>, figure names)."""
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", env)
+
+
+def has_checkpoint(run_dir: Path | str) -> bool:
+    """A checkpoint generation is on disk (its manifest; services/checkpoint.py verifies it)."""
+    return any((Path(run_dir) / CHECKPOINTS).glob(MANIFEST_GLOB))
 
 
 def role_log(role: str) -> str:
