@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 import typer
+from typer.core import TyperCommand
 
 from services import options
 
@@ -14,14 +15,26 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Multi-actor mechanism (MA-TD3, MA-DDPG) over Zenoh: run, watch and plot training runs.")
 
 
-@app.command()
+class PlainFlags(TyperCommand):
+    """typer's command with a plain `--help` flag (no `<bool>` tag beside it)."""
+
+    def get_help_option(self, ctx: Any) -> Any:
+        option = super().get_help_option(ctx)
+        if option is not None:
+            option.metavar = ""
+        return option
+
+
+@app.command(cls=PlainFlags)
 @options.run_options()
 def run(
     run_opts: dict[str, Any], config: options.ConfigFile = None, run_dir: options.RunDir = None,
     max_restarts: int = typer.Option(5, help="a child that dies more often than this within --restart-window "
-                                             "stops the run"),
-    restart_window: float = typer.Option(300.0, help="seconds over which --max-restarts counts"),
-    no_plot: bool = typer.Option(False, "--no-plot", help="skip the PNG plots at the end"),
+                                             "stops the run", rich_help_panel=options.SUPERVISION_PANEL),
+    restart_window: float = typer.Option(300.0, help="seconds over which --max-restarts counts",
+                                         rich_help_panel=options.SUPERVISION_PANEL),
+    no_plot: bool = typer.Option(False, "--no-plot", help="skip the PNG plots at the end", metavar="",
+                                 show_default=False, rich_help_panel=options.RUN_PANEL),
 ) -> None:
     """Train on this box: learner + referee + M workers over an embedded loopback Zenoh."""
     from services.launcher import RestartPolicy, run_local
@@ -36,20 +49,23 @@ def run(
         raise typer.Exit(128 + int(outcome["signal"]) if outcome.get("signal") else 1)
 
 
-@app.command()
+@app.command(cls=PlainFlags)
 def watch(
     run_name: options.Run = None, connect: options.Connect = None, zenoh_config: options.ZenohConfig = None,
-    keep: bool = typer.Option(False, help="keep watching after the run is done"),
+    run_dir: Optional[Path] = typer.Option(None, "--run-dir", help="the run's directory (its config.json says "
+                                           "where it listens); default: the local runs `mam run` registers, "
+                                           "then runs/NAME"),
+    timeout: float = typer.Option(60.0, "--timeout", help="seconds to wait for the run to appear (and for its "
+                                  "first message)"),
+    keep: bool = typer.Option(False, "--keep", metavar="", help="keep watching after the run is done"),
+    plain: Optional[bool] = typer.Option(None, "--plain/--live", show_default=False, metavar="",
+                                         help="one line per update, or the live view (default: plain when the "
+                                         "output is not a terminal)"),
 ) -> None:
-    """Live view of a run from anywhere on the network (only subscribes)."""
-    from services.monitor import watch as watch_run
+    """Live view of a run (only subscribes). Without --connect it finds a local `mam run` by its name."""
+    from services.monitor import watch_command
 
-    if not run_name:
-        raise typer.BadParameter("--run NAME is required (printed by `mam run`, in RUN_DIR/config.json)")
-    from services.role import client_config
-
-    options.check_run_name(run_name)
-    watch_run(run_name, client_config(connect, None, zenoh_config), until_done=not keep)
+    watch_command(run_name, connect, zenoh_config, run_dir, timeout, keep, plain)
 
 
 @app.command()

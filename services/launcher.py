@@ -28,9 +28,9 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from mam_core.schedule import Schedule
-from services import bus, keys, rundir, runlock
+from services import bus, keys, registry, rundir, runlock
 from services.codec import Allocation, Eval, LearnerStats, MessageError
-from services.options import RunConfig, write_json
+from services.options import RunConfig, budget_warnings, write_json
 
 STOP_GRACE_S = 15.0
 EXIT_WRITE_ERROR = 75  # the learner could not write its checkpoint (services/checkpoint.py, same value)
@@ -391,7 +391,10 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
                            lock_token=lock.token)
     console.print(f"[bold]run[/] {cfg.run}  [bold]env[/] {cfg.env_id}  [bold]algo[/] {cfg.algo.algo} "
                   f"K={cfg.algo.actors} M={cfg.algo.workers}  budget {budget_text(cfg)}")
-    console.print(f"run dir {run_dir}   watch live: [cyan]mam watch --run {cfg.run} --connect {endpoint}[/]")
+    for line in budget_warnings(cfg):  # no silent no-op: what the budget leaves out, and M < K
+        console.print(f"[yellow]note:[/] {line}", highlight=False)
+    registry.register(cfg.run, endpoint, run_dir)  # `mam watch --run NAME` finds it without --connect
+    console.print(f"run dir {run_dir}   watch live: [cyan]{command_name()} watch --run {cfg.run}[/]")
     started = time.monotonic()
     interrupted = False
     gave_up: RunStopped | None = None
@@ -413,6 +416,7 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         cluster.stop()
+        registry.unregister(cfg.run)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     if outcome is not None:
@@ -443,12 +447,16 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
     if summary:
         total = summary["restarts_total"]
         text = ", ".join(f"{r} {n}" for r, n in restarts.items() if n) if total else "none"
-        console.print(f"[bold green]done[/] in {summary['launcher_wall_time_s']:.0f} s: final returns "
-                      f"{summary.get('final_returns')}, survivor {summary.get('survivor')}; restarts: {text}")
+        returns = ", ".join("—" if r is None else f"{r:.2f}" for r in summary.get("final_returns") or [])
+        console.print(f"[bold green]done[/] in {summary['launcher_wall_time_s']:.0f} s: final returns [{returns}], "
+                      f"survivor {summary.get('survivor')}; restarts: {text}", highlight=False)
         if "transport" in summary:
             t = summary["transport"]
             console.print(f"transport: {t['sent_rows']:,} rows sent, {t['replay_rows']:,} in the replay, "
                           f"{t['lost_rows']} lost, {t['duplicated_rows']} duplicated")
+        verdict = outcome_text(cfg, summary)
+        if verdict:
+            console.print(f"[bold]{verdict}[/]", highlight=False)
     return summary
 
 
@@ -522,14 +530,135 @@ def budget_text(cfg: RunConfig) -> str:
 
 
 def describe_allocation(alloc: Allocation | None) -> str:
+    """One allocation: the returns R_k it was decided on, P_k (Eq. 8), I_k, the survivor and the tie
+    (actors sharing the best return; at C the run's seeded generator picks the survivor among them)."""
     if alloc is None:
         return "waiting for the referee"
     p = " ".join(f"{x:.2f}" for x in alloc.probabilities)
     i = " ".join(str(c) for c in alloc.counts)
-    text = f"round {alloc.round}  P=[{p}]  I=[{i}]"
+    text = f"round {alloc.round}"
+    if alloc.returns is not None:
+        text += "  R=[" + " ".join(f"{r:.2f}" for r in alloc.returns) + "]"
+    text += f"  P=[{p}]  I=[{i}]"
     if alloc.survivor is not None:
         text += f"  survivor {alloc.survivor}"
+    tie = tied_best(alloc)
+    if tie and alloc.survivor is not None and alloc.reason == "elimination":
+        names = ", ".join(str(k) for k in tie)
+        text += f"  (tie: actors {names} share the best return; the run's seeded generator picked {alloc.survivor})"
     return text
+
+
+class Rates:
+    """Env steps/s and updates/s of the learner's counters, over the last few seconds."""
+
+    def __init__(self, window_s: float = 3.0) -> None:
+        self.window_s = window_s
+        self.base: tuple[float, int, int] | None = None
+        self.rates: tuple[float, float] | None = None
+
+    def update(self, env_steps: int, updates: int, now: float | None = None) -> tuple[float, float] | None:
+        now = time.monotonic() if now is None else now
+        if self.base is None or env_steps < self.base[1] or updates < self.base[2]:  # a restarted learner
+            self.base = (now, env_steps, updates)
+        elif now - self.base[0] >= self.window_s:
+            dt = now - self.base[0]
+            self.rates = ((env_steps - self.base[1]) / dt, (updates - self.base[2]) / dt)
+            self.base = (now, env_steps, updates)
+        return self.rates
+
+
+def at_text(cfg: RunConfig, transitions: int) -> str:
+    """A point of the run in the schedule's units: "iteration 600 (3,000 transitions)"."""
+    clock = Schedule.for_run(cfg.algo, cfg.steps)
+    if clock.paper and clock.units_at(transitions) != transitions:
+        return f"iteration {clock.units_at(transitions):,} ({transitions:,} transitions)"
+    return f"{transitions:,} transitions"
+
+
+def progress_text(cfg: RunConfig, transitions: int, updates: int, rates: tuple[float, float] | None) -> str:
+    """The progress bar's text: iterations (paper), updates, env steps/s and updates/s."""
+    clock = Schedule.for_run(cfg.algo, cfg.steps)
+    text = f"it {clock.units_at(transitions):,}/{cfg.steps:,}  " if clock.paper else ""
+    text += f"upd {updates:,}"
+    if rates is not None:
+        text += f"  {rates[0]:,.0f} steps/s  {rates[1]:,.0f} upd/s"
+    return text
+
+
+def tied_best(alloc: Allocation) -> list[int]:
+    """The actors that share the best return of an allocation decided on returns, if more than one."""
+    if alloc.returns is None or len(alloc.returns) < 2:
+        return []
+    best = max(alloc.returns)
+    tie = [k for k, r in enumerate(alloc.returns) if abs(r - best) <= 1e-9 * max(1.0, abs(best))]
+    return tie if len(tie) > 1 else []
+
+
+def command_name() -> str:
+    """How to call `mam` again: "mam" when that is the one on PATH, else the path it was started by
+    (".venv/bin/mam" after `make`)."""
+    argv0 = sys.argv[0] if sys.argv else ""
+    if os.path.basename(argv0) != "mam":
+        return "mam"
+    found = shutil.which("mam")
+    if found and os.path.realpath(found) == os.path.realpath(argv0):
+        return "mam"
+    relative = os.path.relpath(argv0)
+    return relative if not relative.startswith("..") else argv0
+
+
+def best_apple_return(env_id: str, env_kwargs: dict[str, Any]) -> float | None:
+    """The return of the straight line to the (0.8, 0.8) apple on an AppleCollect env (49.94 on v1,
+    49.96 on v0: the optimum, docs/APPLECOLLECT.md); None for other envs."""
+    try:
+        import gymnasium as gym
+
+        from mam_core.envs import make_env
+
+        if "apple_collect" not in str(gym.spec(env_id).entry_point):
+            return None
+        env = make_env(env_id, env_kwargs)
+    except Exception:  # not AppleCollect, or an id gym.spec cannot resolve here
+        return None
+    try:
+        env.reset(seed=0)
+        total, done = 0.0, False
+        while not done:
+            _, reward, terminated, truncated, _ = env.step(env.action_space.high.copy())
+            total, done = total + float(reward), terminated or truncated
+        return total
+    finally:
+        env.close()
+
+
+def outcome_text(cfg: RunConfig, summary: dict[str, Any]) -> str:
+    """The run's outcome in the task's words on AppleCollect ("survivor 0 reaches the 50 apple in
+    6 steps: 49.94 of 49.94 possible"); "" for other envs (the done line has the returns)."""
+    returns = summary.get("final_returns") or []
+    survivor = summary.get("survivor")
+    known = [(r, k) for k, r in enumerate(returns) if r is not None]
+    if not known:
+        return ""
+    if isinstance(survivor, int) and 0 <= survivor < len(returns) and returns[survivor] is not None:
+        k, who = survivor, f"survivor {survivor}"
+    else:
+        k = max(known, key=lambda rk: (rk[0], -rk[1]))[1]
+        who = f"actor {k}" if len(returns) == 1 else f"best actor {k} (no elimination)"
+    best = best_apple_return(cfg.env_id, cfg.env_kwargs)
+    if best is None:
+        return ""
+    r = float(returns[k])
+    of = f"{r:.2f} of {best:.2f} possible"
+    for apple in (50.0, 10.0):
+        steps = round((apple - r) / 0.01)
+        if 1 <= steps <= 100 and abs(apple - 0.01 * steps - r) < 1e-6:
+            if apple == 50.0:
+                return f"{who} reaches the 50 apple in {steps} steps: {of}"
+            return f"{who} settles for a 10 apple in {steps} steps: {of} (the 50 apple is missed)"
+    if abs(r + 1.0) < 1e-6:
+        return f"{who} reaches no apple (100 steps without one, or it leaves the square): {of}"
+    return f"{who}'s mean return: {of}"
 
 
 def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Console) -> bool:
@@ -552,13 +681,14 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
         cluster.start_workers()
         alloc: Allocation | None = None
         last_eval = ""
-        columns = (TextColumn("[bold]steps"), BarColumn(bar_width=24), MofNCompleteColumn(), TimeElapsedColumn(),
+        columns = (TextColumn("[bold]transitions"), BarColumn(bar_width=24), MofNCompleteColumn(), TimeElapsedColumn(),
                    TimeRemainingColumn(), TextColumn("{task.fields[info]}"))
         try:
             with Progress(*columns, console=console, transient=False) as progress:
                 cluster.console = progress.console
                 budget = Schedule.for_run(cfg.algo, cfg.steps).budget  # in transitions, what the bar counts
                 task = progress.add_task("train", total=budget, info="starting")
+                speed = Rates()
                 while True:
                     cluster.supervise()
                     if cluster.finished():
@@ -568,8 +698,8 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                         try:
                             new = Allocation.from_bytes(item.payload, cfg.algo.actors)
                             if alloc is None or new.round != alloc.round or new.survivor != alloc.survivor:
-                                progress.console.print(f"[magenta]allocation[/] at {new.env_steps:,} steps "
-                                                       f"({new.reason}): {describe_allocation(new)}")
+                                progress.console.print(f"[magenta]{new.reason}[/] at {at_text(cfg, new.env_steps)}: "
+                                                       f"{describe_allocation(new)}", highlight=False)
                             alloc = new
                         except MessageError:
                             pass
@@ -577,7 +707,7 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                     if item is not None:
                         try:
                             ev = Eval.from_bytes(item.payload, cfg.algo.actors)
-                            last_eval = "R=[" + " ".join("-" if m is None else f"{m:.1f}" for m in ev.mean) + "]"
+                            last_eval = "R=[" + " ".join("-" if m is None else f"{m:.2f}" for m in ev.mean) + "]"
                         except MessageError:
                             pass
                     item = stats.fresh().get(keys.learner_stats(cfg.run))
@@ -585,7 +715,9 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                         try:
                             st = LearnerStats.from_bytes(item.payload)
                             cluster.observe(st)  # the stall watchdog (supervise -> check_stall)
-                            info = f"upd {st.updates:,}  I={list(alloc.counts) if alloc else '-'}  {last_eval}"
+                            rates = speed.update(st.env_steps, st.updates)
+                            info = (f"{progress_text(cfg, st.env_steps, st.updates, rates)}  "
+                                    f"I={list(alloc.counts) if alloc else '-'}  {last_eval}")
                             progress.update(task, completed=min(st.env_steps, budget), info=info)
                             if st.done and not cluster.done:
                                 cluster.done = True

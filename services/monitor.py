@@ -8,15 +8,16 @@ from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 from typing import Any
 
 import typer
 from rich.console import Console
 from rich.live import Live
 
-from services import bus, keys, options, role
+from services import bus, keys, options, registry, role
 from services.codec import Allocation, Done, Eval, LearnerStats, MessageError, decode
-from services.monitor_view import MonitorState, render
+from services.monitor_view import MonitorState, PlainLines, render
 from services.options import RunConfig
 
 log = logging.getLogger("mam.monitor")
@@ -35,20 +36,38 @@ def _body(obj: Any) -> dict[str, Any]:
     return {name: _plain(getattr(obj, name)) for name in obj.__dataclass_fields__}
 
 
+class NoRun(Exception):
+    """`mam watch` found no run to watch within its --timeout (the message says where it looked)."""
+
+
 def watch(run: str, conf: Any, refresh_per_s: float = 4.0, until_done: bool = True,
-          console: Console | None = None, duration: float | None = None) -> MonitorState:
+          console: Console | None = None, duration: float | None = None, timeout: float | None = None,
+          plain: bool | None = None) -> MonitorState:
+    """Watch `run` until it is done (or `duration` s). Raises NoRun when no session opens, or no
+    message of the run arrives, within `timeout` s. `plain` (default: when the output is not a
+    terminal) prints one line per update instead of the live view."""
     console = console or Console()
+    plain = not console.is_terminal if plain is None else plain
     state = MonitorState(run=run)
     rejects = bus.RejectLog(log, "message")
-    with bus.session_scope(conf, retry_for=30.0) as session:
+    try:
+        session_cm = bus.session_scope(conf, retry_for=30.0 if timeout is None else max(timeout, 0.1))
+        session = session_cm.__enter__()
+    except Exception as e:  # zenoh.ZError: nothing listens there
+        raise NoRun(f"nothing listens at the run's endpoint ({type(e).__name__}: {str(e)[:200]})") from None
+    try:
         alive = bus.watch_alive(session, run, None, lambda role, id_, up: state.on_alive(role, id_, up))
         subs = {name: bus.Latest.subscribe(session, key) for name, key in (
             ("config", keys.config(run)), ("allocation", keys.allocation(run)), ("eval", keys.eval(run)),
             ("stats", keys.learner_stats(run)), ("done", keys.done(run)))}
         started = time.monotonic()
         last_payload: dict[str, bytes] = {}
+        lines = PlainLines(state)
         try:
-            with Live(render(state), console=console, refresh_per_second=refresh_per_s) as live:
+            with (_Plain() if plain else Live(render(state), console=console, refresh_per_second=refresh_per_s)) \
+                    as live:
+                if plain:
+                    console.print(f"watching run {run}: waiting for its learner", highlight=False)
                 while duration is None or time.monotonic() - started < duration:
                     for name, sub in subs.items():
                         for item in sub.fresh().values():
@@ -59,15 +78,56 @@ def watch(run: str, conf: Any, refresh_per_s: float = 4.0, until_done: bool = Tr
                                 apply(state, name, item.payload)
                             except MessageError as e:
                                 rejects.reject(keys.parse_last(item.key), e)
-                    live.update(render(state))
+                                continue
+                            if plain:
+                                for line in lines.after(name):
+                                    console.print(line, highlight=False, soft_wrap=True)
+                    if not plain:
+                        live.update(render(state))
                     if until_done and state.done:
                         break
+                    if timeout is not None and not last_payload and time.monotonic() - started > timeout:
+                        raise NoRun(f"no message of run {run!r} within {timeout:g} s (its learner is not up, "
+                                    "or the run has ended)")
                     time.sleep(1.0 / refresh_per_s)
         finally:
             for sub in subs.values():
                 sub.close()
             alive.close()
+    finally:
+        session_cm.__exit__(None, None, None)
     return state
+
+
+class _Plain:
+    """The no-terminal stand-in for rich's Live: nothing to redraw."""
+
+    def __enter__(self) -> "_Plain":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        return None
+
+
+def find_endpoint(run: str, run_dir: Path | None, timeout: float, console: Console) -> str:
+    """Where a local run listens: its config.json or the registry `mam run` writes
+    (services/registry.py), waiting up to `timeout` s for it to appear. NoRun if it does not."""
+    deadline = time.monotonic() + timeout
+    said = False
+    while True:
+        found = registry.lookup(run, run_dir)
+        if found is not None:
+            endpoint, where = found
+            console.print(f"run {run}: {endpoint} (from {where})", highlight=False)
+            return endpoint
+        if time.monotonic() >= deadline:
+            raise NoRun(f"no local run {run!r} within {timeout:g} s (looked in {registry.places(run, run_dir)}); "
+                        "for a run on another host pass --connect ENDPOINT")
+        if not said:
+            console.print(f"waiting for run {run} to start (up to {timeout:g} s; looking in "
+                          f"{registry.places(run, run_dir)}) …", highlight=False)
+            said = True
+        time.sleep(0.5)
 
 
 def apply(state: MonitorState, name: str, payload: bytes) -> None:
@@ -91,16 +151,47 @@ def apply(state: MonitorState, name: str, payload: bytes) -> None:
 app = typer.Typer(add_completion=False, help=__doc__)
 
 
+def watch_command(run: str | None, connect: list[str] | None, zenoh_config: Path | None, run_dir: Path | None,
+                  timeout: float, keep: bool, plain: bool | None) -> None:
+    """`mam watch` / `mam-monitor`: a bad name is a usage error (exit 2); no run within --timeout
+    exits 1 with where it looked; without --connect it finds a local run by its name."""
+    if not run:
+        raise typer.BadParameter("--run NAME is required (printed by `mam run`, in RUN_DIR/config.json)",
+                                 param_hint="--run")
+    try:
+        options.check_run_name(run)
+    except ValueError as e:
+        raise typer.BadParameter(str(e), param_hint="--run") from None
+    if timeout <= 0:
+        raise typer.BadParameter("must be > 0 seconds", param_hint="--timeout")
+    console = Console()
+    try:
+        if not connect and not zenoh_config:
+            connect = [find_endpoint(run, run_dir, timeout, console)]
+        watch(run, role.client_config(connect, None, zenoh_config), until_done=not keep, console=console,
+              timeout=timeout, plain=plain)
+    except NoRun as e:
+        console.print(f"[red]mam watch:[/] {e}", highlight=False)
+        raise typer.Exit(1) from None
+    except KeyboardInterrupt:
+        raise typer.Exit(130) from None
+
+
+Timeout = typer.Option(60.0, "--timeout", help="seconds to wait for the run to appear (and for its first message)")
+Plain = typer.Option(None, "--plain/--live", show_default=False,
+                     help="one line per update, or the live view (default: plain when the output is not a terminal)")
+WatchRunDir = typer.Option(None, "--run-dir", help="the run's directory (its config.json says where it listens); "
+                                                  "default: the registry of local runs, then runs/NAME")
+Keep = typer.Option(False, "--keep", help="keep watching after the run is done")
+
+
 @app.command()
 def monitor_command(
     run: options.Run = None, connect: options.Connect = None, zenoh_config: options.ZenohConfig = None,
-    keep: bool = typer.Option(False, help="keep watching after the run is done"),
+    run_dir: Path = WatchRunDir, timeout: float = Timeout, keep: bool = Keep, plain: bool = Plain,
 ) -> None:
     """Live view of a run: allocation (P_k, I_k), evaluations, workers, learner progress."""
-    if not run:
-        raise typer.BadParameter("--run NAME is required")
-    options.check_run_name(run)
-    watch(run, role.client_config(connect, None, zenoh_config), until_done=not keep)
+    watch_command(run, connect, zenoh_config, run_dir, timeout, keep, plain)
 
 
 cli = app  # the `mam-monitor` entry point

@@ -20,6 +20,9 @@ from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
 
+from mam_core.config import AlgoConfig
+from mam_core.schedule import Schedule
+
 HISTORY = 8  # allocation rounds kept for the history table
 
 
@@ -95,6 +98,9 @@ class MonitorState:
         self.workers: dict[str, WorkerView] = {}
         self.roles: dict[tuple[str, str], tuple[bool, float]] = {}  # (role, id) -> (alive, when)
         self.summary: dict[str, Any] | None = None
+        self.schedule: Schedule | None = None  # iterations <-> transitions, from the run's config
+        self.last_allocation: dict[str, Any] | None = None
+        self.last_eval: dict[str, Any] | None = None
 
     # --- inputs ------------------------------------------------------------------------------
 
@@ -104,8 +110,15 @@ class MonitorState:
         self.env_id = str(d.get("env_id") or self.env_id)
         self.algo = str(d.get("algo") or self.algo)
         self.steps = _int(d.get("steps")) or self.steps
+        algo = d.get("algo_config")
+        if isinstance(algo, Mapping) and self.steps:
+            try:
+                self.schedule = Schedule.for_run(AlgoConfig.from_dict(dict(algo)), self.steps)
+            except (TypeError, ValueError):
+                self.schedule = None
 
     def on_allocation(self, d: Mapping[str, Any]) -> None:
+        self.last_allocation = dict(d)
         self.probabilities = _floats(d.get("probabilities")) or self.probabilities
         self.counts = _ints(d.get("counts")) or self.counts
         if isinstance(d.get("eliminated"), list):
@@ -127,6 +140,7 @@ class MonitorState:
         )
 
     def on_eval(self, d: Mapping[str, Any]) -> None:
+        self.last_eval = dict(d)
         means = _floats(d.get("mean"))
         if len(self.last_mean) < len(means):
             self.last_mean += [None] * (len(means) - len(self.last_mean))
@@ -199,6 +213,28 @@ class MonitorState:
     def done(self) -> bool:
         return self.summary is not None or bool((self.stats or {}).get("done"))
 
+    def at(self, transitions: int | None) -> str:
+        """A point of the run in its schedule's units: "iteration 600 (3,000 transitions)"."""
+        if transitions is None:
+            return "—"
+        clock = self.schedule
+        if clock is not None and clock.paper and clock.units_at(transitions) != transitions:
+            return f"iteration {clock.units_at(transitions):,} ({transitions:,} transitions)"
+        return f"{transitions:,} transitions"
+
+    def progress(self, transitions: int | None) -> list[str]:
+        """Progress in one unit per figure: "iteration 1,200 / 4,000", "transitions 6,000 / 16,000"."""
+        clock = self.schedule
+        if transitions is None:
+            return ["transitions —"]
+        if clock is None:  # no config yet: the budget's unit is unknown
+            return [f"transitions {transitions:,}"]
+        out = []
+        if clock.paper and clock.budget != clock.steps:
+            out.append(f"iteration {clock.units_at(transitions):,} / {clock.steps:,}")
+        out.append(f"transitions {transitions:,} / {clock.budget:,}")
+        return out
+
     def seconds_ago(self, when: float | None) -> float | None:
         return None if when is None else max(0.0, self.now() - when)
 
@@ -232,13 +268,12 @@ def _header(state: MonitorState) -> Panel:
         body = Text.from_markup("[yellow]waiting for learner…[/yellow]" + (f"\n{roles}" if roles else ""))
         return Panel(body, title=name, border_style="yellow")
     steps = _int(stats.get("env_steps"))
-    budget = f" / {state.steps:,}" if state.steps else ""
     losses = stats.get("losses") or {}
     lines = [
-        f"env steps [bold]{steps:,}[/bold]{budget}" if steps is not None else "env steps —",
+        *state.progress(steps),
         f"updates [bold]{_int(stats.get('updates')) or 0:,}[/bold]",
+        f"env steps/s {_fmt(state.steps_per_s, '.1f')}",
         f"updates/s {_fmt(state.updates_per_s, '.1f')}",
-        f"transitions/s {_fmt(state.steps_per_s, '.1f')}",
         f"utd {_fmt(_float(stats.get('utd')), '.3f')}",
     ]
     second = [
@@ -309,14 +344,14 @@ def _workers_table(state: MonitorState) -> Table:
 
 def _history_table(state: MonitorState) -> Table:
     table = Table(title="allocation history", title_justify="left")
-    for col in ("round", "env step", "P", "I", "reason"):
-        table.add_column(col, justify="right" if col in ("round", "env step") else "left")
+    for col in ("round", "at", "P", "I", "reason"):
+        table.add_column(col, justify="right" if col in ("round", "at") else "left")
     if not state.history:
         table.add_row("—", "", "", "", "no allocation yet")
     for r in reversed(state.history):
         table.add_row(
             str(r.round),
-            f"{r.env_steps:,}",
+            state.at(r.env_steps),
             "[" + ", ".join(_fmt(p if math.isfinite(p) else None, ".3f") for p in r.probabilities) + "]",
             "[" + ", ".join(str(c) for c in r.counts) + "]",
             r.reason,
@@ -327,3 +362,64 @@ def _history_table(state: MonitorState) -> Table:
 def render(state: MonitorState) -> RenderableType:
     """The whole `mam watch` screen for one state; cheap enough to redraw a few times a second."""
     return Group(_header(state), _actors_table(state), _workers_table(state), _history_table(state))
+
+
+def _list(values: Any, spec: str) -> str:
+    return "[" + " ".join("—" if v is None else format(v, spec) for v in values) + "]"
+
+
+class PlainLines:
+    """`mam watch` without a terminal: one plain line per update (config, allocation, evaluation,
+    done; learner progress at most every `every_s` seconds), for logs and pipes."""
+
+    def __init__(self, state: MonitorState, every_s: float = 5.0) -> None:
+        self.state, self.every_s = state, every_s
+        self.last_progress: float | None = None
+
+    def after(self, kind: str) -> list[str]:
+        """The lines to print after the state took a message of `kind` (config, allocation, eval,
+        stats, done)."""
+        s = self.state
+        if kind == "config":
+            clock = s.schedule
+            if clock is None:
+                budget = f"{s.steps:,} schedule steps" if s.steps else "unknown"
+            elif clock.paper and clock.budget != clock.steps:
+                budget = f"{clock.steps:,} iterations ({clock.budget:,} transitions)"
+            else:
+                budget = f"{clock.budget:,} transitions"
+            return [f"run {s.run} · {s.algo} · {s.env_id}: budget {budget}"]
+        if kind == "allocation" and s.last_allocation is not None:
+            a = s.last_allocation
+            at = s.at(_int(a.get("env_steps")))
+            text = f"allocation round {_int(a.get('round'))} ({a.get('reason', '')}) at {at}:"
+            if isinstance(a.get("returns"), list):
+                text += " R=" + _list(_floats(a["returns"]), ".2f")
+            text += " P=" + _list(_floats(a.get("probabilities")), ".2f") + " I=" + _list(_ints(a.get("counts")), "d")
+            if s.survivor is not None:
+                text += f" survivor {s.survivor}"
+            return [text]
+        if kind == "eval" and s.last_eval is not None:
+            e = s.last_eval
+            at = s.at(_int(e.get("env_steps")))
+            return [f"evaluation at {at}: mean returns " + _list(_floats(e.get("mean")), ".2f")]
+        if kind == "stats" and s.stats is not None:
+            now = s.now()
+            if self.last_progress is not None and now - self.last_progress < self.every_s and not s.done:
+                return []
+            self.last_progress = now
+            text = "   ".join(s.progress(_int(s.stats.get("env_steps"))))
+            text += f"   updates {_int(s.stats.get('updates')) or 0:,}"
+            if s.steps_per_s is not None:
+                text += f"   {s.steps_per_s:,.1f} env steps/s   {_fmt(s.updates_per_s, ',.1f')} updates/s"
+            return [text]
+        if kind == "done" and s.summary is not None:
+            d = s.summary
+            wall = _float(d.get("wall_time_s"))
+            text = "done" + (f" in {wall:.0f} s" if wall is not None else "")
+            if isinstance(d.get("final_returns"), list):
+                text += ": final returns " + _list(_floats(d["final_returns"]), ".2f")
+            if s.survivor is not None:
+                text += f", survivor {s.survivor}"
+            return [text]
+        return []

@@ -8,6 +8,7 @@ and monitors need only `--run` and `--connect`.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import functools
 import inspect
 import json
@@ -22,7 +23,8 @@ from typing import Annotated, Any, Optional
 
 import typer
 
-from mam_core.config import AFTER_ELIMINATION, ALGOS, SCHEDULES, AlgoConfig, resolve
+from mam_core import schedule as _schedule
+from mam_core.config import AFTER_ELIMINATION, ALGOS, SCHEDULES, AlgoConfig, defaults_for, resolve
 from services import keys
 
 # -- the run options: one table -----------------------------------------------------------------
@@ -45,24 +47,39 @@ class RunOption:
     flags: tuple[str, ...] = ()  # the command-line declaration; default --name-with-dashes
     cli: bool = True  # False: TOML only (no flag)
     aliases: tuple[str, ...] = ()  # other accepted keys (TOML and build_run_config)
+    panel: str = ""  # the `--help` panel; "" → PANELS[name], else RUN_PANEL
 
     @property
     def decls(self) -> tuple[str, ...]:
         return self.flags or ("--" + self.name.replace("_", "-"),)
 
     @property
-    def annotation(self) -> Any:
-        """The typer parameter type: Optional[type] with the flag and its help."""
+    def help_panel(self) -> str:
+        return self.panel or PANELS.get(self.name, RUN_PANEL)
+
+    @property
+    def help_text(self) -> str:
+        """The help with the paper's symbol in front and the default (per --algo where they differ)
+        behind; `\\[` keeps rich from reading `[default: …]` as markup."""
         text = f"[{self.symbol}] {self.help}" if self.symbol else self.help
-        return Annotated[Optional[self.type], typer.Option(*self.decls, help=text)]
+        default = default_text(self)
+        return f"{text}  \\[default: {default}]" if default else text
+
+    @property
+    def annotation(self) -> Any:
+        """The typer parameter type: Optional[type] with the flag, its help and its panel (a bool is a
+        plain flag: no `<bool>` tag)."""
+        extra: dict[str, Any] = {"metavar": ""} if self.type is bool else {}
+        return Annotated[Optional[self.type], typer.Option(*self.decls, help=self.help_text,
+                                                           rich_help_panel=self.help_panel, **extra)]
 
 
 def _opt(name: str, type_: type, help: str, **kw: Any) -> RunOption:  # noqa: A002
     return RunOption(name, type_, help, **kw)
 
 
-_SCHEDULE_HELP = (f"{' or '.join(SCHEDULES)} (default paper): paper = Algorithm 1, --steps/--start-steps/"
-                  "--compete-every/--eliminate-at/--eval-every/--bias-every count iterations (M transitions "
+_SCHEDULE_HELP = (f"{' or '.join(SCHEDULES)}: paper = Algorithm 1, --steps, --start-steps, "
+                  "--compete-every, --eliminate-at, --eval-every, --bias-every count iterations (M transitions "
                   "and one update each before C, one transition after); equal-data = they count transitions "
                   "and --utd gives updates per transition")
 
@@ -94,24 +111,24 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
     _opt("single_env_after_elimination", bool, "the survivor runs one slot only (implied by --schedule paper)",
          multi_actor=True),
     _opt("schedule", str, _SCHEDULE_HELP),
-    _opt("shared_batch", bool, "one mini-batch for all actors (default: one per actor, as in Algorithm 1)",
+    _opt("shared_batch", bool, "one mini-batch for all actors (off: one per actor, as in Algorithm 1)",
          multi_actor=True),
-    _opt("after_elimination", str, f"{', '.join(AFTER_ELIMINATION)} (default frozen): the eliminated actors' "
+    _opt("after_elimination", str, f"{', '.join(AFTER_ELIMINATION)}: the eliminated actors' "
          "critics after C stay frozen in Eq. 9, keep training, or leave Eq. 9 (η → 0)", multi_actor=True),
-    _opt("skip_random_rounds", bool, "no allocation round during the random start phase (default: rounds from A on)",
+    _opt("skip_random_rounds", bool, "no allocation round during the random start phase (off: rounds from A on)",
          multi_actor=True),
     _opt("bias_every", int, "measure the Eq. 17 estimation bias every N schedule steps in the learner (0: off)",
          target=RUN),
-    _opt("bias_rollouts", int, "Monte-Carlo rollouts per bias measurement (default 20, as in the paper)", target=RUN),
-    _opt("bias_horizon", str, "Eq. 17's Monte-Carlo Q*: critic (default: adds the bootstrap tail γ^T·Q(s_T, π(s_T)) "
+    _opt("bias_rollouts", int, "Monte-Carlo rollouts per bias measurement (the paper: 20)", target=RUN),
+    _opt("bias_horizon", str, "Eq. 17's Monte-Carlo Q*: critic (adds the bootstrap tail γ^T·Q(s_T, π(s_T)) "
          "at a time limit, the critic's own horizon) or episode (cut at the time limit)", target=RUN),
     _opt("run", str, "run name: the key-expression namespace mam/<run>/...", target=RUN),
-    _opt("sync_every", int, "publish actor weights every N updates (default 100)", target=RUN),
-    _opt("save_replay", bool, "persist the replay buffer beside the checkpoint as append-only chunks (default: on)",
+    _opt("sync_every", int, "publish actor weights every N updates", target=RUN),
+    _opt("save_replay", bool, "persist the replay buffer beside the checkpoint as append-only chunks",
          target=RUN, flags=("--save-replay/--no-save-replay",)),
-    _opt("checkpoint_every", int, "checkpoint every N updates (default 50000) ...", target=RUN),
-    _opt("checkpoint_rows", int, "... or N transitions (default 20000) ...", target=RUN),
-    _opt("checkpoint_seconds", float, "... or N seconds (default 60)", target=RUN),
+    _opt("checkpoint_every", int, "checkpoint every N updates ...", target=RUN),
+    _opt("checkpoint_rows", int, "... or N transitions ...", target=RUN),
+    _opt("checkpoint_seconds", float, "... or N seconds, whichever comes first", target=RUN),
     _opt("stall_timeout", float, "seconds without a new transition or update before the run counts as stalled: "
          "`mam run` logs what each side waits for and restarts the stuck child (0: no watchdog)", target=RUN),
     # TOML only: knobs of the algorithm and the services that no command line needs
@@ -131,6 +148,52 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
 )
 OPTION = {o.name: o for o in RUN_OPTIONS}
 _KEYS = {alias: o.name for o in RUN_OPTIONS for alias in (o.name, *o.aliases)}
+
+# The `--help` panel of each run option without a `panel` of its own (an option in neither: RUN_PANEL).
+PANELS = {
+    **dict.fromkeys(("algo", "actors", "workers", "eliminate_at", "compete_every", "eta", "batch_size", "utd",
+                     "no_ot", "no_wt", "hidden", "single_env_after_elimination", "shared_batch",
+                     "after_elimination"), ALGORITHM_PANEL),
+    **dict.fromkeys(("steps", "schedule", "start_steps", "eval_episodes", "eval_every", "skip_random_rounds",
+                     "bias_every", "bias_rollouts", "bias_horizon"), SCHEDULE_PANEL),
+    **dict.fromkeys(("save_replay", "checkpoint_every", "checkpoint_rows", "checkpoint_seconds", "stall_timeout",
+                     "max_restarts", "restart_window"), SUPERVISION_PANEL),
+    **dict.fromkeys(("sync_every", "collection", "send_batch", "band"), DISTRIBUTION_PANEL),
+}
+
+
+def _shown(value: Any) -> str:
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    if isinstance(value, (tuple, list)):
+        return ",".join(str(v) for v in value)
+    if isinstance(value, float):
+        return f"{value:g}"
+    return str(value)
+
+
+def default_text(option: RunOption) -> str:
+    """What a run option is when left out: "3" or, where the algorithms differ, "ma-td3, td3: 300000;
+    ma-ddpg, ddpg: 24000" (mam_core.config `defaults_for`); "" where there is none to show."""
+    if option.target == ALGO:
+        if option.name == "algo":
+            return AlgoConfig().algo
+        groups: dict[str, list[str]] = {}
+        for algo in ALGOS:
+            groups.setdefault(_shown(getattr(defaults_for(algo), option.name)), []).append(algo)
+        if len(groups) == 1:
+            return next(iter(groups))
+        return "; ".join(f"{', '.join(algos)}: {value}" for value, algos in groups.items())
+    run_config = globals().get("RunConfig")  # None while this module is still being imported
+    if run_config is None:
+        return ""
+    if option.name == "run":
+        return "ALGO-ENV-DATE-TIME-PID"
+    fields = {f.name: f for f in dataclasses.fields(run_config)}
+    f = fields.get(option.name)
+    if f is None or f.default is dataclasses.MISSING:
+        return ""
+    return _shown(f.default)
 
 
 def cli_options(exclude: tuple[str, ...] | frozenset[str] = ()) -> tuple[RunOption, ...]:
@@ -182,16 +245,19 @@ BiasEvery, BiasRollouts, BiasHorizon = (OPTION[n].annotation for n in ("bias_eve
 SingleEnv, Schedule, SharedBatch, AfterElimination, SkipRandomRounds = (
     OPTION[n].annotation for n in ("single_env_after_elimination", "schedule", "shared_batch", "after_elimination",
                                    "skip_random_rounds"))
-ConfigFile = Annotated[Optional[Path], typer.Option("--config", help="TOML file holding any of the run options")]
+ConfigFile = Annotated[Optional[Path], typer.Option("--config", help="TOML file holding any of the run options "
+                                                   "(flags win over it)", rich_help_panel=RUN_PANEL)]
 
 # -- network flags ----------------------------------------------------------------------------
 Run = OPTION["run"].annotation
 Connect = Annotated[Optional[list[str]], typer.Option(
-    "--connect", help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447")]
+    "--connect", help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447", rich_help_panel=DISTRIBUTION_PANEL)]
 Listen = Annotated[Optional[list[str]], typer.Option(
-    "--listen", help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447")]
-ZenohConfig = Annotated[Optional[Path], typer.Option("--zenoh-config", help="Zenoh JSON5 config file")]
-RunDir = Annotated[Optional[Path], typer.Option("--run-dir", help="directory for this process's logs and outputs")]
+    "--listen", help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447", rich_help_panel=DISTRIBUTION_PANEL)]
+ZenohConfig = Annotated[Optional[Path], typer.Option("--zenoh-config", help="Zenoh JSON5 config file",
+                                                    rich_help_panel=DISTRIBUTION_PANEL)]
+RunDir = Annotated[Optional[Path], typer.Option("--run-dir", help="directory for this process's logs and outputs",
+                                                rich_help_panel=RUN_PANEL)]
 
 
 @dataclass(frozen=True)
@@ -259,6 +325,57 @@ class RunConfig:
         return cfg
 
 
+def budget_warnings(cfg: RunConfig) -> list[str]:
+    """One line for each part of the run the budget leaves out (no update, no round, no
+    elimination) and for M < K, in the schedule's units and with the flag to change; [] when
+    the run shows everything. `mam run` and `mam-learner` print them at start."""
+    algo, steps = cfg.algo, cfg.steps
+    clock = _schedule.Schedule.for_run(algo, steps)
+    unit = "iterations" if clock.paper else "transitions"
+    lines = []
+    if algo.start_steps >= steps:
+        lines.append(f"no update: the budget (--steps {steps:,} {unit}) ends within the random start phase "
+                     f"(--start-steps {algo.start_steps:,}); lower --start-steps or raise --steps")
+    c = clock.eliminate_at
+    if c is not None:
+        first = clock.first_round()
+        if first >= min(steps, c):
+            end = (f"the budget's end (--steps {steps:,})" if steps <= c
+                   else f"the elimination at C = {c:,} (--eliminate-at)")
+            why = f"--compete-every {algo.compete_every:,}" + (", --skip-random-rounds" if algo.skip_random_rounds
+                                                               else "")
+            lines.append(f"no allocation round: the first would be at {unit[:-1]} {first:,} ({why}), at or after "
+                         f"{end}; lower --compete-every")
+        if c > steps:
+            lines.append(f"no elimination: C = {c:,} {unit} (--eliminate-at) is past the budget (--steps "
+                         f"{steps:,}); lower --eliminate-at or raise --steps")
+    if algo.actors > 1 and algo.workers < algo.actors:
+        lines.append(actors_without_slots(algo))
+    return lines
+
+
+def actors_without_slots(algo: AlgoConfig) -> str:
+    """M < K is allowed, and explained: each round the M slots are drawn from P_k (Eq. 8), so some
+    actors collect nothing in that round; they still learn from the others' transitions (the
+    replay is shared, the updates off-policy) and are evaluated and ranked like the others."""
+    m, k = algo.workers, algo.actors
+    return (f"M = {m} worker slot{'s' if m > 1 else ''} for K = {k} actors: each round draws the {m} slot"
+            f"{'s' if m > 1 else ''} from P_k, so at least {k - m} actor{'s' if k - m > 1 else ''} collect"
+            f"{'s' if k - m == 1 else ''} nothing in a round (all still learn from the shared replay and are "
+            f"evaluated); --workers {k} gives every actor a slot")
+
+
+def learner_banner(cfg: RunConfig, listen: list[str] | None, connect: list[str] | None) -> str:
+    """What `mam-learner` says at start: where it listens (or connects) and what it waits for."""
+    run, m = cfg.run, cfg.algo.workers
+    where = (f"listening on {', '.join(listen)}" if listen else "") + \
+        (f"{' and ' if listen else ''}connecting to {', '.join(connect)}" if connect else "")
+    endpoint = (connect or [])[:1] or [e.replace("0.0.0.0", "HOST") for e in (listen or [])[:1]] or ["ENDPOINT"]
+    return (f"learner of run {run!r} {where or 'with the --zenoh-config endpoints'}; waiting for a referee "
+            f"(mam-referee --run {run} --connect {endpoint[0]}) and M = {m} worker{'s' if m > 1 else ''} "
+            f"(mam-worker --run {run} --connect {endpoint[0]} --id NAME, one per slot)")
+
+
 def check_run_name(name: str) -> str:
     """A run name is one key chunk (services/keys.py): letters, digits, '_', '.', '-'."""
     return keys.check_name(name, "run name")
@@ -288,8 +405,11 @@ def _canonical(key: str, where: str) -> str:
     """The table name of an option key (`-` read as `_`, aliases resolved); unknown: BadParameter."""
     name = _KEYS.get(key.replace("-", "_"))
     if name is None:
-        raise typer.BadParameter(f"{where}: unknown option {key!r} (the run options are listed in "
-                                 "services/options.py RUN_OPTIONS)")
+        dashed = {k.replace("_", "-"): k for k in _KEYS}
+        close = difflib.get_close_matches(key.replace("_", "-"), list(dashed), n=1, cutoff=0.6)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        raise typer.BadParameter(f"{where}: unknown option {key!r}{hint} (`mam run --help` lists the run options; "
+                                 "a TOML key is the flag without its dashes)")
     return name
 
 
@@ -331,7 +451,10 @@ def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig
         raise typer.BadParameter(f"--algo must be one of {', '.join(ALGOS)}, not {algo_name!r}")
     steps = merged.pop("steps", None)
     if steps is None or int(steps) < 1:
-        raise typer.BadParameter("--steps must be a positive number of transitions")
+        paper = (merged.get("schedule") or AlgoConfig().schedule) == "paper"
+        unit = "iterations (under --schedule paper)" if paper else "transitions (under --schedule equal-data)"
+        got = "" if steps is None else f", not {steps}"
+        raise typer.BadParameter(f"--steps [T] must be a positive number of {unit}{got}")
     run_fields = {k: merged.pop(k) for k in list(merged) if OPTION[k].target == RUN}
     if env_kwargs:
         run_fields["env_kwargs"] = env_kwargs
