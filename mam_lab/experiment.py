@@ -26,9 +26,9 @@ from rich.console import Console
 
 from mam_core.config import ALGOS
 from mam_lab.grid import GRID_DIMENSIONS, GridError, load_grid_file, make_grid, plan, seeds_text, variants
-from mam_lab.ledger import check_resume, default_ledger, write_manifest
+from mam_lab.ledger import check_resume, default_ledger, wall_estimates, write_manifest
 from mam_lab.provenance import ROOT, code_version, commit_label
-from mam_lab.scheduler import GridResult, core_slots, default_parallel, run_grid
+from mam_lab.scheduler import GridResult, core_slots, default_parallel, parse_stop_by, run_grid
 from mam_lab.view import describe_plan, hms
 from services import options
 
@@ -72,6 +72,13 @@ def experiment_command(
     no_ledger: Annotated[bool, typer.Option("--no-ledger", help="keep no ledger")] = False,
     variants_opt: Annotated[Optional[str], typer.Option(
         "--variants", help="run only these variants of the grid (comma-separated names)")] = None,
+    stop_by: Annotated[Optional[str], typer.Option(
+        "--stop-by", help="deadline, HH:MM (today, local time) or an ISO datetime: start no run whose estimated "
+                          "wall time (median of the finished runs of its env and variant, here and in the ledger) "
+                          "would end after it; a run with no estimate yet starts while the deadline is ahead. Runs "
+                          "still in flight at the deadline are allowed to finish and are recorded when they do "
+                          "(Ctrl-C: not recorded, redone on resume); the runs not started wait for the next "
+                          "invocation")] = None,
 ) -> None:
     """Run a grid of algorithms × seeds × envs through the distributed system; resumable.
 
@@ -110,9 +117,14 @@ def experiment_command(
             raise GridError("--cores-per-run must be >= 1")
         parallel = parallel or default_parallel(cores_per_run)
         check_resume(specs, exp_dir, ledger)
-    except GridError as e:
+        deadline = parse_stop_by(stop_by) if stop_by is not None else None
+    except (GridError, ValueError) as e:
         raise typer.BadParameter(str(e)) from e
-    describe_plan(specs, aliases, exp_dir, console, ledger)
+    estimates = wall_estimates(specs, exp_dir, ledger)
+    describe_plan(specs, aliases, exp_dir, console, ledger, estimates)
+    if deadline is not None:
+        console.print(f"stop by {deadline.isoformat(timespec='minutes')}: no run starts that its estimate says "
+                      "would end later; runs in flight then are allowed to finish")
     slots = core_slots(parallel) if pin else [()] * parallel
     code = code_version(ROOT)
     console.print(f"{parallel} run(s) at once" + (", cores " + "; ".join(seeds_text(c) for c in slots) if pin else
@@ -125,12 +137,16 @@ def experiment_command(
     write_manifest(exp_dir, grid, specs, aliases, ledger, parallel=parallel)
     try:
         result = run_grid(specs, exp_dir, console, plot_runs=not no_plot, retries=retries, fail_fast=fail_fast,
-                          parallel=parallel, cores=slots, ledger=ledger, experiment=grid.name)
+                          parallel=parallel, cores=slots, ledger=ledger, experiment=grid.name,
+                          stop_by=deadline.timestamp() if deadline is not None else None, estimates=estimates)
     except KeyboardInterrupt:
         result = GridResult(interrupted=True)
     console.print(f"[bold]{len(result.skipped) + len(result.finished)}/{len(specs)}[/] runs finished "
                   f"({len(result.finished)} now, {len(result.skipped)} before), {len(result.failed)} failed "
                   f"in {hms(result.elapsed_s)}")
+    if result.deferred:
+        console.print(f"[yellow]{len(result.deferred)} run(s) not started[/]: they would end after --stop-by "
+                      f"{stop_by}; run the same command again to continue")
     if not no_report and (result.finished or result.skipped):
         from mam_lab.report import write_report
         from mam_lab.tables import print_tables

@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import statistics
 import sys
 import time
 from collections.abc import Mapping, Sequence
@@ -247,3 +248,51 @@ def check_resume(specs: Sequence[RunSpec], exp_dir: Path, ledger: Path | None = 
     if bad:
         raise GridError(f"{exp_dir} or the ledger {ledger} holds finished runs of a different grid (use another "
                         "--exp-dir / --ledger, or remove them):\n  " + "\n  ".join(bad[:10]))
+
+
+# --- wall-time estimates (mam experiment --stop-by) -----------------------------------------
+
+
+def record_wall_s(record: Mapping[str, Any]) -> float | None:
+    """A finished run's wall time: the scheduler's (`run_wall_s`), else the launcher's, else the referee's."""
+    for key in ("run_wall_s", "launcher_wall_time_s", "wall_time_s"):
+        value = record.get(key)
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0:
+            return float(value)
+    return None
+
+
+def wall_estimates(specs: Sequence[RunSpec], exp_dir: Path, ledger: Path | None = None,
+                   ) -> dict[tuple[str, str], list[float]]:
+    """{(env, variant): wall times of its finished runs}, from the record.json of every seed of that
+    env and variant in the experiment directory and the ledger (the experiment directory wins for a
+    seed both have). A record made with another budget is scaled to the grid's (× steps / its steps)."""
+    out: dict[tuple[str, str], list[float]] = {}
+    for spec in specs:
+        key = (spec.env, spec.variant)
+        if key in out:
+            continue
+        seen: set[str] = set()
+        times: list[float] = []
+        for root in (Path(exp_dir), Path(ledger) if ledger is not None else None):
+            if root is None:
+                continue
+            for path in sorted((root / spec.path.parent).glob(f"seed*/{RECORD}")):
+                if path.parent.name in seen:
+                    continue
+                record = read_json(path)
+                wall = record_wall_s(record)
+                if wall is None:
+                    continue
+                seen.add(path.parent.name)
+                steps = (record.get("spec") or {}).get("steps") if isinstance(record.get("spec"), dict) else None
+                if isinstance(steps, int) and steps > 0 and steps != spec.steps:
+                    wall *= spec.steps / steps
+                times.append(wall)
+        out[key] = times
+    return out
+
+
+def estimate_wall_s(times: Sequence[float]) -> float | None:
+    """The estimated wall time of a run: the median of its variant's finished runs (None without any)."""
+    return float(statistics.median(times)) if times else None

@@ -9,6 +9,14 @@ pinned by CPU affinity to the run's own len(cores) // P cores and uses one torch
 referee and workers (light, bursty) may use any core: measured faster than pinning whole runs
 (docs/PERFORMANCE.md). One progress view shows the grid and every run in progress; Ctrl-C (or SIGTERM)
 sends SIGTERM to every run, whose launcher stops its processes, and a rerun resumes.
+
+A deadline (`--stop-by TIME`, `may_start`): a run starts only if its estimated wall time (the
+median of the finished runs of the same env and variant in the experiment directory and the
+ledger, mam_lab.ledger.wall_estimates, updated as runs finish) ends by TIME; a run with no
+estimate yet (its variant has never finished) starts while TIME is still ahead, since finishing
+one is how its estimate is made; after TIME nothing starts. A run still in flight at TIME is
+allowed to finish and is recorded when it does (Ctrl-C stops it as always: not recorded, redone on
+resume). Runs not started are reported (`GridResult.deferred`) and left for the next invocation.
 """
 
 from __future__ import annotations
@@ -25,13 +33,14 @@ import traceback
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 from typing import IO, Any
 
 from rich.console import Console
 
 from mam_lab.grid import RunSpec
-from mam_lab.ledger import RECORD, backfill_ledger, make_record, run_state, write_ledger_record
+from mam_lab.ledger import RECORD, backfill_ledger, estimate_wall_s, make_record, run_state, write_ledger_record
 from mam_lab.provenance import ROOT, code_version
 from mam_lab.view import GridView, hms
 from services import options, rundir
@@ -107,6 +116,41 @@ class GridResult:
     interrupted: bool = False
     elapsed_s: float = 0.0
     run_wall_s: dict[str, float] = field(default_factory=dict)  # label -> wall time of its finished attempt
+    deferred: list[RunSpec] = field(default_factory=list)  # not started: they would end after --stop-by
+
+
+# --- the deadline ----------------------------------------------------------------------------
+
+
+def may_start(now: float, stop_by: float | None, estimate_s: float | None) -> bool:
+    """The deadline rule: without a deadline every run starts; at or after it none does; before
+    it, a run starts if its estimated wall time ends by the deadline (now + estimate ≤ stop_by),
+    and a run without an estimate starts (its variant has never finished: running it makes one)."""
+    if stop_by is None:
+        return True
+    if now >= stop_by:
+        return False
+    return estimate_s is None or now + estimate_s <= stop_by
+
+
+def parse_stop_by(text: str, now: datetime | None = None) -> datetime:
+    """--stop-by TIME: "HH:MM" (today, local time) or an ISO datetime ("2026-12-02T18:30",
+    local time unless it names its offset); an aware datetime. TIME already past is an error."""
+    now = now if now is not None else datetime.now().astimezone()
+    text = text.strip()
+    m = re.fullmatch(r"(\d{1,2}):(\d{2})", text)
+    try:
+        if m:
+            when = now.replace(hour=int(m.group(1)), minute=int(m.group(2)), second=0, microsecond=0)
+        else:
+            when = datetime.fromisoformat(text)
+            if when.tzinfo is None:
+                when = when.replace(tzinfo=now.tzinfo)
+    except ValueError as e:
+        raise ValueError(f"--stop-by {text!r}: give HH:MM (today, local time) or an ISO datetime ({e})") from e
+    if when <= now:
+        raise ValueError(f"--stop-by {text!r}: {when.isoformat(timespec='minutes')} has already passed")
+    return when
 
 
 def _keep_failure(exp_dir: Path, spec: RunSpec, run_dir: Path, attempt: int) -> Path | None:
@@ -149,10 +193,15 @@ def _raise_keyboard_interrupt(signum: int, _frame: Any) -> None:
 def run_grid(specs: Sequence[RunSpec], exp_dir: Path, console: Console, *, plot_runs: bool = True,
              retries: int = 1, fail_fast: bool = False, launcher: Launcher | None = None,
              tag: str | None = None, parallel: int = 1, cores: Sequence[Sequence[int]] | None = None,
-             ledger: Path | None = None, experiment: str = "experiment") -> GridResult:
+             ledger: Path | None = None, experiment: str = "experiment", stop_by: float | None = None,
+             estimates: dict[tuple[str, str], list[float]] | None = None,
+             clock: Callable[[], float] = time.time) -> GridResult:
     """Run every spec not finished yet, `parallel` at a time, each as its own process; returns what
     happened. `cores`: the affinity of each of the `parallel` slots (None: core_slots; [] per slot:
     unpinned). A finished run's record goes to RUN_DIR/record.json and, with `ledger`, to the ledger.
+
+    `stop_by` (seconds since the epoch, on `clock`): the deadline (may_start); `estimates`: {(env,
+    variant): wall times of finished runs} (mam_lab.ledger.wall_estimates), extended as runs finish.
 
     Ctrl-C (or SIGTERM to the grid) sends SIGTERM to every run in progress and waits for them to stop."""
     launch = launcher or start_run_process
@@ -177,6 +226,11 @@ def run_grid(specs: Sequence[RunSpec], exp_dir: Path, console: Console, *, plot_
     free = list(range(parallel))
     active: dict[int, _Active] = {}
     stopping = False
+    estimates = {k: list(v) for k, v in (estimates or {}).items()}
+
+    def estimate_of(spec: RunSpec) -> float | None:
+        return estimate_wall_s(estimates.get((spec.env, spec.variant), []))
+
     in_main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _raise_keyboard_interrupt) if in_main else None
 
@@ -188,7 +242,7 @@ def run_grid(specs: Sequence[RunSpec], exp_dir: Path, console: Console, *, plot_
         run_dir.mkdir(parents=True)
         log = open(run_dir / rundir.LAUNCHER_LOG, "wb")
         code = code_version(ROOT)
-        view.start_run(spec, run_dir, index, slot, slots[slot])
+        view.start_run(spec, run_dir, index, slot, slots[slot], estimate_s=estimate_of(spec))
         try:
             proc = launch(Launch(spec, spec.run_config(run_name_for(spec, tag)), run_dir, slots[slot], plot_runs,
                                  log))
@@ -226,6 +280,7 @@ def run_grid(specs: Sequence[RunSpec], exp_dir: Path, console: Console, *, plot_
                                        f"{hms(took)}{where}", slot=a.slot)
             result.finished.append(a.spec)
             result.run_wall_s[a.spec.label] = took
+            estimates.setdefault((a.spec.env, a.spec.variant), []).append(took)
             return
         if status in INTERRUPTED_STATUS or (result.interrupted and status == -signal.SIGKILL):
             result.interrupted = True
@@ -252,11 +307,16 @@ def run_grid(specs: Sequence[RunSpec], exp_dir: Path, console: Console, *, plot_
                 finish(a, status)
 
     try:
-        with GridView(console, specs, result.skipped) as view:
+        with GridView(console, specs, result.skipped, stop_by=stop_by) as view:
             try:
                 while True:
                     while queue and free and not stopping:
                         spec, attempt = queue.popleft()
+                        estimate = estimate_of(spec)
+                        if not may_start(clock(), stop_by, estimate):
+                            result.deferred.append(spec)
+                            view.defer_run(spec, estimate)
+                            continue
                         start(spec, attempt, free.pop(0))
                     if not active and (stopping or not queue):
                         break
@@ -271,6 +331,7 @@ def run_grid(specs: Sequence[RunSpec], exp_dir: Path, console: Console, *, plot_
         if in_main:
             signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
     result.finished.sort(key=order.__getitem__)
+    result.deferred.sort(key=order.__getitem__)
     result.failed.sort(key=order.__getitem__)
     result.elapsed_s = time.monotonic() - started
     return result

@@ -1,5 +1,6 @@
-"""The progress view of `mam experiment`: the grid's bar (runs, env steps, elapsed, ETA) and one
-line per run in progress, and the table of the planned runs."""
+"""The progress view of `mam experiment`: the grid's bar (runs, env steps, elapsed, ETA, the
+--stop-by deadline) and one line per run in progress with its estimated wall time, and the table
+of the planned runs with the estimated wall time per run of each row (mam_lab.ledger.wall_estimates)."""
 
 from __future__ import annotations
 
@@ -53,7 +54,8 @@ class GridView:
     learner.jsonl / eval.jsonl once a second.
     """
 
-    def __init__(self, console: Console, specs: Sequence[RunSpec], done: Iterable[RunSpec]) -> None:
+    def __init__(self, console: Console, specs: Sequence[RunSpec], done: Iterable[RunSpec],
+                 stop_by: float | None = None) -> None:
         from rich.progress import BarColumn, Progress, TextColumn
 
         self.console = console
@@ -68,6 +70,9 @@ class GridView:
         self.current: dict[int, tuple[RunSpec, Path]] = {}  # slot -> the run in it
         self.current_steps: dict[int, int] = {}
         self.tasks: dict[int, Any] = {}  # slot -> progress task
+        self.estimates: dict[int, float | None] = {}  # slot -> estimated wall time of its run
+        self.stop_by = stop_by
+        self.deferred = 0
         self.lock = threading.Lock()
         self.progress = Progress(TextColumn("{task.description}"), BarColumn(bar_width=28),
                                  TextColumn("{task.fields[info]}"), console=console, refresh_per_second=2,
@@ -103,30 +108,47 @@ class GridView:
     def grid_info(self) -> str:
         failed = f" · [red]{self.failed} failed[/]" if self.failed else ""
         running = f" · {len(self.current)} running" if len(self.current) > 1 else ""
+        deadline = ""
+        if self.stop_by is not None:
+            deadline = f" · stop by {time.strftime('%H:%M', time.localtime(self.stop_by))}"
+            deadline += f" ({self.deferred} not started)" if self.deferred else ""
         return (f"{self.done_runs}/{self.total_runs} runs{running} · {self.done_steps + self._running_steps():,}/"
                 f"{self.total_steps:,} steps · elapsed {hms(time.monotonic() - self.started)} · "
-                f"ETA {hms(self.eta())}{failed}")
+                f"ETA {hms(self.eta())}{deadline}{failed}")
 
     def refresh(self) -> None:
         with self.lock:
             self.progress.update(self.grid_task, completed=self.done_steps + self._running_steps(),
                                  info=self.grid_info())
 
-    def start_run(self, spec: RunSpec, run_dir: Path, index: int, slot: int = 0, cores: Sequence[int] = ()) -> None:
+    def start_run(self, spec: RunSpec, run_dir: Path, index: int, slot: int = 0, cores: Sequence[int] = (),
+                  estimate_s: float | None = None) -> None:
         where = f" [dim]cores {seeds_text(cores)}[/]" if cores else ""
         with self.lock:
             self.current[slot] = (spec, run_dir)
             self.current_steps[slot] = 0
+            self.estimates[slot] = estimate_s
             if slot not in self.tasks:
                 self.tasks[slot] = self.progress.add_task("", total=1, completed=0, info="")
             self.progress.update(self.tasks[slot], description=f"run {index}: {spec.label}{where}",
-                                 total=spec.steps, completed=0, info="starting", visible=True)
+                                 total=spec.steps, completed=0, info=f"starting · {estimate_text(estimate_s)}",
+                                 visible=True)
+        self.refresh()
+
+    def defer_run(self, spec: RunSpec, estimate_s: float | None) -> None:
+        """A run --stop-by does not start: its estimated wall time would end after the deadline."""
+        with self.lock:
+            self.deferred += 1
+        self.progress.console.print(f"[yellow]not started[/] {spec.label}: {estimate_text(estimate_s)} would end "
+                                    f"after --stop-by" if estimate_s is not None else
+                                    f"[yellow]not started[/] {spec.label}: --stop-by has passed")
         self.refresh()
 
     def end_run(self, spec: RunSpec, ok: bool, message: str, count_failure: bool = True, slot: int = 0) -> None:
         with self.lock:
             self.current.pop(slot, None)
             self.current_steps.pop(slot, None)
+            self.estimates.pop(slot, None)
             if ok:
                 self.done_runs += 1
                 self.done_steps += spec.steps
@@ -154,24 +176,35 @@ class GridView:
                         continue
                     self.current_steps[slot] = min(steps, spec.steps)
                     self.progress.update(self.tasks[slot], completed=self.current_steps[slot],
-                                         info=f"{steps:,}/{spec.steps:,} steps · upd {updates:,}{best}")
+                                         info=f"{steps:,}/{spec.steps:,} steps · upd {updates:,}{best} · "
+                                              f"{estimate_text(self.estimates.get(slot))}")
             self.refresh()
 
 
+def estimate_text(estimate_s: float | None) -> str:
+    """The estimated wall time of a run, as the view shows it."""
+    return "no estimate" if estimate_s is None else f"est. {hms(estimate_s)}"
+
+
 def describe_plan(specs: Sequence[RunSpec], aliases: Mapping[str, str], exp_dir: Path, console: Console,
-                  ledger: Path | None = None) -> None:
+                  ledger: Path | None = None, estimates: Mapping[tuple[str, str], Sequence[float]] | None = None,
+                  ) -> None:
     from rich.table import Table
 
+    from mam_lab.ledger import estimate_wall_s
+
     table = Table(title=f"{len(specs)} runs in {exp_dir}")
-    for h in ("env", "variant", "seeds", "steps", "options", "finished"):
+    for h in ("env", "variant", "seeds", "steps", "options", "finished", "wall/run"):
         table.add_column(h, overflow="fold")
     groups: dict[tuple[str, str], list[RunSpec]] = {}
     for s in specs:
         groups.setdefault((s.env, s.variant), []).append(s)
     for (env, variant), ss in groups.items():
         done = sum(run_state(s, exp_dir, ledger) == "done" for s in ss)
+        times = list((estimates or {}).get((env, variant), []))
+        wall = estimate_text(estimate_wall_s(times)) + (f" (median of {len(times)})" if times else "")
         table.add_row(env, variant, seeds_text([s.seed for s in ss]), f"{ss[0].steps:,}",
-                      flags_text(ss[0].flags) or "(paper defaults)", f"{done}/{len(ss)}")
+                      flags_text(ss[0].flags) or "(paper defaults)", f"{done}/{len(ss)}", wall)
     console.print(table)
     for dup, same in aliases.items():
         console.print(f"[dim]{dup} is the same configuration as {same}: run once[/]")

@@ -56,14 +56,36 @@ def stop_on_signals(target: Any) -> None:
     signal.signal(signal.SIGINT, on_signal)
 
 
-def fetch_config(session: Any, run: str, rejects: bus.RejectLog, timeout: float = CONFIG_WAIT_S) -> RunConfig:
-    """The run's resolved config from the learner's config topic (waits for a learner)."""
+WAIT_NOTE_EVERY_S = 30.0  # "waiting for the learner" at first, then this often
+
+
+def connected(session: Any) -> bool | None:
+    """Whether this session has a link to any router or peer (None: unknown)."""
+    try:
+        info = session.info
+        return bool(list(info.routers_zid()) or list(info.peers_zid()))
+    except Exception:  # noqa: BLE001 - an API this zenoh lacks: unknown
+        return None
+
+
+def fetch_config(session: Any, run: str, rejects: bus.RejectLog, timeout: float = CONFIG_WAIT_S,
+                 note_every: float = WAIT_NOTE_EVERY_S) -> RunConfig:
+    """The run's resolved config from the learner's config topic (waits for a learner).
+
+    While it waits it says so at first and then every `note_every` seconds (not once a second),
+    and says when the session has no link at all (the router or the learner's host is gone)."""
     latest = bus.Latest.subscribe(session, keys.config(run))
-    deadline = time.monotonic() + timeout
+    started = time.monotonic()
+    deadline = started + timeout
+    note = Every(note_every)
     try:
         while time.monotonic() < deadline:
             if not latest.wait(keys.config(run), timeout=1.0):
-                log.info("waiting for the learner of run %r ...", run)
+                if note.due():
+                    link = connected(session)
+                    why = " (no link to any router or peer: is the endpoint up?)" if link is False else ""
+                    log.info("waiting for the learner of run %r%s, %.0f s so far ...", run, why,
+                             time.monotonic() - started)
                 continue
             item = latest.get(keys.config(run))
             try:

@@ -145,8 +145,10 @@ class Worker:
         while not self.stop_requested:
             if time.monotonic() - last_status > STATUS_EVERY_S:
                 st = self.stats
-                log.info("sent %d rows, actor %d, weights %s, learner at %s/%s", self.sent_rows, self.actor,
-                         self.versions, st.env_steps if st else "?", st.accept_until if st else "?")
+                link = "" if role.connected(self.session) is not False else \
+                    "; no link to any router or peer: the router or the learner's host is gone"
+                log.info("sent %d rows, actor %d, weights %s, learner at %s/%s%s", self.sent_rows, self.actor,
+                         self.versions, st.env_steps if st else "?", st.accept_until if st else "?", link)
                 last_status = time.monotonic()
             self.publish_report()
             if bus.run_is_done(self.done, self.cfg.run, self.rejects):
