@@ -127,11 +127,12 @@ def test_wilson_interval_by_hand():
 
 
 def test_verdict_word_by_hand():
-    assert verdict_word(Interval(0.7, 0.51, 0.9)) == BETTER  # the whole CI above ½
-    assert verdict_word(Interval(0.3, 0.1, 0.49)) == WORSE  # the whole CI below ½
-    assert verdict_word(Interval(0.6, 0.5, 0.9)) == NOT_SEPARATED  # touches ½: not separated
-    assert verdict_word(Interval(0.4, 0.1, 0.5)) == NOT_SEPARATED
-    assert verdict_word(Interval(math.nan, math.nan, math.nan)) == NOT_SEPARATED
+    # 5 runs a side, the Holm-adjusted exact p of the matching direction below 0.05 (tests/test_verdict.py: the rest)
+    assert verdict_word(Interval(0.7, 0.51, 0.9), 5, 5, 0.01, 0.99) == BETTER  # the whole CI above ½
+    assert verdict_word(Interval(0.3, 0.1, 0.49), 5, 5, 0.99, 0.01) == WORSE  # the whole CI below ½
+    assert verdict_word(Interval(0.6, 0.5, 0.9), 5, 5, 0.01, 0.99) == NOT_SEPARATED  # touches ½: not separated
+    assert verdict_word(Interval(0.4, 0.1, 0.5), 5, 5, 0.99, 0.01) == NOT_SEPARATED
+    assert verdict_word(Interval(math.nan, math.nan, math.nan), 5, 5, 0.01, 0.01) == NOT_SEPARATED
 
 
 # --- learning-curve band ---------------------------------------------------------------------
