@@ -182,7 +182,22 @@ class MultiActorAgent:
 
     # -- the update step -------------------------------------------------------------------
     def update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
-        cfg, k, n = self.cfg, self.cfg.actors, self.cfg.critics_per_actor
+        """One update: the critic phase (Eq. 5 on the Eq. 9 targets), then, every d updates,
+        the delayed actor phase (Eq. 7) and the soft target update (Eq. 4)."""
+        metrics = self.update_critics(batch)
+        if self.actor_phase_due:
+            metrics.update(self.update_actors(batch))
+        return metrics
+
+    @property
+    def actor_phase_due(self) -> bool:
+        """The update just made is the d-th since the last actor phase (TD3's rule)."""
+        return self.updates % self.cfg.policy_delay == 0
+
+    def update_critics(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
+        """Algorithm 1, lines 11-13: every live actor's critics regress on its Eq. 9 targets.
+        Between this and `update_actors` Algorithm 1 places the round and the elimination."""
+        k, n = self.cfg.actors, self.cfg.critics_per_actor
         obs, action, reward = batch["obs"], batch["action"], batch["reward"]
         next_obs, not_done = batch["next_obs"], batch["not_done"]
 
@@ -198,28 +213,25 @@ class MultiActorAgent:
         loss_q = critic_loss(q, y, self.critic_live)
         adam_step(self.critic_opt, loss_q, self.critic_params_list)
         self.updates += 1
-
-        metrics = [loss_q.detach(), q.detach().mean(dim=(1, 2))]
-        if self.updates % cfg.policy_delay == 0:
-            # Eq. 7: actor k follows its first critic Q_k1; gradients only for actor params.
-            pi = self.actor(obs)
-            q1 = self.critic(obs, pi, members=self._first_critics)
-            loss_pi = actor_loss(q1, self.live)
-            adam_step(self.actor_opt, loss_pi, self.actor_params_list)  # actor params only
-            self.actor_updates += 1
-            for j, alive in enumerate(self._live_flags):  # a Python list: no device sync
-                if alive:
-                    self.versions[j] += 1
-            # Eq. 4: soft target update; eliminated members' targets stay frozen.
-            soft_update(self.actor_target, self.actor, self._tau_actor)
-            soft_update(self.critic_target, self.critic, self._tau_critic)
-            metrics.append(loss_pi.detach().reshape(1))
-        values = torch.cat([m.reshape(-1) for m in metrics]).tolist()
+        values = torch.cat([loss_q.detach().reshape(1), q.detach().mean(dim=(1, 2))]).tolist()
         out = {"loss/critic": values[0]}
         out.update({f"q/actor{j}": values[1 + j] for j in range(k)})
-        if len(values) > 1 + k:
-            out["loss/actor"] = values[1 + k]
         return out
+
+    def update_actors(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
+        """Algorithm 1, lines 21-24: actor k follows its first critic Q_k1 (Eq. 7), then the
+        soft target update (Eq. 4); eliminated members and their targets stay frozen."""
+        pi = self.actor(batch["obs"])
+        q1 = self.critic(batch["obs"], pi, members=self._first_critics)
+        loss_pi = actor_loss(q1, self.live)
+        adam_step(self.actor_opt, loss_pi, self.actor_params_list)  # actor params only
+        self.actor_updates += 1
+        for j, alive in enumerate(self._live_flags):  # a Python list: no device sync
+            if alive:
+                self.versions[j] += 1
+        soft_update(self.actor_target, self.actor, self._tau_actor)
+        soft_update(self.critic_target, self.critic, self._tau_critic)
+        return {"loss/actor": float(loss_pi.detach())}
 
     def _smoothed(self, action: torch.Tensor) -> torch.Tensor:
         """Target policy smoothing: ã = clip(π'(s') + clip(N(0, σ̃), ±c), ±max_action)."""

@@ -163,6 +163,15 @@ def choose_survivor(returns: Sequence[float] | np.ndarray, live: Sequence[bool] 
     return best[int(rng.integers(len(best)))]
 
 
+def competition_returns(means: Sequence[float | None]) -> np.ndarray:
+    """R_k for a round from the evaluation's per-actor means: an actor without a return
+    (eliminated, or no weights yet) gets the lowest return seen, so it is never favoured
+    (0.0 when no actor has one). The one rule of the referee and the reference."""
+    known = [m for m in means if m is not None]
+    floor = min(known) if known else 0.0
+    return np.array([floor if m is None else m for m in means], dtype=np.float64)
+
+
 @dataclass(frozen=True)
 class ObsolescenceConfig:
     """Schedule of the obsolescence technology, in the paper's symbols."""

@@ -1,11 +1,11 @@
 """A synchronous, single-process driver of Algorithm 1: the yardstick for tests and benchmarks.
 
-M environment slots step in lock-step, each with the actor the allocation gives it; after each
-sweep the agent makes the updates the schedule allows (mam_core.schedule: `paper` is one update
-per iteration of M transitions, `equal-data` `utd` per transition). Every A schedule steps the
-live actors are evaluated and P_k recomputed (Eq. 8); at C all but the best actor are
-eliminated, and under `paper` the survivor runs one slot. The distributed system in `services/`
-does the same work spread over processes; this driver shares every piece of math.
+It drives `mam_core.algorithm1.Algorithm1` (the one owner of the control flow) with the same
+pieces the distributed roles use: the slots' acting rule and random streams (mam_core.slot,
+mam_core.seeding), numpy copies of the actors for acting and evaluation (mam_core.policy,
+what workers and the referee load from the weights topic), the agent's update phases, and
+the obsolescence state (mam_core.obsolescence). A distributed run in exact mode computes the
+same run bit for bit on one machine (services/, docs/DESIGN-DECISIONS.md "Exact Algorithm 1").
 """
 
 from __future__ import annotations
@@ -15,17 +15,19 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import torch
 
-import mam_core.envs  # noqa: F401  (registers AppleCollect-v0)
 from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
+from mam_core.algorithm1 import Algorithm1, Iteration
 from mam_core.config import AlgoConfig
+from mam_core.envs import make_env  # registers AppleCollect; imports `module:EnvId` modules
 from mam_core.evaluation import evaluate_policy
-from mam_core.obsolescence import obsolescence_for
+from mam_core.obsolescence import competition_returns, obsolescence_for
+from mam_core.policy import NumpyActors
 from mam_core.replay import ReplayBuffer
-from mam_core.schedule import Schedule
+from mam_core.seeding import curve_seed, elimination_seed, final_seed, round_seed, stream
+from mam_core.slot import SlotStreams, explore, uniform
 
 
 @dataclass
@@ -37,6 +39,7 @@ class ReferenceResult:
     updates: int = 0
     survivor: int | None = None
     wall_time_s: float = 0.0
+    policy: list[dict[str, np.ndarray]] = field(default_factory=list)  # the final actors' parameters
 
     def final_mean(self) -> float:
         """Mean return of the best live actor at the last evaluation."""
@@ -44,100 +47,129 @@ class ReferenceResult:
         return max(m for m in last["mean"] if m is not None)
 
 
-def run_reference(env_id: str, cfg: AlgoConfig, steps: int,
+def evaluation_seed(seed: int, it: Iteration, purpose: str) -> int:
+    """The episodes of an evaluation: a competition's by its round, the elimination's, a curve
+    point's by its index, the final one's (each its own stream: mam_core.seeding)."""
+    if purpose == "round":
+        return round_seed(seed, it.round)
+    if purpose == "elimination":
+        return elimination_seed(seed)
+    if purpose == "curve":
+        return curve_seed(seed, it.curve)
+    return final_seed(seed)
+
+
+def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str, Any] | None = None,
                   log: Callable[[str, dict[str, Any]], None] | None = None) -> ReferenceResult:
     """Train for `steps` schedule steps (iterations under `paper`, transitions under `equal-data`)."""
     started = time.perf_counter()
     device = pick_device(cfg.device)
-    envs = [gym.make(env_id) for _ in range(cfg.workers)]
+    plan = Algorithm1.for_run(cfg, steps)
+    envs = [make_env(env_id, env_kwargs) for _ in range(cfg.workers)]
     spec = EnvSpec.from_env(envs[0])
+    torch.manual_seed(cfg.seed)
     agent = MultiActorAgent(cfg, spec, device)
-    clock = Schedule.for_run(cfg, steps)
-    budget = clock.budget
-    capacity = min(cfg.buffer_size, max(budget, cfg.batch_size))
-    buffer = ReplayBuffer(capacity, spec.obs_dim, spec.act_dim, device, cfg.seed)
-    schedule = obsolescence_for(cfg)
-    rng = np.random.default_rng(cfg.seed)
-    result = ReferenceResult()
+    budget = plan.schedule.budget
+    buffer = ReplayBuffer(min(cfg.buffer_size, max(budget, cfg.batch_size)), spec.obs_dim, spec.act_dim, device,
+                          cfg.seed)
+    state = obsolescence_for(cfg)
+    rng = stream(cfg.seed, "allocation")
+    actors = NumpyActors(cfg.actors, spec, cfg.hidden)  # what the workers and the referee act with
+    for k in range(cfg.actors):
+        actors.load_member(k, agent.actor_params(k))
     max_action = np.asarray(spec.max_action, np.float32)
-    obs = np.stack([env.reset(seed=cfg.seed + 1000 * i)[0] for i, env in enumerate(envs)]).astype(np.float32)
-    for i, env in enumerate(envs):
-        env.action_space.seed(cfg.seed + 1000 * i)
-    allocation = schedule.allocation(cfg.workers, rng)
-    result.allocations.append({"env_steps": 0, "slots": list(allocation),
-                               "probabilities": schedule.probabilities.tolist()})
-    next_curve_eval = cfg.eval_every
+    streams = [SlotStreams.for_slot(cfg.seed, i) for i in range(cfg.workers)]
+    obs = [s.seed_env(env) for s, env in zip(streams, envs)]
+    result = ReferenceResult()
+    allocation = state.allocation(cfg.workers, rng)
+    result.allocations.append({"env_steps": 0, "iterations": 0, "slots": list(allocation),
+                               "probabilities": state.probabilities.tolist()})
 
-    def evaluate(env_steps: int) -> list[float | None]:
+    def evaluate(it: Iteration, purpose: str) -> list[float | None]:
+        seed = evaluation_seed(cfg.seed, it, purpose)
         means: list[float | None] = []
         returns: list[list[float]] = []
         for k in range(cfg.actors):
-            if not agent.live_actors[k]:
+            if not state.live[k]:
                 means.append(None)
                 returns.append([])
                 continue
-            r = evaluate_policy(lambda o, k=k: agent.act(o, k), env_id, cfg.eval_episodes,
-                                seed=cfg.seed + 10_000 + env_steps)
+            r = evaluate_policy(actors.policy(k), env_id, cfg.eval_episodes, seed=seed, env_kwargs=env_kwargs)
             means.append(float(r.mean()))
             returns.append(r.tolist())
-        row = {"env_steps": env_steps, "iterations": clock.units_at(env_steps), "updates": agent.updates,
-               "mean": means, "returns": returns}
+        row = {"env_steps": it.transitions[1], "iterations": it.units[1], "updates": agent.updates, "purpose": purpose,
+               "seed": seed, "mean": means, "returns": returns}
         result.evaluations.append(row)
         if log:
             log("eval", row)
         return means
 
-    t = 0
-    while t < budget:
-        active = [0] if (cfg.single_env and schedule.survivor is not None) else range(cfg.workers)
-        if t < clock.random_until:
-            actions = np.stack([envs[i].action_space.sample() for i in range(cfg.workers)]).astype(np.float32)
-        else:
-            with torch.no_grad():
-                all_actions = agent.actor(torch.as_tensor(obs, device=device)).cpu().numpy()  # [K, M, A]
-            actions = all_actions[allocation, np.arange(cfg.workers)]
-            actions += rng.normal(0.0, cfg.explore_noise, actions.shape).astype(np.float32) * max_action
-            actions = np.clip(actions, -max_action, max_action)
-        for i in active:
-            if t >= budget:
-                break
-            next_obs, reward, terminated, truncated, _ = envs[i].step(actions[i])
-            buffer.add_batch(obs[i:i + 1], actions[i:i + 1], np.array([reward], np.float32),
-                             np.asarray(next_obs, np.float32)[None], np.array([terminated]),
-                             actor=int(allocation[i]), version=agent.versions[allocation[i]])
-            obs[i] = envs[i].reset()[0] if terminated or truncated else next_obs
-            t += 1
-        # Updates keep pace with collection, as the schedule allows once the start phase is over.
-        due = clock.updates_allowed(t) if len(buffer) >= cfg.batch_size else 0
-        while agent.updates < due:
-            metrics = agent.update(buffer.sample(cfg.batch_size, agent.batch_groups))
+    def compete(it: Iteration) -> None:
+        """Eq. 8 from this iteration's actors (lines 15-17), or the elimination (18-20)."""
+        means = evaluate(it, "elimination" if it.eliminate else "round")
+        state.record_evaluation(it.units[1], competition_returns(means), rng=rng)
+        result.allocations.append({"env_steps": it.transitions[1], "iterations": it.units[1],
+                                   "slots": list(state.allocation(cfg.workers, rng)),
+                                   "probabilities": state.probabilities.tolist(), "survivor": state.survivor})
+        if log:
+            log("allocation", result.allocations[-1])
+
+    for index in range(1, plan.iterations + 1):
+        it = plan.iteration(index)
+        # Lines 5-10: every slot of the iteration steps once, in slot order.
+        rows = []
+        for i in it.slots:
+            k = allocation[i]
+            action = uniform(envs[i]) if it.random else \
+                explore(actors.policy(k), obs[i], streams[i].noise, cfg.explore_noise, max_action)
+            next_obs, reward, terminated, truncated, _ = envs[i].step(action)
+            next_obs = np.asarray(next_obs, np.float32)
+            rows.append((obs[i], action, float(reward), next_obs, bool(terminated), k,
+                         -1 if it.random else agent.versions[k]))
+            obs[i] = np.asarray(envs[i].reset()[0], np.float32) if terminated or truncated else next_obs
+        add_rows(buffer, rows)
+        # Lines 11-24: the updates, with the round and the elimination between critic and actor phases.
+        if it.competes:
+            compete(it)
+            allocation = result.allocations[-1]["slots"]
+        eliminate_at_update = plan.elimination_update() if it.eliminate else None
+        for _ in range(it.updates[0], it.updates[1]):
+            batch = buffer.sample(cfg.batch_size, agent.batch_groups)
+            metrics = agent.update_critics(batch)
+            if agent.actor_phase_due:
+                if agent.updates == eliminate_at_update:
+                    agent.eliminate(state.survivor)
+                metrics.update(agent.update_actors(batch))
             if log and agent.updates % 1000 == 0:
-                log("learner", {"env_steps": t, "updates": agent.updates, **metrics})
+                log("learner", {"env_steps": it.transitions[1], "updates": agent.updates, **metrics})
+        if it.eliminate and eliminate_at_update is None:
+            agent.eliminate(state.survivor)
+        if it.eliminate:
+            result.survivor = state.survivor
+        if plan.weights_change(index):
+            for k in range(cfg.actors):
+                if state.live[k]:
+                    actors.load_member(k, agent.actor_params(k))
+        if it.curve is not None:
+            evaluate(it, "curve")
+        elif it.last:
+            evaluate(it, "final")
 
-        # Obsolescence (Eq. 8) every A schedule steps; elimination at C.
-        units = clock.units_at(t)
-        if schedule.due_elimination(units) or schedule.due_round(units):
-            means = evaluate(t)
-            returns = [m if m is not None else -np.inf for m in means]
-            was = schedule.survivor
-            schedule.record_evaluation(units, np.where(np.isfinite(returns), returns, 0.0), rng=rng)
-            if schedule.survivor is not None and was is None:
-                agent.eliminate(schedule.survivor)
-                result.survivor = schedule.survivor
-            allocation = schedule.allocation(cfg.workers, rng)
-            result.allocations.append({"env_steps": t, "slots": list(allocation),
-                                       "probabilities": schedule.probabilities.tolist()})
-            if log:
-                log("allocation", result.allocations[-1])
-            next_curve_eval = (units // cfg.eval_every + 1) * cfg.eval_every
-        elif units >= next_curve_eval:
-            evaluate(t)
-            next_curve_eval = (units // cfg.eval_every + 1) * cfg.eval_every
-
-    if not result.evaluations or result.evaluations[-1]["env_steps"] != t:
-        evaluate(t)
     for env in envs:
         env.close()
-    result.env_steps, result.iterations, result.updates = t, clock.units_at(t), agent.updates
+    last = plan.iteration(plan.iterations)
+    result.env_steps, result.iterations, result.updates = last.transitions[1], last.units[1], agent.updates
+    result.policy = [agent.actor_params(k) for k in range(cfg.actors)]
     result.wall_time_s = time.perf_counter() - started
     return result
+
+
+def add_rows(buffer: ReplayBuffer, rows: list[tuple]) -> None:
+    """An iteration's transitions (obs, action, reward, next_obs, terminated, actor, version),
+    in slot order, as one insert (what the learner does with the rows the workers sent)."""
+    if not rows:
+        return
+    obs, action, reward, next_obs, term, actor, version = zip(*rows)
+    buffer.add_batch(np.stack(obs), np.stack(action), np.asarray(reward, np.float32), np.stack(next_obs),
+                     np.asarray(term, np.bool_), actor=np.asarray(actor, np.int64),
+                     version=np.asarray(version, np.int64))

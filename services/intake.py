@@ -61,39 +61,56 @@ class Intake:
         """Add what is valid among `items` (`versions`: the learner's policy versions); rows added."""
         added = 0
         for item in items:
-            sender = keys.parse_last(item.key)
-            try:
-                batch = TransitionBatch.from_bytes(item.payload, self.spec, max_bytes=self.max_message)
-                if batch.worker != sender:
-                    raise MessageError("sender_mismatch", f"key says {sender}, message says {batch.worker}")
-                if batch.version > versions[batch.actor]:
-                    raise MessageError("future_version", f"version {batch.version} > {versions[batch.actor]}")
-            except MessageError as e:
-                self.rejects.reject(sender, e)
-                continue
-            status = self.tracker.observe(batch.worker, batch.incarnation, batch.batch_seq, resend=batch.resend)
-            if status == bus.DUPLICATE:
-                self.rejects.reject(sender, "duplicate")
-                continue
-            w = self._tally(batch)
-            if status == bus.REDUNDANT:  # a resend of what this learner already has: dropped
-                w.redundant_rows += batch.rows
+            batch = self.validate(item, versions)
+            if batch is None or not self.admit(batch):
                 continue
             self.buffer.add_batch(batch.obs, batch.action, batch.reward, batch.next_obs, batch.terminated,
                                   actor=batch.actor, version=batch.version)
+            self.count(batch, versions)
             added += batch.rows
-            stream = f"{batch.worker}/{batch.incarnation}"
-            self.stream_rows[stream] = self.stream_rows.get(stream, 0) + batch.rows
-            w.received += batch.rows
-            w.incarnation_rows += batch.rows
-            w.last_seq = max(w.last_seq, batch.batch_seq)
-            w.actor = batch.actor
-            w.lag = versions[batch.actor] - batch.version if batch.version >= 0 else 0
-            w.last_seen = time.monotonic()
-            w.rows_since += batch.rows
-            if batch.episode_return:
-                self.episode_returns.extend(batch.episode_return)
         return added
+
+    def validate(self, item: bus.Received, versions: Sequence[int]) -> TransitionBatch | None:
+        """The decoded batch, or None (rejected and counted)."""
+        sender = keys.parse_last(item.key)
+        try:
+            batch = TransitionBatch.from_bytes(item.payload, self.spec, max_bytes=self.max_message)
+            if batch.worker != sender:
+                raise MessageError("sender_mismatch", f"key says {sender}, message says {batch.worker}")
+            if batch.version > versions[batch.actor]:
+                raise MessageError("future_version", f"version {batch.version} > {versions[batch.actor]}")
+        except MessageError as e:
+            self.rejects.reject(sender, e)
+            return None
+        return batch
+
+    def admit(self, batch: TransitionBatch) -> bool:
+        """Exactly once: True if the batch's rows belong in the buffer (new, or a resend that
+        fills a gap); duplicates and redundant resends are counted and refused."""
+        status = self.tracker.observe(batch.worker, batch.incarnation, batch.batch_seq, resend=batch.resend)
+        if status == bus.DUPLICATE:
+            self.rejects.reject(batch.worker, "duplicate")
+            return False
+        w = self._tally(batch)
+        if status == bus.REDUNDANT:  # a resend of what this learner already has: dropped
+            w.redundant_rows += batch.rows
+            return False
+        return True
+
+    def count(self, batch: TransitionBatch, versions: Sequence[int]) -> None:
+        """The per-worker counters of an admitted batch whose rows are in the buffer."""
+        w = self._tally(batch)
+        stream = f"{batch.worker}/{batch.incarnation}"
+        self.stream_rows[stream] = self.stream_rows.get(stream, 0) + batch.rows
+        w.received += batch.rows
+        w.incarnation_rows += batch.rows
+        w.last_seq = max(w.last_seq, batch.batch_seq)
+        w.actor = batch.actor
+        w.lag = versions[batch.actor] - batch.version if batch.version >= 0 else 0
+        w.last_seen = time.monotonic()
+        w.rows_since += batch.rows
+        if batch.episode_return:
+            self.episode_returns.extend(batch.episode_return)
 
     def _tally(self, batch: TransitionBatch) -> WorkerTally:
         w = self.workers.setdefault(batch.worker, WorkerTally(actor=batch.actor))

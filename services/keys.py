@@ -4,6 +4,7 @@ All keys live under ``mam/<run>/`` so two runs on the same router never see each
 other's messages::
 
     mam/<run>/weights/<k>             learner -> *        actor k's parameters + version
+    mam/<run>/weights/<k>/eval        learner -> referee  exact mode: the version an evaluation needs
     mam/<run>/transitions/<worker>    worker  -> learner  a batch of transitions
     mam/<run>/allocation              referee -> *        slots, P_k, I_k, elimination
     mam/<run>/eval                    referee -> *        per-actor evaluation returns
@@ -54,6 +55,20 @@ def _base(run: str) -> str:
 
 def weights(run: str, k: int) -> str:
     return f"{_base(run)}/weights/{_actor_index(k)}"
+
+
+def eval_weights(run: str, k: int) -> str:
+    """Exact mode: snapshots of actor k at the versions the referee's evaluations need."""
+    return f"{weights(run, k)}/eval"
+
+
+def eval_weights_all(run: str) -> str:
+    return f"{_base(run)}/weights/*/eval"
+
+
+def slot_name(slot: int) -> str:
+    """Exact mode: the allocation's name of environment slot `slot` (what `mam run` calls its worker)."""
+    return f"w{int(slot)}"
 
 
 def weights_all(run: str) -> str:

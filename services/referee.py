@@ -22,12 +22,15 @@ import numpy as np
 import typer
 
 import mam_core.envs  # noqa: F401
-from mam_core.evaluation import eval_seed, evaluate_policy
-from mam_core.obsolescence import Obsolescence, best_actors, counts, obsolescence_for
-from mam_core.policy import EnvSpec, Policy
+from mam_core.algorithm1 import Algorithm1
+from mam_core.evaluation import evaluate_policy
+from mam_core.obsolescence import Obsolescence, best_actors, competition_returns, counts, obsolescence_for
+from mam_core.policy import EnvSpec, NumpyActors, Policy
 from mam_core.schedule import Schedule
+from mam_core.seeding import curve_seed, elimination_seed, final_seed, round_seed, stream
 from services import bus, keys, options, role, rundir, tb
-from services.codec import Allocation, Eval, LearnerStats, MessageError
+from services.codec import Allocation, Eval, LearnerStats, MessageError, Weights
+from services.exact import WeightsHistory
 from services.options import JsonlWriter, RunConfig, write_json
 
 log = logging.getLogger("mam.referee")
@@ -50,7 +53,10 @@ class Referee:
         self.versions = self.follower.versions
         self.schedule: Obsolescence = obsolescence_for(self.algo)  # counts schedule steps (units)
         self.clock = Schedule.for_run(self.algo, cfg.steps)  # transitions <-> iterations
-        self.rng = np.random.default_rng(self.algo.seed + 17)
+        self.rng = stream(self.algo.seed, "allocation")  # slot draws and the tie-break at C (mam_core.seeding)
+        self.plan = Algorithm1.for_run(self.algo, cfg.steps)
+        self.exact = cfg.collection == "exact"
+        self.last_eval: dict[str, Any] | None = None  # exact mode: the final evaluation's row
         self.slots: dict[str, int] = {}
         self.drawn_over: set[str] = set()  # the live workers the current slots were drawn for
         self.eval_round = 0
@@ -74,6 +80,7 @@ class Referee:
             self.eval_round = int(data["eval_round"])
             self.next_curve_eval = int(data["next_curve_eval"])
             self.decided_at = int(data.get("decided_at", 0))
+            self.exact = False  # a restarted referee: the run is no longer exact (services/exact.py)
             log.info("recovered referee state: round %d, P %s, survivor %s", self.schedule.round,
                      self.schedule.probabilities.round(3).tolist(), self.schedule.survivor)
         except (ValueError, KeyError, TypeError) as e:
@@ -90,6 +97,8 @@ class Referee:
         self.alloc_pub = bus.declare_latest_publisher(s, keys.allocation(run))
         self.eval_pub = bus.declare_latest_publisher(s, keys.eval(run))
         self.weights = bus.Latest.subscribe(s, keys.weights_all(run))
+        # exact mode: the versions each evaluation needs, in order (before the first allocation)
+        self.snapshots = bus.Inbox(maxsize=1024).subscribe(s, keys.eval_weights_all(run))
         self.stats_sub = bus.Latest.subscribe(s, keys.learner_stats(run))
         self.done = bus.Latest.subscribe(s, keys.done(run))
         self.workers = bus.watch_alive(s, run, "worker")
@@ -102,13 +111,18 @@ class Referee:
             self._loop()
         finally:
             self.token.undeclare()
-            for sub in (self.weights, self.stats_sub, self.done, self.workers):
+            for sub in (self.weights, self.snapshots, self.stats_sub, self.done, self.workers):
                 sub.close()
             self.alloc_log.close()
             self.eval_log.close()
             self.board.close()
 
     def _loop(self) -> None:
+        if self.exact:
+            if self._exact_loop():
+                return
+            log.warning("the run is no longer exact: %s; allocating asynchronously",
+                        self.stats.inexact if self.stats else "?")
         self.publish_allocation("initial" if not self.slots else "recovered", returns=None)
         while not self.stop_requested:
             self.refresh()
@@ -123,7 +137,7 @@ class Referee:
             if self.schedule.due_elimination(units) or self.schedule.due_round(units):
                 self.compete(steps)
             elif units >= self.next_curve_eval and units >= self.algo.start_steps:
-                self.evaluate(steps)
+                self.evaluate(steps, curve_seed(self.algo.seed, units // self.algo.eval_every), "curve")
                 self.next_curve_eval = (units // self.algo.eval_every + 1) * self.algo.eval_every
                 self._save_state()
             else:
@@ -131,6 +145,108 @@ class Referee:
                     self.alloc_pub.put(self.last_allocation)  # heartbeat: the same decision again
                     self.last_publish = time.monotonic()
                 self.stats_sub.wait_fresh(timeout=0.1)
+
+    # -- exact mode: the plan's evaluations on the versions it names (services/exact.py) ----------
+    def _exact_loop(self) -> bool:
+        """Each evaluation of the plan in order, on the actors it must see; each competition's
+        allocation tagged with its iteration. True when the run is done (summary written) or
+        stopped; False when it stopped being exact (the caller goes on asynchronously)."""
+        plan = self.plan
+        history = WeightsHistory(self.algo.actors)
+        scratch = NumpyActors(self.algo.actors, self.spec, self.algo.hidden)
+        self.exact_decision: tuple[int, dict[str, int]] | None = None
+        self.publish_exact_allocation(0, "initial", None)
+        for index, purpose in plan.events():
+            it = plan.iteration(index)
+            competes = purpose in ("round", "elimination")
+            version = plan.version_for(index) if competes else plan.version_after(index)
+            live = [k for k in range(self.algo.actors) if self.schedule.live[k]]
+            while not all(history.has(k, version) for k in live):
+                if not self.wait_exact(history):
+                    return self.stop_requested
+            for k in live:
+                scratch.load_member(k, history.get(k, version))
+            versions = [version if k in live else -1 for k in range(self.algo.actors)]
+            if purpose == "round":
+                seed = round_seed(self.algo.seed, it.round)
+            elif purpose == "elimination":
+                seed = elimination_seed(self.algo.seed)
+            else:
+                seed = curve_seed(self.algo.seed, it.curve) if purpose == "curve" else final_seed(self.algo.seed)
+            means = self.evaluate(it.transitions[1], seed, purpose, scratch, versions, it.units[1],
+                                  it.updates[0] if competes else it.updates[1])
+            if competes:  # lines 15-20: Eq. 8 or the survivor; the slots draw for iteration index+1 on
+                self.schedule.record_evaluation(it.units[1], competition_returns(means), rng=self.rng)
+                self.decided_at = it.transitions[1]
+                self.publish_exact_allocation(index, purpose, competition_returns(means).tolist())
+            else:
+                self.next_curve_eval = (it.units[1] // self.algo.eval_every + 1) * self.algo.eval_every
+            self._save_state()
+            history.forget_below(version)
+            if it.last:  # the final evaluation: curve point or not, it is the run's last
+                self.final_row = (it.transitions[1], means, seed, versions)
+        while not self.stop_requested:  # the learner's done, then the summary
+            self.refresh()
+            self.publish_report()
+            if bus.run_is_done(self.done, self.cfg.run, self.rejects):
+                steps, means, seed, versions = self.final_row
+                self.write_summary(steps, means, seed, versions)
+                return True
+            if self.stats is not None and not self.stats.exact:
+                return False
+            self.stats_sub.wait_fresh(timeout=0.1)
+        return True
+
+    def wait_exact(self, history: WeightsHistory) -> bool:
+        """Take the snapshots that arrived; heartbeats meanwhile. False when the run is no
+        longer exact or the referee is stopping."""
+        item = self.snapshots.get(timeout=0.05)
+        items = ([item] if item is not None else []) + self.snapshots.drain()
+        for item in items:
+            try:
+                w = Weights.from_bytes(item.payload, self.follower.shapes, self.algo.actors)
+            except MessageError as e:
+                self.rejects.reject(keys.parse_last(item.key), e)
+                continue
+            history.add(w.actor, w.version, w.params)
+        self.refresh()
+        self.publish_report()
+        if time.monotonic() - self.last_publish > HEARTBEAT_S:
+            self.alloc_pub.put(self.last_allocation)
+            self.last_publish = time.monotonic()
+        inexact = self.stats is not None and not self.stats.exact and bool(self.stats.inexact)
+        return not (inexact or self.stop_requested)
+
+    def publish_exact_allocation(self, index: int, reason: str, returns: list[float] | None) -> None:
+        """The slots w0..w{M-1} drawn with the run's allocation stream, tagged with the iteration
+        that decided them (they apply from the next one), with the decision before."""
+        m = self.algo.workers
+        drawn = self.schedule.allocation(m, self.rng)
+        if self.schedule.survivor is not None and self.algo.single_env:
+            drawn = drawn[:1]  # the survivor runs slot 0 (I_e = 1)
+        self.slots = {keys.slot_name(i): int(k) for i, k in enumerate(drawn)}
+        previous, self.exact_decision = self.exact_decision, (index, dict(self.slots))
+        i_k = counts(self.slots, self.algo.actors).astype(int).tolist()
+        msg = Allocation(self.schedule.round, self.decided_at, None if returns is None else tuple(returns),
+                         tuple(float(p) for p in self.schedule.probabilities), tuple(i_k), dict(self.slots),
+                         tuple(bool(e) for e in self.schedule.eliminated), self.schedule.survivor, reason,
+                         iteration=index, previous=previous)
+        self.last_allocation = msg.to_bytes(self.id, self._next_seq())
+        self.alloc_pub.put(self.last_allocation)
+        self.last_publish = time.monotonic()
+        self.drawn_over = set(self.workers.live())
+        it = self.plan.iteration(index) if index else None
+        best = best_actors(returns, None) if returns is not None else []
+        self.alloc_log.write({"t": round(time.monotonic() - self.started, 3), "round": self.schedule.round,
+                              "env_steps": it.transitions[1] if it else 0, "iterations": it.units[1] if it else 0,
+                              "updates": it.updates[0] if it else 0, "decided_at": self.decided_at,
+                              "decided_at_iteration": index, "returns": returns,
+                              "tie": best if len(best) > 1 else None,
+                              "probabilities": [float(p) for p in self.schedule.probabilities], "counts": i_k,
+                              "slots": dict(self.slots), "eliminated": [bool(e) for e in self.schedule.eliminated],
+                              "survivor": self.schedule.survivor, "reason": reason})
+        log.info("allocation (%s) at iteration %d: P=%s I=%s", reason, index,
+                 np.round(self.schedule.probabilities, 3).tolist(), i_k)
 
     def refresh(self) -> None:
         self.follower.follow(self.weights, self.stats)
@@ -145,38 +261,44 @@ class Referee:
     def policy(self, k: int) -> Policy:
         return self.actors.policy(k)
 
-    def evaluate(self, steps: int, only_live: bool = True) -> list[float | None]:
-        """Deterministic returns of each live actor (eval.jsonl row, `eval` topic)."""
+    def evaluate(self, steps: int, seed: int, purpose: str, actors: NumpyActors | None = None,
+                 versions: list[int] | None = None, iterations: int | None = None,
+                 updates: int | None = None) -> list[float | None]:
+        """Deterministic returns of each live actor on the episodes of `seed` (eval.jsonl row,
+        `eval` topic). `purpose`: round, elimination, curve or final (mam_core.seeding)."""
         live = self.schedule.live
+        actors = actors or self.actors
+        versions = list(self.versions) if versions is None else versions
         returns: list[list[float]] = []
         for k in range(self.algo.actors):
-            if (only_live and not live[k]) or self.versions[k] < 0:
+            if not live[k] or versions[k] < 0:
                 returns.append([])
                 continue
-            r = evaluate_policy(self.policy(k), self.cfg.env_id, self.algo.eval_episodes,
-                                seed=eval_seed(self.algo.seed, steps), env_kwargs=self.cfg.env_kwargs)
+            r = evaluate_policy(actors.policy(k), self.cfg.env_id, self.algo.eval_episodes, seed=seed,
+                                env_kwargs=self.cfg.env_kwargs)
             returns.append([float(x) for x in r])
         means = [float(np.mean(r)) if r else None for r in returns]
         self.eval_round += 1
-        msg = Eval(self.eval_round, steps, tuple(tuple(r) for r in returns), tuple(means), tuple(self.versions))
+        msg = Eval(self.eval_round, steps, tuple(tuple(r) for r in returns), tuple(means), tuple(versions))
         self.eval_pub.put(msg.to_bytes(self.id, self._next_seq()))
-        self.eval_log.write({"t": round(time.monotonic() - self.started, 3), "round": self.eval_round,
-                             "env_steps": steps, "iterations": self.clock.units_at(steps),
-                             "updates": self.stats.updates if self.stats else 0, "returns": returns, "mean": means,
-                             "versions": list(self.versions),
-                             "bias": None})
-        log.info("eval at %d steps: %s", steps, [None if m is None else round(m, 2) for m in means])
+        row = {"t": round(time.monotonic() - self.started, 3), "round": self.eval_round,
+               "env_steps": steps, "iterations": self.clock.units_at(steps) if iterations is None else iterations,
+               "updates": (self.stats.updates if self.stats else 0) if updates is None else updates,
+               "purpose": purpose, "seed": seed, "returns": returns, "mean": means, "versions": versions,
+               "bias": None}
+        self.eval_log.write(row)
+        self.last_eval = row
+        log.info("%s eval at %d steps: %s", purpose, steps, [None if m is None else round(m, 2) for m in means])
         return means
 
     def compete(self, steps: int) -> None:
         """One obsolescence round (Eq. 8), or the elimination at C."""
-        means = self.evaluate(steps)
-        # Actors without a return (eliminated or no weights yet) get the lowest seen, never favoured.
-        known = [m for m in means if m is not None]
-        floor = min(known) if known else 0.0
-        returns = np.array([floor if m is None else m for m in means])
         units = self.clock.units_at(steps)
         eliminating = self.schedule.due_elimination(units)
+        seed = elimination_seed(self.algo.seed) if eliminating else \
+            round_seed(self.algo.seed, units // self.algo.compete_every)
+        means = self.evaluate(steps, seed, "elimination" if eliminating else "round")
+        returns = competition_returns(means)  # no return: the lowest seen, never favoured
         best = best_actors(returns, self.schedule.live)
         self.schedule.record_evaluation(units, returns, rng=self.rng)  # a tie at C: the seeded rng picks
         self.decided_at = steps
@@ -235,7 +357,12 @@ class Referee:
         time.sleep(0.5)  # the final weights are published just before done
         self.refresh()
         steps = self.stats.env_steps if self.stats else 0
-        means = self.evaluate(steps)
+        seed = final_seed(self.algo.seed)
+        means = self.evaluate(steps, seed, "final")
+        self.write_summary(steps, means, seed, list(self.versions))
+
+    def write_summary(self, steps: int, means: list[float | None], seed: int, versions: list[int]) -> None:
+        """summary.json: the final evaluation (`mam eval` reproduces it from `final_eval`)."""
         survivor = self.schedule.survivor
         if survivor is None and any(m is not None for m in means):
             survivor = None if self.algo.actors > 1 else 0
@@ -243,8 +370,11 @@ class Referee:
             "run": self.cfg.run, "env_id": self.cfg.env_id, "algo": self.algo.algo,
             "final_returns": means, "survivor": survivor, "env_steps": steps,
             "iterations": self.clock.units_at(steps), "schedule": self.algo.schedule,
-            "final_eval": {"seed": eval_seed(self.algo.seed, steps), "episodes": self.algo.eval_episodes,
-                           "versions": list(self.versions)},  # `mam eval` reproduces it from these
+            "final_eval": {"seed": seed, "episodes": self.algo.eval_episodes,
+                           "versions": versions},  # `mam eval` reproduces it from these
+            "collection": self.cfg.collection,
+            "exact": bool(self.stats.exact) if self.stats else False,
+            "inexact": self.stats.inexact if self.stats else "",
             "updates": self.stats.updates if self.stats else 0,
             "wall_time_s": round(time.monotonic() - self.started, 2),
             "rounds": self.schedule.round, "probabilities": self.schedule.probabilities.tolist(),

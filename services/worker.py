@@ -23,9 +23,11 @@ from typing import Any
 import numpy as np
 import typer
 
+from mam_core.algorithm1 import Algorithm1
 from mam_core.envs import make_env  # registers AppleCollect-v0; imports `module:EnvId` modules
 from mam_core.policy import EnvSpec
 from mam_core.schedule import Schedule
+from mam_core.slot import SlotStreams, explore, uniform
 from services import bus, keys, options, role, rundir
 from services.codec import Allocation, LearnerStats, MessageError, TransitionBatch
 from services.options import RunConfig, write_json
@@ -49,7 +51,7 @@ class EnvFault(Exception):
 
 class Worker:
     def __init__(self, cfg: RunConfig, session: Any, worker_id: str, slot_index: int = 0,
-                 run_dir: Path | None = None) -> None:
+                 run_dir: Path | None = None, generation: int = 0) -> None:
         self.run_dir = run_dir
         self.cfg = cfg
         self.algo = cfg.algo
@@ -60,15 +62,18 @@ class Worker:
         self.env = make_env(cfg.env_id, cfg.env_kwargs)
         self.spec = EnvSpec.from_env(self.env)
         self.max_action = np.asarray(self.spec.max_action, np.float32)
-        seed = self.algo.seed * 7919 + slot_index * 104_729 + int(self.incarnation[:6], 16) % 1000
-        self.rng = np.random.default_rng(seed)
-        self.env.action_space.seed(seed)
+        # The slot's streams (mam_core.seeding): from --seed, the slot and the restart generation only.
+        self.slot = slot_index
+        self.streams = SlotStreams.for_slot(self.algo.seed, slot_index, generation)
+        self.rng = self.streams.noise
+        self.exact = cfg.collection == "exact" and generation == 0
         # Simulator faults: the episode is dropped, the env reset, the fault counted (by kind).
         self.faults = {kind: 0 for kind in FAULTS}
         self.dropped_rows = 0  # unsent rows of faulty episodes
         self.dropped_episodes = 0
         self.env_remade = 0
-        self.obs = self.reset_env(seed=seed)
+        self.env.action_space.seed(self.streams.action_seed)
+        self.obs = self.reset_env(seed=self.streams.reset_seed)
         # Exactly once across a learner restart: batches the learner has not yet checkpointed
         # are kept and resent to its next incarnation (bounded by cfg.resend_rows).
         self.retain = cfg.save_replay
@@ -110,6 +115,7 @@ class Worker:
         self.p_episode = 0  # pending rows before this index belong to finished episodes
         self.p_actor = -1
         self.p_version = -1
+        self.p_iteration = -1  # exact mode: the iteration of the first pending row
         self.p_started = time.monotonic()
 
     # -- the loop -----------------------------------------------------------------------------
@@ -140,6 +146,12 @@ class Worker:
                 sub.close()
 
     def _loop(self) -> None:
+        if self.exact:
+            if self._exact_loop():
+                return
+            self.exact = False
+            self.flush()
+            log.info("the run is no longer exact: collecting asynchronously")
         idle_since: float | None = None
         last_status = time.monotonic()
         while not self.stop_requested:
@@ -169,6 +181,82 @@ class Worker:
                 self.weights.wait_fresh(timeout=0.05)  # weights for our actor not here yet
                 continue
             self.step(random_phase)
+
+    # -- exact mode: iteration by iteration (services/exact.py) ---------------------------------
+    def _exact_loop(self) -> bool:
+        """Step this slot's iterations of the plan as soon as the allocation and the weights
+        they need are here. True when the run is done (or stopped), False when it is no
+        longer exact (the caller collects asynchronously from here)."""
+        plan = Algorithm1.for_run(self.algo, self.cfg.steps)
+        name = keys.slot_name(self.slot)
+        decisions: dict[int, dict[str, int]] = {}  # iteration of a competition -> its slots
+        index, need = 1, 0  # the next iteration to step; the decision that applies to it
+        waiting_since = time.monotonic()
+        while not self.stop_requested:
+            self.publish_report()
+            if bus.run_is_done(self.done, self.cfg.run, self.rejects):
+                log.info("run is done after %d transitions from this worker", self.sent_rows)
+                return True
+            if not self.refresh_exact(decisions):
+                return False
+            if index > plan.iterations or self.slot not in plan.iteration(index).slots:
+                self.flush()  # this slot's part of the run is over (the survivor runs slot 0 after C)
+                self.done.wait_fresh(timeout=0.1)
+                continue
+            it = plan.iteration(index)
+            slots = decisions.get(need)
+            actor = None if slots is None else slots.get(name)
+            version = -1 if it.random else plan.version_for(index)
+            if actor is None or (version >= 0 and self.versions[actor] < version):
+                self.flush()
+                if time.monotonic() - waiting_since > STATUS_EVERY_S:
+                    log.info("iteration %d waits for %s", index, "the allocation of iteration %d" % need
+                             if actor is None else f"actor {actor} at version {version} (have {self.versions[actor]})")
+                    waiting_since = time.monotonic()
+                (self.allocation if actor is None else self.weights).wait_fresh(timeout=0.05)
+                continue
+            waiting_since = time.monotonic()
+            self.actor = actor
+            if self.p_n and (actor != self.p_actor or version != self.p_version):
+                self.flush()
+            if self.p_n == 0:
+                self.p_iteration = index
+            self.step(it.random)
+            if it.competes:  # the allocation it draws applies from the next iteration on
+                need = index
+                decisions = {i: s for i, s in decisions.items() if i >= need}
+            index += 1
+        return True
+
+    def refresh_exact(self, decisions: dict[int, dict[str, int]]) -> bool:
+        """Weights, the referee's decisions (with the one before: none is missed), the learner's
+        stats. False when the run stopped being exact (a restarted role)."""
+        self.follower.follow(self.weights, self.stats)
+        item = self.allocation.fresh().get(keys.allocation(self.cfg.run))
+        if item is not None:
+            try:
+                alloc = Allocation.from_bytes(item.payload, self.algo.actors)
+            except MessageError as e:
+                self.rejects.reject("referee", e)
+            else:
+                if alloc.iteration is None:
+                    return False  # a restarted referee allocates asynchronously
+                decisions[alloc.iteration] = dict(alloc.slots)
+                if alloc.previous is not None:
+                    decisions.setdefault(alloc.previous[0], dict(alloc.previous[1]))
+        item = self.stats_sub.fresh().get(keys.learner_stats(self.cfg.run))
+        if item is not None:
+            try:
+                st = LearnerStats.from_bytes(item.payload)
+            except MessageError as e:
+                self.rejects.reject("learner", e)
+            else:
+                restarted = self.learner_incarnation is not None and st.incarnation != self.learner_incarnation
+                self.stats = st
+                self.on_stats(st)
+                if restarted or not st.exact:
+                    return False
+        return True
 
     def publish_report(self, force: bool = False) -> None:
         """This worker's counters on mam/<run>/stats/worker-<id> (rejections are visible there)."""
@@ -278,12 +366,10 @@ class Worker:
 
     def step(self, random_phase: bool) -> None:
         if random_phase:
-            action, actor, version = self.env.action_space.sample().astype(np.float32), self.actor, -1
+            action, actor, version = uniform(self.env), self.actor, -1
         else:
             actor, version = self.actor, self.versions[self.actor]
-            action = self.policies[actor](self.obs)
-            noise = self.rng.normal(0.0, self.algo.explore_noise, self.spec.act_dim).astype(np.float32)
-            action = np.clip(action + noise * self.max_action, -self.max_action, self.max_action)
+            action = explore(self.policies[actor], self.obs, self.rng, self.algo.explore_noise, self.max_action)
         if self.p_n and (actor != self.p_actor or version != self.p_version):
             self.flush()  # a batch carries one actor and one policy version
         try:
@@ -373,7 +459,8 @@ class Worker:
         if self.retain:  # kept for a resend: the pending arrays are reused
             rows = tuple(a.copy() for a in rows)
         batch = TransitionBatch(self.id, self.incarnation, self.batch_seq, self.p_actor, self.p_version,
-                                *rows, tuple(self.finished_returns) or None)
+                                *rows, tuple(self.finished_returns) or None,
+                                iteration=self.p_iteration if self.exact else -1, slot=self.slot if self.exact else -1)
         if self.batch_log is not None:
             self.batch_log.write(f"{self.batch_seq} {n}\n")
         self.pub.put(batch.to_bytes())
@@ -392,10 +479,11 @@ class Worker:
         self.p_episode = 0
 
 
-def main(run: str, conf: Any, worker_id: str, slot_index: int = 0, run_dir: Path | None = None) -> None:
+def main(run: str, conf: Any, worker_id: str, slot_index: int = 0, run_dir: Path | None = None,
+         generation: int = 0) -> None:
     with bus.session_scope(conf, retry_for=30.0) as session:
         cfg = role.fetch_config(session, run, bus.RejectLog(log, "config"))
-        worker = Worker(cfg, session, worker_id, slot_index, run_dir)
+        worker = Worker(cfg, session, worker_id, slot_index, run_dir, generation)
         role.stop_on_signals(worker)
         worker.serve()
 
@@ -408,7 +496,10 @@ def worker_command(
     run: options.Run = None, connect: options.Connect = None, listen: options.Listen = None,
     zenoh_config: options.ZenohConfig = None,
     id: str = typer.Option(None, "--id", help="worker id (slot name); default HOST-PID"),  # noqa: A002
-    slot: int = typer.Option(0, help="slot index: picks the actor before the first allocation and the env seed"),
+    slot: int = typer.Option(0, help="slot index (0..M-1): the slot's random streams (from --seed) and, in exact "
+                             "mode, its place in each iteration"),
+    generation: int = typer.Option(0, help="restarts of this slot so far (the launcher counts them): a restarted "
+                                   "worker draws fresh streams and collects asynchronously"),
     run_dir: options.RunDir = None,
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
@@ -419,7 +510,7 @@ def worker_command(
     options.check_run_name(run)
     worker_id = id or f"{socket.gethostname()}-{os.getpid()}"
     keys.check_name(worker_id, "worker id")
-    main(run, role.client_config(connect, listen, zenoh_config), worker_id, slot, run_dir)
+    main(run, role.client_config(connect, listen, zenoh_config), worker_id, slot, run_dir, generation)
 
 
 cli = app  # the `mam-worker` entry point

@@ -43,6 +43,11 @@ class Allocation:
     eliminated: tuple[bool, ...]
     survivor: int | None
     reason: str
+    # Exact mode: the iteration whose competition drew `slots` (they apply from the next one on;
+    # 0: the initial draw), and the decision before it, (its iteration, its slots), so a worker
+    # that polls the latest message never misses the allocation it still needs.
+    iteration: int | None = None
+    previous: tuple[int, Mapping[str, int]] | None = None
 
     def to_bytes(self, sender: str, seq: int) -> bytes:
         body = {
@@ -56,6 +61,11 @@ class Allocation:
             "survivor": None if self.survivor is None else int(self.survivor),
             "reason": self.reason,
         }
+        if self.iteration is not None:
+            body["iteration"] = int(self.iteration)
+            if self.previous is not None:
+                body["previous"] = {"iteration": int(self.previous[0]),
+                                    "slots": {str(w): int(k) for w, k in self.previous[1].items()}}
         return encode(self.KIND, body, sender=sender, seq=seq)
 
     @classmethod
@@ -100,7 +110,18 @@ class Allocation:
             if eliminated[survivor]:
                 raise MessageError("range:survivor", f"survivor {survivor} is eliminated")
         reason = _text(msg, "reason")
-        return cls(rnd, env_steps, returns, probs, counts, slots, eliminated, survivor, reason)
+        iteration = _int(msg, "iteration", lo=0) if "iteration" in msg else None
+        previous = None
+        if iteration is not None and "previous" in msg:
+            prev = _get(msg, "previous")
+            if not isinstance(prev, dict):
+                raise MessageError("type:previous", "want a map with iteration and slots")
+            p_iteration = _int(prev, "iteration", lo=0, hi=iteration)
+            p_slots = _str_map(prev, "slots")
+            if any(type(a) is not int or not 0 <= a < k for a in p_slots.values()):
+                raise MessageError("range:previous", "slots of the previous decision must name actors")
+            previous = (p_iteration, dict(p_slots))
+        return cls(rnd, env_steps, returns, probs, counts, slots, eliminated, survivor, reason, iteration, previous)
 
     @classmethod
     def from_bytes(cls, payload: bytes, n_actors: int | None = None, *,

@@ -61,6 +61,8 @@ class TransitionBatch:
     terminated: np.ndarray
     episode_return: tuple[float, ...] | None = None
     resend: bool = False  # sent again to a restarted learner (the tracker de-duplicates it)
+    iteration: int = -1  # exact mode: Algorithm 1's iteration of the first row (one row per iteration)
+    slot: int = -1  # exact mode: the environment slot that collected the rows
 
     @property
     def rows(self) -> int:
@@ -84,6 +86,9 @@ class TransitionBatch:
         }
         if self.resend:
             body["resend"] = True
+        if self.iteration >= 0:
+            body["iteration"] = self.iteration
+            body["slot"] = self.slot
         return encode(
             self.KIND,
             body,
@@ -129,8 +134,10 @@ class TransitionBatch:
             if len(episode_return) > spec.max_rows:
                 raise MessageError("range:episode_return", "more episodes than rows")
         resend = _bool(msg, "resend") if "resend" in msg else False
+        iteration = _int(msg, "iteration", lo=1) if "iteration" in msg else -1
+        slot = _int(msg, "slot", lo=0, hi=1 << 20) if iteration >= 0 else -1
         return cls(worker, incarnation, batch_seq, actor, version, obs, action, reward,
-                   next_obs, term, episode_return, resend)
+                   next_obs, term, episode_return, resend, iteration, slot)
 
     @classmethod
     def from_bytes(cls, payload: bytes, spec: TransitionSpec, *,

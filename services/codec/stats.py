@@ -112,6 +112,9 @@ class LearnerStats:
     workers: int = 0
     steps: int = 0
     incarnation: str = ""  # changes when a learner restarts (workers reset their in-flight count)
+    exact: bool = False  # collection in lock-step with Algorithm 1 (services/exact.py); false once broken
+    iteration: int = 0  # exact mode: the last iteration whose updates are done
+    inexact: str = ""  # why the run stopped being exact (empty while exact, or never asked for)
 
     def to_bytes(self, sender: str, seq: int) -> bytes:
         body = {
@@ -129,6 +132,9 @@ class LearnerStats:
             "live": [bool(x) for x in self.live],
             "workers": int(self.workers),
             "steps": int(self.steps),
+            "exact": bool(self.exact),
+            "iteration": int(self.iteration),
+            "inexact": self.inexact,
         }
         return encode(self.KIND, body, sender=sender, seq=seq)
 
@@ -152,8 +158,11 @@ class LearnerStats:
         workers = _int(msg, "workers", lo=0) if "workers" in msg else 0
         steps = _int(msg, "steps", lo=0) if "steps" in msg else 0
         incarnation = _text(msg, "incarnation") if "incarnation" in msg else ""
+        exact = _bool(msg, "exact") if "exact" in msg else False
+        iteration = _int(msg, "iteration", lo=0) if "iteration" in msg else 0
+        inexact = _text(msg, "inexact") if "inexact" in msg else ""
         return cls(env_steps, updates, accept_until, utd, losses, q_means, versions,
-                   per_worker, rejected, done, live, workers, steps, incarnation)
+                   per_worker, rejected, done, live, workers, steps, incarnation, exact, iteration, inexact)
 
     @classmethod
     def from_bytes(cls, payload: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> "LearnerStats":

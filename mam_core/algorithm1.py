@@ -1,0 +1,215 @@
+"""Algorithm 1's control flow, pure: what iteration i does, for every role to follow.
+
+The one-process reference (mam_core.reference) and the distributed roles (learner, referee,
+workers in services/) drive this object; none of them re-derives a rule. It knows nothing of
+messages, tensors or environments: only the schedule (mam_core.schedule).
+
+An *iteration* is one sweep over the live environment slots. Under `--schedule paper` it is
+Algorithm 1's iteration t (M transitions before C, one after: the survivor runs slot 0);
+under `equal-data` a sweep is M transitions and the schedule's units are transitions.
+
+The order of operations of iteration i (Algorithm 1's line numbers):
+
+1. Collect (lines 5-10): every slot of `slots` steps once, in slot order, with the actor the
+   allocation gives it and the actor weights after iteration i-1's updates (`version_for`);
+   uniform random actions while `random`. The transitions enter the replay buffer in slot
+   order.
+2. Critic updates (lines 11-13): the agent's update counter goes from `updates[0]` to
+   `updates[1]`, one mini-batch per actor each.
+3. A competition (lines 15-17) if `round` is set: the live actors are evaluated *as they acted
+   in this iteration* (the critic update does not touch them: `version_for(i)`), P_k follows
+   Eq. 8, and the allocation it draws applies from iteration i+1 on.
+4. The elimination (lines 18-20) if `eliminate`: evaluated like a round; it applies right
+   before the first delayed actor update of this iteration (or at its end if it has none), so
+   the eliminated actors' last version is `version_for(i)`.
+5. Delayed actor and target updates (lines 21-24): whenever the update counter is a multiple
+   of d (TD3's rule; with one update per iteration this is Algorithm 1's t mod d).
+6. A learning-curve evaluation after the updates if `curve` is set (`version_after(i)`),
+   on episodes disjoint from every competition's.
+
+Weights change only in iterations with an actor update (`weights_change`): the others need no
+new weights, so a worker steps through them without waiting.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+from mam_core.config import AlgoConfig
+from mam_core.schedule import Schedule
+
+
+@dataclass(frozen=True)
+class Iteration:
+    """What iteration `index` does (see the module docstring for the order)."""
+
+    index: int  # 1, 2, ...
+    slots: tuple[int, ...]  # the environment slots that step, in slot order
+    transitions: tuple[int, int]  # transitions collected before / after it
+    units: tuple[int, int]  # schedule units (iterations or transitions) before / after it
+    random: bool  # uniform random actions (the start phase)
+    updates: tuple[int, int]  # the agent's update counter before / after its updates
+    round: int | None  # the index j of the competition at j·A decided in it, or None
+    eliminate: bool  # the elimination at C happens in it
+    curve: int | None  # the index j of the learning-curve evaluation at j·eval-every after it
+    last: bool  # the run's last iteration (the final evaluation follows it)
+
+    @property
+    def competes(self) -> bool:
+        return self.round is not None or self.eliminate
+
+
+@dataclass(frozen=True)
+class Algorithm1:
+    schedule: Schedule
+    batch_size: int  # no update before the buffer holds a mini-batch
+    policy_delay: int  # d
+    eval_every: int  # learning-curve evaluations every this many units
+    single_env: bool = True  # after the elimination the survivor runs one slot (slot 0)
+
+    @classmethod
+    def for_run(cls, cfg: AlgoConfig, steps: int) -> Algorithm1:
+        return cls(Schedule.for_run(cfg, steps), cfg.batch_size, cfg.policy_delay, cfg.eval_every, cfg.single_env)
+
+    # -- shape of the run -------------------------------------------------------------------------
+    @property
+    def slots(self) -> int:
+        return self.schedule.slots
+
+    @cached_property
+    def elimination(self) -> int | None:
+        """The iteration of the elimination, or None (K = 1, `--no-ot`, or C past the budget)."""
+        c = self.schedule.eliminate_at
+        if c is None:
+            return None
+        m = self.slots
+        i = c if self.schedule.paper else -(-c // m)  # the first sweep whose units reach C
+        return i if self.transitions_before(i) < self.schedule.budget else None
+
+    def width(self, index: int) -> int:
+        """Slots stepping in iteration `index` (the last one may be cut by the budget)."""
+        e = self.elimination
+        if e is not None and index > e and (self.single_env or self.schedule.paper):
+            return 1
+        return self.slots
+
+    def transitions_before(self, index: int) -> int:
+        c = self.schedule.eliminate_at
+        m = self.slots
+        if c is None:
+            done = (index - 1) * m
+        else:  # `elimination` without the budget check (it calls this)
+            e = c if self.schedule.paper else -(-c // m)
+            after = 1 if (self.single_env or self.schedule.paper) else m
+            done = min(index - 1, e) * m + max(index - 1 - e, 0) * after
+        return min(done, self.schedule.budget)
+
+    @cached_property
+    def iterations(self) -> int:
+        """How many iterations the run has."""
+        budget = self.schedule.budget
+        lo, hi = 1, budget  # transitions_before is non-decreasing: the last index with before < budget
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            if self.transitions_before(mid) < budget:
+                lo = mid
+            else:
+                hi = mid - 1
+        return lo
+
+    # -- one iteration ----------------------------------------------------------------------------
+    def updates_after(self, index: int) -> int:
+        """The agent's update counter after iteration `index` (0 before the first)."""
+        if index <= 0:
+            return 0
+        n = self.transitions_before(index + 1) if index < self.iterations else self.schedule.budget
+        return self.schedule.updates_allowed(n) if n >= self.batch_size else 0
+
+    def iteration(self, index: int) -> Iteration:
+        if not 1 <= index <= self.iterations:
+            raise ValueError(f"iteration {index} outside 1..{self.iterations}")
+        s = self.schedule
+        before = self.transitions_before(index)
+        after = self.transitions_before(index + 1) if index < self.iterations else s.budget
+        u0, u1 = s.units_at(before), s.units_at(after)
+        eliminate = index == self.elimination
+        round_ = None
+        if not eliminate and s.eliminate_at is not None:
+            multiple = s.round_due(u1, last_round_at=u0)  # a multiple of A in (u0, u1], before C
+            round_ = None if multiple is None else multiple // s.compete_every
+        every = self.eval_every
+        curve = u1 // every if u1 // every > u0 // every else None
+        return Iteration(index=index, slots=tuple(range(after - before)) if after - before < self.width(index)
+                         else tuple(range(self.width(index))),
+                         transitions=(before, after), units=(u0, u1), random=before < s.random_until,
+                         updates=(self.updates_after(index - 1), self.updates_after(index)),
+                         round=round_, eliminate=eliminate, curve=curve, last=index == self.iterations)
+
+    # -- weights ----------------------------------------------------------------------------------
+    def version_after(self, index: int) -> int:
+        """A live actor's policy version after iteration `index`'s updates (one per actor update)."""
+        return self.updates_after(index) // self.policy_delay
+
+    def version_for(self, index: int) -> int:
+        """The version a live actor acts with in iteration `index` (after iteration index-1)."""
+        return self.version_after(index - 1)
+
+    def weights_change(self, index: int) -> bool:
+        return self.version_after(index) != self.version_after(index - 1)
+
+    def elimination_update(self) -> int | None:
+        """The update (counter value after it) whose actor phase comes right after the
+        elimination, or None when the elimination iteration has no actor update (the
+        elimination then follows all its updates)."""
+        e = self.elimination
+        if e is None:
+            return None
+        u0, u1 = self.updates_after(e - 1), self.updates_after(e)
+        d = self.policy_delay
+        first = (u0 // d + 1) * d
+        return first if first <= u1 else None
+
+    # -- evaluations ------------------------------------------------------------------------------
+    def competitions(self) -> list[int]:
+        """The iterations with a competition or the elimination, in order."""
+        return [i for i in range(1, self.iterations + 1) if self.iteration(i).competes]
+
+    def first_reaching(self, units: int) -> int:
+        """The first iteration whose units (after it) reach `units` (the last one if none)."""
+        s = self.schedule
+        lo, hi = 1, self.iterations
+        while lo < hi:
+            mid = (lo + hi) // 2
+            after = self.transitions_before(mid + 1) if mid < self.iterations else s.budget
+            if s.units_at(after) >= units:
+                hi = mid
+            else:
+                lo = mid + 1
+        return lo
+
+    def events(self) -> list[tuple[int, str]]:
+        """The run's evaluations in order, (iteration, purpose): `round` and `elimination` see
+        the actors that acted in the iteration, `curve` and `final` the actors after its
+        updates (a curve point at the last iteration is the final evaluation)."""
+        s = self.schedule
+        final_units = self.iteration(self.iterations).units[1]
+        candidates = {self.iterations}
+        if s.eliminate_at is not None:
+            last_round = min(s.eliminate_at, final_units + 1)
+            candidates.update(self.first_reaching(m) for m in range(s.compete_every, last_round, s.compete_every))
+            if self.elimination is not None:
+                candidates.add(self.elimination)
+        candidates.update(self.first_reaching(m) for m in range(self.eval_every, final_units + 1, self.eval_every))
+        out: list[tuple[int, str]] = []
+        for i in sorted(candidates):
+            it = self.iteration(i)
+            if it.eliminate:
+                out.append((i, "elimination"))
+            elif it.round is not None:
+                out.append((i, "round"))
+            if it.curve is not None:
+                out.append((i, "curve"))
+            elif it.last:
+                out.append((i, "final"))
+        return out

@@ -1,0 +1,70 @@
+"""Every random stream of a run, derived from `--seed` alone.
+
+A stream is named by its purpose and, where there are several, an index (the slot, the
+evaluation). `numpy.random.SeedSequence([seed, purpose, index])` spreads the entropy, so
+streams of neighbouring seeds, slots or evaluations are independent, and none depends on a
+uuid, the clock, a pid or the order in which messages arrive. The one-process reference
+(mam_core.reference) and the distributed roles ask this module for the same streams, which is
+half of why the two compute the same run (docs/DESIGN-DECISIONS.md, "Exact Algorithm 1").
+
+| purpose | who draws it | index |
+|---|---|---|
+| `env` | a slot's environment: the seed of its first reset | slot (and generation) |
+| `random-actions` | a slot's uniform actions of the start phase (`action_space.seed`) | slot (and generation) |
+| `noise` | a slot's Gaussian exploration noise | slot (and generation) |
+| `allocation` | the referee: slot -> actor draws and the tie-break at C | - |
+| `round` | the episodes of competition j (at j·A) | j |
+| `curve` | the episodes of learning-curve evaluation j (at j·eval-every) | j |
+| `final` | the episodes of the final evaluation when T is not a curve point | 0 |
+| `elimination` | the episodes of the evaluation at C | 0 |
+
+The replay buffer's sampling, the target-policy noise and the network initialisation take
+the run seed directly (mam_core.replay, mam_core.agent), as they always did.
+
+A restarted worker in the asynchronous mode gets the next *generation* of its slot's streams
+(the launcher counts restarts), so it does not replay its predecessor's episodes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+PURPOSES = ("env", "random-actions", "noise", "allocation", "round", "curve", "final", "elimination")
+
+
+def _words(seed: int, purpose: str, index: int, generation: int) -> list[int]:
+    if purpose not in PURPOSES:
+        raise ValueError(f"unknown random stream {purpose!r}; one of {', '.join(PURPOSES)}")
+    if seed < 0 or index < 0 or generation < 0:
+        raise ValueError(f"seed, index and generation must be >= 0, got {seed}, {index}, {generation}")
+    return [int(seed), PURPOSES.index(purpose), int(index), int(generation)]
+
+
+def stream(seed: int, purpose: str, index: int = 0, generation: int = 0) -> np.random.Generator:
+    """The generator of one stream."""
+    return np.random.default_rng(np.random.SeedSequence(_words(seed, purpose, index, generation)))
+
+
+def stream_seed(seed: int, purpose: str, index: int = 0, generation: int = 0) -> int:
+    """An integer seed for APIs that take one (`env.reset(seed=...)`, `action_space.seed`,
+    evaluation episodes: episode e is reset with this + e)."""
+    state = np.random.SeedSequence(_words(seed, purpose, index, generation)).generate_state(1, np.uint32)
+    return int(state[0]) & 0x3FFF_FFFF  # leaves room for + episode under 2**31
+
+
+def round_seed(seed: int, round_index: int) -> int:
+    """Episodes of the competition at round_index·A (every arm with this seed sees the same)."""
+    return stream_seed(seed, "round", round_index)
+
+
+def curve_seed(seed: int, curve_index: int) -> int:
+    """Episodes of the learning-curve evaluation at curve_index·eval-every."""
+    return stream_seed(seed, "curve", curve_index)
+
+
+def final_seed(seed: int) -> int:
+    return stream_seed(seed, "final")
+
+
+def elimination_seed(seed: int) -> int:
+    return stream_seed(seed, "elimination")
