@@ -22,13 +22,15 @@ import torch
 import typer
 
 from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
+from mam_core.algorithm1 import Algorithm1
 from mam_core.evaluation import estimation_bias
 from mam_core.pacing import CheckpointRule, Pacer
 from mam_core.replay import ReplayBuffer, ReplayLog
 from mam_core.schedule import Schedule
-from services import bus, keys, options, role, rundir, runlock, tb
+from services import announce, bus, keys, options, role, rundir, runlock, tb
 from services.checkpoint import exit_on_write_error, load_checkpoint, replay_dir, save_checkpoint
 from services.codec import Allocation, Done, LearnerStats, MessageError, TransitionSpec, Weights, decode, encode
+from services.exact import ExactnessLost, SlotStage, snapshot_versions
 from services.intake import Intake
 from services.options import JsonlWriter, RunConfig, write_json
 
@@ -53,7 +55,16 @@ class Learner:
             torch.set_num_threads(cfg.learner_threads)
         self.agent = MultiActorAgent(self.algo, self.spec, self.device)
         self.schedule = Schedule.for_run(self.algo, cfg.steps)  # iterations (paper) or transitions
+        self.plan = Algorithm1.for_run(self.algo, cfg.steps)  # Algorithm 1's control flow (exact mode)
+        # Exact mode: lock-step with the plan until a restart breaks it (services/exact.py).
+        self.exact = cfg.collection == "exact"
+        self.inexact = "the learner restarted from its checkpoint" if self.exact and resume is not None else ""
+        self.exact = self.exact and resume is None
+        self.iteration = 0  # exact mode: iterations whose updates are done
+        self.decided_survivor: int | None = None  # exact mode: the referee's choice at C, applied by the plan
         capacity = min(self.algo.buffer_size, self.schedule.budget + cfg.tolerance)
+        if self.exact:  # what mam_core.reference allocates
+            capacity = min(self.algo.buffer_size, max(self.schedule.budget, self.algo.batch_size))
         self.buffer = ReplayBuffer(capacity, self.spec.obs_dim, self.spec.act_dim, self.device, self.algo.seed)
         spec = TransitionSpec(self.spec.obs_dim, self.spec.act_dim, self.algo.actors, max_rows=4096,
                               max_action=max(self.spec.max_action))
@@ -118,6 +129,9 @@ class Learner:
         self.referees = bus.watch_alive(s, run, "referee")
         self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
         self.inbox = bus.Inbox(maxsize=8192).subscribe(s, keys.transitions_all(run))
+        self.snapshot_pubs = [bus.declare_reliable_publisher(s, keys.eval_weights(run, k))
+                              for k in range(self.algo.actors)]
+        self.snapshots_sent: set[int] = set()
         self.board = tb.RunBoard(self.run_dir, "learner")  # RUN_DIR/tb/learner: the JSONL rows' scalars
         self.log_writer = self.board.tee(JsonlWriter(self.run_dir / rundir.LEARNER_LOG), tb.learner_scalars)
         self.bias_writer = (self.board.tee(JsonlWriter(self.run_dir / rundir.BIAS), tb.bias_scalars)
@@ -134,6 +148,10 @@ class Learner:
 
     # -- the loop: receive, ingest, step the schedule, update, publish ----------------------------
     def _loop(self) -> None:
+        if self.exact:
+            if self._exact_loop():
+                return  # done, or stopped
+            log.warning("the run is no longer exact: %s; collection goes on asynchronously", self.inexact)
         self.publish_weights(all_actors=True)
         self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
         if self.env_steps == 0:  # at once, and again when the random phase ends: a learner killed early resumes
@@ -236,6 +254,12 @@ class Learner:
             self.other_rejects.reject("allocation", e)
             return
         self.pacer.on_allocation(alloc.round, alloc.env_steps, alloc.survivor)
+        if self.exact:
+            if alloc.iteration is None:
+                self.break_exact("the referee allocates asynchronously (it restarted)")
+            elif alloc.survivor is not None:
+                self.decided_survivor = alloc.survivor  # applied where Algorithm 1 places it
+            return
         if alloc.survivor is not None and self.survivor is None:
             self.survivor = alloc.survivor
             self.agent.eliminate(alloc.survivor)
@@ -264,7 +288,8 @@ class Learner:
             utd=self.utd(), losses=losses, q_means=tuple(q_means), versions=tuple(self.agent.versions),
             per_worker=self.intake.counters(now, self.acked), rejected=self.rejected(), done=done,
             live=tuple(self.agent.live_actors), workers=max(len(self.workers.live()), self.intake.active(now)),
-            steps=self.schedule.budget, incarnation=self.incarnation)
+            steps=self.schedule.budget, incarnation=self.incarnation, exact=self.exact, iteration=self.iteration,
+            inexact=self.inexact)
 
     @property
     def iterations(self) -> int:
@@ -344,6 +369,156 @@ class Learner:
             self.acked = self.intake.checkpointed_prefixes()
         log.info("checkpoint %s at %d updates, %d transitions (%.2f s)", path, self.agent.updates, self.env_steps,
                  time.monotonic() - started)
+
+    # -- exact mode: Algorithm 1 in lock-step (services/exact.py) --------------------------------
+    def _exact_loop(self) -> bool:
+        """Iterations 1..N of the plan: rows in slot order, then the iteration's updates. True
+        when the run finished (or was stopped); False when exactness broke (go asynchronous)."""
+        plan, stage = self.plan, SlotStage(self.algo.workers)
+        self.publish_weights(all_actors=True)
+        self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
+        self.checkpoint()  # at once: a learner killed early resumes (asynchronously) from here
+        stats, heartbeat, log_row = role.Every(STATS_PERIOD_S), role.Every(HEARTBEAT_S), role.Every(LOG_PERIOD_S)
+        self.rates, self._rate_base = (0.0, 0.0), (self.env_steps, self.agent.updates, time.monotonic())
+        self.workers_seen: set[str] = set()
+        self.referee_id: str | None = None
+        try:
+            while not self.stop_requested:
+                index = self.iteration + 1
+                if index > plan.iterations:
+                    self.finish()
+                    return True
+                it = plan.iteration(index)
+                while not stage.ready(index, it.slots):  # line 9: the iteration's transitions
+                    self.receive_exact(stage, timeout=0.002)
+                    now = time.monotonic()
+                    if stats.due(now, STATS_PERIOD_S / 4):
+                        self.publish_stats()
+                    if heartbeat.due(now):
+                        self.publish_config()
+                    if log_row.due(now):
+                        self.write_log(now)
+                    if self.stop_requested:
+                        break
+                if self.stop_requested:
+                    break
+                if index == 1:
+                    self.publish_snapshots(0)  # the referee is subscribed: workers have its allocation
+                rows, used = stage.take(index, it.slots)
+                self.buffer.add_batch(rows["obs"], rows["action"], rows["reward"], rows["next_obs"],
+                                      rows["terminated"], actor=rows["actor"], version=rows["version"])
+                self.env_steps += len(it.slots)
+                for batch in used:
+                    self.intake.admit(batch)
+                    self.intake.count(batch, self.agent.versions)
+                self.exact_updates(it)
+                self.iteration = index
+                if plan.weights_change(index):
+                    self.publish_weights()
+                self.publish_snapshots(index)
+                if self.pacer.bias_due(self.env_steps, self.agent.updates):
+                    self.measure_bias()
+                now = time.monotonic()
+                if stats.due(now):
+                    self.publish_stats()
+                if log_row.due(now):
+                    self.write_log(now)
+                if heartbeat.due(now):
+                    self.publish_config()
+                if self.checkpoints.due(self.agent.updates, self.env_steps, now):
+                    self.checkpoint()
+        except ExactnessLost as e:
+            self.inexact = str(e)
+            self.exact = False
+            self.insert_leftovers(stage)
+            self.publish_stats()
+            return False
+        self.write_log()
+        self.checkpoint()
+        return True
+
+    def receive_exact(self, stage: SlotStage, timeout: float) -> None:
+        """Stage what arrived; watch for what ends exactness (a role gone or restarted)."""
+        items = self.inbox.drain(max_items=256)
+        if not items:
+            item = self.inbox.get(timeout=timeout)
+            items = [item] if item is not None else []
+        for item in items:
+            batch = self.intake.validate(item, self.agent.versions)
+            if batch is not None:
+                stage.add(batch)
+                self.workers_seen.add(batch.worker)
+        self.follow_allocation()
+        if self.inexact:
+            raise ExactnessLost(self.inexact)
+        live = self.workers.live()
+        gone = sorted(self.workers_seen - set(live))
+        if gone:
+            raise ExactnessLost(f"worker {gone[0]} left before the end of the run")
+        referees = self.referees.live()
+        if self.referee_id is None and len(referees) == 1:
+            self.referee_id = next(iter(referees))
+        elif self.referee_id is not None and self.referee_id not in referees:
+            raise ExactnessLost(f"referee {self.referee_id} left before the end of the run")
+
+    def break_exact(self, why: str) -> None:
+        """Exactness ends here (the caller's loop raises ExactnessLost)."""
+        if self.exact and not self.inexact:
+            self.inexact = why
+
+    def insert_leftovers(self, stage: SlotStage) -> None:
+        """Going asynchronous: what was staged goes into the buffer as it is, counted once."""
+        for batch, used in stage.leftovers():
+            rest = slice(used, batch.rows)
+            self.buffer.add_batch(batch.obs[rest], batch.action[rest], batch.reward[rest], batch.next_obs[rest],
+                                  batch.terminated[rest], actor=batch.actor, version=batch.version)
+            self.env_steps += batch.rows - used
+            if self.intake.admit(batch):
+                self.intake.count(batch, self.agent.versions)
+
+    def exact_updates(self, it: Any) -> None:
+        """Iteration `it`'s updates (lines 11-24): one mini-batch per actor each; at C the
+        elimination comes right before the first actor phase (or after the updates)."""
+        at = self.plan.elimination_update() if it.eliminate else None
+        for _ in range(it.updates[0], it.updates[1]):
+            batch = self.buffer.sample(self.algo.batch_size, self.agent.batch_groups)
+            metrics = self.agent.update_critics(batch)
+            if self.agent.actor_phase_due:
+                if self.agent.updates == at:
+                    self.apply_elimination()
+                metrics.update(self.agent.update_actors(batch))
+            self.metrics = metrics
+        if it.eliminate and at is None:
+            self.apply_elimination()
+
+    def apply_elimination(self) -> None:
+        """The referee's survivor (waits for its decision at C: it evaluates the actors as they
+        acted in iteration C, while this iteration's rows come in)."""
+        heartbeat = role.Every(HEARTBEAT_S)
+        while self.decided_survivor is None:
+            self.follow_allocation()
+            if self.inexact:
+                raise ExactnessLost(self.inexact)
+            if self.stop_requested:
+                raise ExactnessLost("stopped while waiting for the elimination")
+            if heartbeat.due():
+                self.publish_stats()
+                self.publish_config()
+            self.allocation.wait_fresh(timeout=0.05)
+        self.survivor = self.decided_survivor
+        self.agent.eliminate(self.survivor)
+        self.pacer.eliminated = True
+        log.info("eliminated all actors but %d at iteration %d", self.survivor, self.plan.elimination)
+
+    def publish_snapshots(self, index: int) -> None:
+        """The versions the referee's next evaluations need, once each (`snapshot_versions`)."""
+        for version in sorted(snapshot_versions(self.plan, index) - self.snapshots_sent):
+            self.snapshots_sent.add(version)
+            for k, alive in enumerate(self.agent.live_actors):
+                if alive:
+                    msg = Weights(k, self.agent.versions[k], self.agent.actor_params(k), self.spec.obs_dim,
+                                  self.spec.act_dim, max(self.spec.max_action), tuple(self.algo.hidden))
+                    self.snapshot_pubs[k].put(msg.to_bytes(self.id, self._next_seq()))
 
     def finish(self) -> None:
         """Budget reached: final weights, checkpoint, then tell everyone until they have left."""
@@ -443,7 +618,11 @@ def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None
             write_json(run_dir / rundir.CONFIG, cfg.to_dict())
             learner = Learner(cfg, session, run_dir, state)
             role.stop_on_signals(learner)
-            learner.serve()
+            workers = announce.WorkerCount(session, cfg, log)  # a split-role run short of M workers warns
+            try:
+                learner.serve()
+            finally:
+                workers.close()
 
 
 app = typer.Typer(add_completion=False, help=__doc__)
@@ -474,6 +653,7 @@ def learner_command(
         listen = [cfg.endpoint]  # a resumed or launched learner comes back where its clients look
     listen = listen or ([] if connect or zenoh_config else [role.LISTEN_ALL])
     conf = bus.make_config(connect=connect, listen=listen, config_file=zenoh_config)
+    announce.announce_learner(cfg, listen, connect, log)  # where it listens, what it waits for, budget notes
     directory = resume or run_dir or Path("runs") / cfg.run
     main(cfg, conf, directory, resume=resume is not None)
 

@@ -30,6 +30,11 @@ from services import keys
 # -- the run options: one table -----------------------------------------------------------------
 ALGO, RUN = "algo", "run"  # where a run option lands: an AlgoConfig field or a RunConfig field
 BIAS_HORIZONS = ("critic", "episode")
+COLLECTIONS = ("exact", "async")  # services/exact.py
+# `--help` panels (typer's rich_help_panel): a RunOption's `panel`, else PANELS by name, else RUN_PANEL
+ALGORITHM_PANEL, SCHEDULE_PANEL, RUN_PANEL = "Algorithm (the paper's symbols)", "Schedule", "Run"
+SUPERVISION_PANEL, DISTRIBUTION_PANEL = "Checkpoints and supervision", "Distribution"
+HELP_PANELS = (ALGORITHM_PANEL, SCHEDULE_PANEL, RUN_PANEL, SUPERVISION_PANEL, DISTRIBUTION_PANEL)
 
 
 @dataclass(frozen=True)
@@ -122,6 +127,10 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
     _opt("bias_rollouts", int, "Monte-Carlo rollouts per bias measurement (the paper: 20)", target=RUN),
     _opt("bias_horizon", str, "Eq. 17's Monte-Carlo Q*: critic (adds the bootstrap tail γ^T·Q(s_T, π(s_T)) "
          "at a time limit, the critic's own horizon) or episode (cut at the time limit)", target=RUN),
+    _opt("collection", str, "exact (default): iteration t steps every live slot with the actors after iteration "
+         "t-1's updates, so the run equals the one-process Algorithm 1 (mam_core.reference) bit for bit and reruns "
+         "from --seed; async: workers collect ahead, rate-limited (more throughput, not reproducible)",
+         target=RUN),
     _opt("run", str, "run name: the key-expression namespace mam/<run>/...", target=RUN),
     _opt("sync_every", int, "publish actor weights every N updates", target=RUN),
     _opt("save_replay", bool, "persist the replay buffer beside the checkpoint as append-only chunks",
@@ -283,6 +292,7 @@ class RunConfig:
     bias_rollouts: int = 20  # Monte-Carlo rollouts per bias point (the paper: 20)
     bias_horizon: str = "critic"  # critic: MC return + bootstrap tail at a time limit; episode: cut there
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # gym.make(env_id, **env_kwargs) everywhere
+    collection: str = "exact"  # exact: lock-step Algorithm 1 (services/exact.py); async: rate-limited, ahead
 
     @property
     def tolerance(self) -> int:
@@ -318,6 +328,8 @@ class RunConfig:
             raise ValueError("steps must be >= 1")
         if cfg.bias_every < 0 or cfg.bias_rollouts < 1:
             raise ValueError("bias_every must be >= 0 and bias_rollouts >= 1")
+        if cfg.collection not in COLLECTIONS:
+            raise ValueError(f"collection must be one of {', '.join(COLLECTIONS)}, not {cfg.collection!r}")
         if cfg.bias_horizon not in BIAS_HORIZONS:
             raise ValueError(f"bias_horizon must be one of {', '.join(BIAS_HORIZONS)}")
         if cfg.checkpoint_every < 1 or cfg.checkpoint_rows < 1 or not cfg.checkpoint_seconds > 0:
