@@ -44,10 +44,10 @@ def watch(run: str, conf: Any, refresh_per_s: float = 4.0, until_done: bool = Tr
           console: Console | None = None, duration: float | None = None, timeout: float | None = None,
           plain: bool | None = None) -> MonitorState:
     """Watch `run` until it is done (or `duration` s). Raises NoRun when no session opens, or no
-    message of the run arrives, within `timeout` s. `plain` (default: when the output is not a
-    terminal) prints one line per update instead of the live view."""
+    message of the run arrives, within `timeout` s. `plain` prints one line per update instead of
+    the live view (`mam watch` asks for it when its output is not a terminal)."""
     console = console or Console()
-    plain = not console.is_terminal if plain is None else plain
+    plain = bool(plain)
     state = MonitorState(run=run)
     rejects = bus.RejectLog(log, "message")
     try:
@@ -165,6 +165,7 @@ def watch_command(run: str | None, connect: list[str] | None, zenoh_config: Path
     if timeout <= 0:
         raise typer.BadParameter("must be > 0 seconds", param_hint="--timeout")
     console = Console()
+    plain = not console.is_terminal if plain is None else plain
     try:
         if not connect and not zenoh_config:
             connect = [find_endpoint(run, run_dir, timeout, console)]

@@ -3,7 +3,8 @@
 import pytest
 from rich.console import Console
 
-from services.monitor_view import MonitorState, render
+from mam_core.config import resolve
+from services.monitor_view import MonitorState, PlainLines, render
 
 
 class FakeClock:
@@ -47,6 +48,8 @@ def test_empty_state_renders_waiting():
 def test_state_tracks_allocation_eval_and_rates():
     clock = FakeClock(100.0)
     state = MonitorState(run="r1", env_id="Hopper-v5", algo="ma-td3", steps=1_000_000, now=clock)
+    state.on_config({"run": "r1", "env_id": "Hopper-v5", "algo": "ma-td3", "steps": 1_000_000,
+                     "algo_config": resolve("ma-td3", schedule="equal-data").to_dict()})
     state.on_alive("learner", "0", True)
     for w in ("w0", "w1", "w2"):
         state.on_alive("worker", w, True)
@@ -109,3 +112,50 @@ def test_elimination_marks_survivor_and_keeps_last_returns():
     assert "survivor" in text and "eliminated" in text
     assert "1.000" in text and "elimination" in text
     assert "done" in text and "321s" in text
+
+
+def _paper_demo_state(clock: FakeClock) -> MonitorState:
+    """MA-DDPG under the paper's schedule: 4,000 iterations, C = 3,000, M = 5: 16,000 transitions."""
+    state = MonitorState(now=clock)
+    algo = resolve("ma-ddpg", eliminate_at=3000, compete_every=200, start_steps=400)
+    state.on_config({"run": "demo", "env_id": "AppleCollect-v1", "algo": "ma-ddpg", "steps": 4000,
+                     "algo_config": algo.to_dict()})
+    return state
+
+
+def test_header_counts_each_figure_in_one_unit():
+    """Iterations against T and transitions against the budget in transitions, never mixed."""
+    clock = FakeClock(100.0)
+    state = _paper_demo_state(clock)
+    state.on_stats(_stats(12_000, 2_000, {"w0": 6_000}))
+    text = _text(state)
+    assert "iteration 2,400 / 4,000" in text and "transitions 12,000 / 16,000" in text
+    assert "12,000 / 4,000" not in text
+    assert state.at(15_500) == "iteration 3,500 (15,500 transitions)"
+
+
+def test_plain_lines_one_per_update():
+    """`mam watch` without a terminal: a line per config, allocation (with R_k), evaluation and done;
+    learner progress at most every few seconds."""
+    clock = FakeClock(100.0)
+    state = _paper_demo_state(clock)
+    lines = PlainLines(state, every_s=5.0)
+    assert lines.after("config") == ["run demo · ma-ddpg · AppleCollect-v1: budget 4,000 iterations "
+                                     "(16,000 transitions)"]
+    state.on_allocation({**_allocation(3, 3_000, [0.5, 0.3, 0.2], [3, 1, 1], {"w0": 0}),
+                         "returns": [49.94, 9.96, -1.0000000000000004]})
+    assert lines.after("allocation") == ["allocation round 3 (round) at iteration 600 (3,000 transitions): "
+                                         "R=[49.94 9.96 -1.00] P=[0.50 0.30 0.20] I=[3 1 1]"]
+    state.on_eval({"env_steps": 3_000, "mean": [49.94, None, -1.0]})
+    assert lines.after("eval") == ["evaluation at iteration 600 (3,000 transitions): mean returns [49.94 — -1.00]"]
+    state.on_stats(_stats(3_000, 200, {"w0": 3_000}))
+    assert lines.after("stats") == ["iteration 600 / 4,000   transitions 3,000 / 16,000   updates 200"]
+    clock.t = 102.0
+    state.on_stats(_stats(3_500, 300, {"w0": 3_500}))
+    assert lines.after("stats") == []  # within every_s of the last progress line
+    clock.t = 106.0
+    state.on_stats(_stats(4_000, 400, {"w0": 4_000}))
+    assert lines.after("stats") == ["iteration 800 / 4,000   transitions 4,000 / 16,000   updates 400   "
+                                    "125.0 env steps/s   25.0 updates/s"]
+    state.on_done({"survivor": 0, "wall_time_s": 171.2, "final_returns": [49.94, None, None]})
+    assert lines.after("done") == ["done in 171 s: final returns [49.94 — —], survivor 0"]
