@@ -26,8 +26,9 @@ def _ci(i: Interval, digits: int | None = None) -> str:
     return f"[{_fmt(i.lo, digits)}, {_fmt(i.hi, digits)}]"
 
 
-TABLE_HEADER = ("variant", "setting", "runs", "last-10 mean ± std", "95% CI", "IQM [95% CI]",
-                "max avg return ± std (@ step)", "updates", "env steps", "wall s (run)", "wall s (launcher)")
+TABLE_HEADER = ("variant", "setting", "runs", "deployed final return ± std", "deployed AUC ± std",
+                "best-of-K last-10 mean ± std", "95% CI", "best-of-K IQM [95% CI]",
+                "best-of-K max avg return ± std (@ step)", "updates", "env steps", "wall s (run)", "wall s (launcher)")
 
 
 def env_rows(vs: Sequence[VariantStats]) -> tuple[list[str], list[list[str]]]:
@@ -37,7 +38,7 @@ def env_rows(vs: Sequence[VariantStats]) -> tuple[list[str], list[list[str]]]:
         header.append(f"final ≥ {SUCCESS_RETURN:.2f} (50 apple) [95% CI]")
     rows = []
     for v in vs:
-        row = [v.variant, v.setting(), str(v.n),
+        row = [v.variant, v.setting(), str(v.n), _mean_std(v.deployed_final), _mean_std(v.deployed_auc),
                f"{_fmt(v.last10_mean.value)} ± {_fmt(v.last10_std)}", _ci(v.last10_mean),
                f"{_fmt(v.iqm.value)} {_ci(v.iqm)}",
                f"{_fmt(v.max_avg.value)} ± {_fmt(v.max_avg.std)} (@ {_fmt(v.max_avg.step, 0)})",
@@ -220,8 +221,11 @@ def render_markdown(report: Report, figures: dict[str, list[Path]], out: Path) -
         lines += ["", "**Notes:**", ""] + [f"- {n}" for n in report.notes]
     lines += ["", f"Tables on the x-axis: **{AXIS_TEXT.get(report.axis, report.axis)}**; learning curves on "
               + " and on ".join(report.axes) + ".",
-              "", "Score of an evaluation = mean return of the best live actor (the survivor after the "
-              "elimination). *last-10 mean*: per run the mean of its last 10 evaluations, then mean ± std over "
+              "", "*Deployed final return* and *deployed AUC*: the verdict's scores (above), mean ± std over "
+              "seeds. The *best-of-K* columns (secondary: before C they take a max over the K actors, on the "
+              "episodes that selected them) score an evaluation as the mean return of the best live actor (the "
+              "survivor after the elimination). *last-10 mean*: per run the mean of its last 10 evaluations, then "
+              "mean ± std over "
               "seeds and a bootstrap 95% CI; *IQM*: interquartile mean of the per-run last-10 scores "
               f"(bootstrap 95% CI, {N_BOOT if not report.meta.get('n_boot') else report.meta['n_boot']} "
               "resamples); *max avg return*: the paper's Table 4 statistic, max over evaluation points of the "
@@ -252,7 +256,8 @@ def render_markdown(report: Report, figures: dict[str, list[Path]], out: Path) -
     if report.comparisons:
         header, rows = comparison_rows(report.comparisons)
         lines += ["", "## Probability of improvement", "",
-                  "P(X > Y): the chance that a run of X has a higher last-10 score than a run of Y (ties count ½), "
+                  "Secondary (best-of-K scores). P(X > Y): the chance that a run of X has a higher best-of-K last-10 "
+                  "score than a run of Y (ties count ½), "
                   "averaged over envs; 95% CI from a stratified bootstrap (runs of X and Y resampled "
                   "independently within each env).", "", _md_table(header, rows)]
     if report.aggregate:
@@ -300,7 +305,8 @@ def print_tables(report: Report, console: Any) -> None:
     for env, bs in report.bias.items():
         console.print(_rich_table(f"Estimation bias (Eq. 17), {env}", *bias_rows(bs)))
     if report.comparisons:
-        console.print(_rich_table("Probability of improvement (last-10 scores)", *comparison_rows(report.comparisons)))
+        console.print(_rich_table("Probability of improvement (best-of-K last-10 scores, secondary)",
+                                  *comparison_rows(report.comparisons)))
     if report.aggregate:
         rows = [[name, str(n), _fmt(i.value, 3), _ci(i, 3)] for name, n, i in report.aggregate]
         console.print(_rich_table("Aggregate over envs: IQM of range-normalised scores",
