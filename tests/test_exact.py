@@ -1,0 +1,186 @@
+"""Exact mode: a distributed `mam run` is the one-process Algorithm 1, bit for bit, and reruns
+from its seed (services/exact.py, mam_core/algorithm1.py)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from mam_core.algorithm1 import Algorithm1
+from mam_core.config import resolve
+from mam_core.policy import read_policy_file
+from mam_core.reference import run_reference
+from mam_core.schedule import Schedule
+from mam_core.seeding import stream, stream_seed
+from services.plot import read_jsonl
+from tests.e2e import ROOT, mam, unique_run
+
+# -- the plan, hand-computed ---------------------------------------------------------------------
+
+
+def test_plan_of_the_paper_schedule_hand_computed():
+    """M = 3, T = 10, start 2, A = 3, C = 6, d = 2, batch 4: iterations 1-6 step 3 slots,
+    7-10 one (the survivor on slot 0); updates from iteration 3 on (one each); rounds at 3,
+    the elimination at 6 (before the update-4 actor phase), curve points every 5."""
+    s = Schedule("paper", slots=3, steps=10, start=2, compete_every=3, eliminate_at=6)
+    plan = Algorithm1(s, batch_size=4, policy_delay=2, eval_every=5)
+    assert plan.iterations == 10 and plan.elimination == 6
+    its = [plan.iteration(i) for i in range(1, 11)]
+    assert [it.slots for it in its] == [(0, 1, 2)] * 6 + [(0,)] * 4
+    assert [it.transitions for it in its][:2] == [(0, 3), (3, 6)] and its[6].transitions == (18, 19)
+    assert [it.random for it in its] == [True, True] + [False] * 8
+    assert [it.updates for it in its] == [(0, 0), (0, 0), (0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (5, 6), (6, 7),
+                                          (7, 8)]
+    assert [it.round for it in its] == [None, None, 1, None, None, None, None, None, None, None]
+    assert [it.eliminate for it in its] == [False] * 5 + [True] + [False] * 4
+    assert [it.curve for it in its] == [None] * 4 + [1] + [None] * 4 + [2]
+    # versions: an actor update at every even update count
+    assert [plan.version_after(i) for i in range(0, 11)] == [0, 0, 0, 0, 1, 1, 2, 2, 3, 3, 4]
+    assert [plan.weights_change(i) for i in range(1, 11)] == [False, False, False, True, False, True, False,
+                                                              True, False, True]
+    assert plan.version_for(6) == 1 and plan.elimination_update() == 4  # iteration 6 makes update 4
+    assert plan.events() == [(3, "round"), (5, "curve"), (6, "elimination"), (10, "curve")]
+
+
+def test_plan_of_equal_data_counts_transitions():
+    """M = 4, 30 transitions, C = 10: sweeps of 4; the elimination in the sweep that reaches
+    10 (the third); every slot keeps running the survivor (no single slot)."""
+    s = Schedule("equal-data", slots=4, steps=30, start=8, compete_every=4, eliminate_at=10)
+    plan = Algorithm1(s, batch_size=2, policy_delay=1, eval_every=12, single_env=False)
+    assert plan.iterations == 8 and plan.elimination == 3
+    last = plan.iteration(8)
+    assert last.slots == (0, 1) and last.transitions == (28, 30) and last.last  # cut by the budget
+    assert [plan.iteration(i).round for i in (1, 2)] == [1, 2]
+    assert plan.iteration(3).eliminate and plan.iteration(3).round is None
+    assert plan.iteration(3).updates == (0, 4)  # 12 transitions, 8 of them random
+
+
+def test_streams_derive_from_the_seed_alone():
+    a, b = stream(7, "noise", 2).normal(size=3), stream(7, "noise", 2).normal(size=3)
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, stream(7, "noise", 3).normal(size=3))  # another slot
+    assert not np.array_equal(a, stream(8, "noise", 2).normal(size=3))  # another seed
+    assert not np.array_equal(a, stream(7, "noise", 2, generation=1).normal(size=3))  # a restarted worker
+    assert stream_seed(7, "curve", 4) == stream_seed(7, "curve", 4) != stream_seed(7, "round", 4)
+    with pytest.raises(ValueError, match="unknown random stream"):
+        stream(7, "uuid")
+
+
+# -- a real distributed run against the reference ------------------------------------------------
+
+APPLE = dict(hidden=(16, 16), batch_size=16, start_steps=100, compete_every=100, eliminate_at=300, workers=5,
+             actors=3, eval_episodes=2, eval_every=100)
+APPLE_STEPS = 450
+
+
+def _mam_run(tmp: Path, name: str, seed: int, *extra: str) -> Path:
+    run_dir = tmp / name
+    mam("run", "--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--steps", str(APPLE_STEPS), "--workers", "5",
+        "--actors", "3", "--start-steps", "100", "--compete-every", "100", "--eliminate-at", "300",
+        "--eval-episodes", "2", "--eval-every", "100", "--hidden", "16,16", "--batch-size", "16", "--seed", str(seed),
+        "--run", unique_run(name), "--run-dir", str(run_dir), *extra, timeout=240)
+    return run_dir
+
+
+def _record(run_dir: Path) -> dict:
+    meta, params = read_policy_file(run_dir / "checkpoints" / "policy.npz")
+    return {"evals": [(e["iterations"], e["purpose"], e["returns"]) for e in read_jsonl(run_dir / "eval.jsonl")],
+            "slots": [a["slots"] for a in read_jsonl(run_dir / "allocation.jsonl")],
+            "summary": json.loads((run_dir / "summary.json").read_text()), "params": params}
+
+
+def _same_params(a: list[dict[str, np.ndarray]], b: list[dict[str, np.ndarray]]) -> bool:
+    return len(a) == len(b) and all(set(x) == set(y) and all(np.array_equal(x[n], y[n]) for n in x)
+                                    for x, y in zip(a, b))
+
+
+def test_mam_run_equals_the_reference_and_reruns_from_its_seed(tmp_path: Path) -> None:
+    torch.set_num_threads(1)  # the learner's default (learner_threads = 1): the same float sums
+    first = _record(_mam_run(tmp_path, "exact-a", seed=3))
+    ref = run_reference("AppleCollect-v1", resolve("ma-ddpg", seed=3, **APPLE), APPLE_STEPS)
+    assert first["summary"]["exact"] is True and first["summary"]["collection"] == "exact"
+    assert first["evals"] == [(e["iterations"], e["purpose"], e["returns"]) for e in ref.evaluations]
+    assert first["slots"][:-1] == [{f"w{i}": k for i, k in enumerate(a["slots"])} for a in ref.allocations[:-1]]
+    assert first["slots"][-1] == {"w0": ref.survivor}  # after C the survivor runs slot 0 alone
+    assert first["summary"]["survivor"] == ref.survivor
+    assert _same_params(first["params"], ref.policy)  # np.array_equal, every actor, every layer
+
+    again = _record(_mam_run(tmp_path, "exact-b", seed=3))
+    assert again["evals"] == first["evals"] and again["slots"] == first["slots"]
+    assert _same_params(again["params"], first["params"])
+
+    other = run_reference("AppleCollect-v1", resolve("ma-ddpg", seed=4, **APPLE), APPLE_STEPS)
+    assert not _same_params(other.policy, first["params"])
+    assert [e["returns"] for e in other.evaluations] != [e[2] for e in first["evals"]] or \
+        [a["slots"] for a in other.allocations] != [a["slots"] for a in ref.allocations]
+
+
+def test_reference_driver_is_deterministic_and_k1_needs_no_referee_rounds():
+    cfg = resolve("td3", hidden=(16, 16), batch_size=16, start_steps=50, eval_episodes=1, eval_every=100, seed=1)
+    a = run_reference("Pendulum-v1", cfg, 200)
+    b = run_reference("Pendulum-v1", dataclasses.replace(cfg), 200)
+    assert _same_params(a.policy, b.policy)
+    assert [row["purpose"] for row in a.evaluations] == ["curve", "curve"]  # no round without K > 1
+    assert a.updates == 150 and a.survivor is None
+
+
+# -- slow: MuJoCo, a killed worker ---------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_mam_run_halfcheetah_ma_td3_equals_the_reference(tmp_path: Path) -> None:
+    torch.set_num_threads(1)
+    run_dir = tmp_path / "cheetah"
+    mam("run", "--env", "HalfCheetah-v5", "--algo", "ma-td3", "--steps", "300", "--start-steps", "100",
+        "--compete-every", "100", "--eliminate-at", "200", "--eval-episodes", "1", "--eval-every", "100",
+        "--hidden", "32,32", "--batch-size", "32", "--seed", "5", "--run", unique_run("cheetah"),
+        "--run-dir", str(run_dir), timeout=400)
+    got = _record(run_dir)
+    cfg = resolve("ma-td3", hidden=(32, 32), batch_size=32, start_steps=100, compete_every=100, eliminate_at=200,
+                  eval_episodes=1, eval_every=100, seed=5)
+    ref = run_reference("HalfCheetah-v5", cfg, 300)
+    assert got["summary"]["exact"] is True
+    assert got["evals"] == [(e["iterations"], e["purpose"], e["returns"]) for e in ref.evaluations]
+    assert got["summary"]["survivor"] == ref.survivor
+    assert _same_params(got["params"], ref.policy)
+
+
+@pytest.mark.slow
+def test_a_killed_worker_ends_exactness_and_the_run_finishes(tmp_path: Path) -> None:
+    run_dir, name = tmp_path / "killed", unique_run("killed")
+    args = ["--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--steps", "3000", "--workers", "3", "--actors", "2",
+            "--start-steps", "200", "--compete-every", "500", "--eliminate-at", "2000", "--eval-episodes", "2",
+            "--eval-every", "500", "--hidden", "16,16", "--batch-size", "16", "--seed", "2", "--run", name,
+            "--run-dir", str(run_dir)]
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", *args], cwd=ROOT, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 120
+        victim = None
+        while time.monotonic() < deadline and victim is None:  # a worker that has sent rows
+            time.sleep(0.5)
+            out = subprocess.run(["pgrep", "-f", f"services.worker --run {name} .*--id w1 "], capture_output=True,
+                                 text=True).stdout.split()
+            if out and (run_dir / "learner.jsonl").is_file() and (run_dir / "learner.jsonl").stat().st_size > 0:
+                victim = int(out[0])
+        assert victim is not None, "no worker to kill"
+        import os
+        os.kill(victim, signal.SIGKILL)
+        out, _ = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, out
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["exact"] is False and summary["inexact"], summary
+    assert summary["env_steps"] == Schedule.for_run(resolve("ma-ddpg", workers=3, actors=2, start_steps=200,
+                                                            compete_every=500, eliminate_at=2000), 3000).budget
