@@ -121,6 +121,26 @@ def verdict_rows(vd: Sequence[Verdict], pending: Sequence[PendingRow] = ()) -> t
     return header, rows
 
 
+def per_run_rows(vs: Sequence[VariantStats]) -> tuple[list[str], list[list[str]]]:
+    """Per variant, each run's deployed final return and AUC (seed: value)."""
+    header = ["variant", "deployed final return per run", "deployed AUC per run"]
+
+    def cells(values: np.ndarray, v: VariantStats) -> str:
+        return ", ".join(f"{r.seed}: {_fmt(float(x))}" for r, x in zip(v.runs, values))
+
+    return header, [[v.variant, cells(v.deployed_final, v), cells(v.deployed_auc, v)] for v in vs]
+
+
+def auc_verdict_rows(vd: Sequence[Verdict]) -> tuple[list[str], list[list[str]]]:
+    """The verdict rules applied to the deployed actor's AUC (the word is also in the main table)."""
+    header = ["env", "variant", "vs", "runs", "AUC variant / baseline (mean ± std)", "P(variant > baseline) [95% CI]",
+              "exact p variant > baseline (raw / Holm)", "exact p variant < baseline (raw / Holm)",
+              "stability over bootstrap seeds", "verdict on AUC"]
+    rows = [[v.env, v.variant, v.baseline, _runs_cell(v), f"{_mean_std(v.auc_x)} / {_mean_std(v.auc_y)}",
+             *_verdict_cells(v.auc)] for v in vd]
+    return header, rows
+
+
 def _steps_text(values: Sequence[float]) -> str:
     return ", ".join(_fmt(x, 0) for x in values)
 
@@ -217,6 +237,9 @@ def render_markdown(report: Report, figures: dict[str, list[Path]], out: Path) -
     if report.verdicts or report.pending:
         header, rows = verdict_rows(report.verdicts, report.pending)
         lines += ["", "## Verdict", "", VERDICT_TEXT.format(**verdict_params(report)), "", _md_table(header, rows)]
+        if report.verdicts:
+            lines += ["", "The same rules on the deployed actor's AUC after the random phase:", "",
+                      _md_table(*auc_verdict_rows(report.verdicts))]
     if report.notes:
         lines += ["", "**Notes:**", ""] + [f"- {n}" for n in report.notes]
     lines += ["", f"Tables on the x-axis: **{AXIS_TEXT.get(report.axis, report.axis)}**; learning curves on "
@@ -236,6 +259,8 @@ def render_markdown(report: Report, figures: dict[str, list[Path]], out: Path) -
         lines += ["", f"## {env}", "", f"Evaluation grid spacing: {_fmt(vs[0].spacing, 0)} {unit} (x-axis: "
                   f"{report.axis}); wall s: mean wall-clock seconds per run (the referee's, and the launcher's from "
                   "start to end).", "", _md_table(header, rows)]
+        header, rows = per_run_rows(vs)
+        lines += ["", "Per run (seed: value), the deployed actor's final return and AUC:", "", _md_table(header, rows)]
         if any(v.success is not None for v in vs):
             header, rows = reach_rows(vs)
             lines += ["", f"A final return ≥ {SUCCESS_RETURN:.2f} means the final policy reaches a 50 apple (a 50 "
