@@ -1,6 +1,7 @@
 """`mam chaos`: a `mam run` while a driver SIGKILLs one of its children at random every 20–40 s.
 
-    mam chaos [--kill-every 20,40] [--chaos-seed 0] [--roles learner,referee,worker] [--out FILE] -- MAM RUN FLAGS
+    mam chaos [--kill-every 20,40] [--chaos-seed 0] [--roles learner,referee,worker] [--kill-learner-early]
+              [--out FILE] -- MAM RUN FLAGS
 
 Runs `mam run MAM RUN FLAGS --no-plot` (a `--run-dir` is required), and until it exits kills a
 random live child (the learner included) with SIGKILL after a uniformly drawn 20–40 s. Then it
@@ -9,6 +10,11 @@ every transition a worker sent in the replay exactly once over all incarnations 
 `audit`: lost and duplicated rows), the run directory complete, the final checkpoint and its
 replay loadable. Prints the figures as JSON and writes them to RUN_DIR/chaos.json (or --out).
 Exit status 0 if every check passed.
+
+`--kill-learner-early` adds four learner kills at fixed moments (EARLY_MOMENTS, reported in
+`early_kills`): before its first checkpoint is on disk, at its first transitions, when the random
+phase ends and half way through the budget — the window where a restarted learner once resumed
+from nothing and the run hung (issue 20).
 """
 
 from __future__ import annotations
@@ -29,6 +35,9 @@ from services import rundir
 
 ROOT = Path(__file__).resolve().parents[1]
 ROLES = ("learner", "referee", "worker")
+# --kill-learner-early: (name, transitions the learner must have reached; None: before any checkpoint)
+EARLY_MOMENTS = ("before the first checkpoint", "at the first transitions", "at the end of the random phase",
+                 "half way")
 RUN_FILES = (rundir.CONFIG, rundir.LEARNER_LOG, rundir.EVAL, rundir.ALLOCATION, rundir.SUMMARY, rundir.TRANSPORT,
              rundir.REFEREE_STATE, f"{rundir.CHECKPOINTS}/{rundir.LEARNER_CHECKPOINT}", rundir.role_log("learner"),
              rundir.role_log("referee"))
@@ -110,8 +119,44 @@ def verify(run_dir: Path, returncode: int) -> dict[str, Any]:
     return figures
 
 
+def _early_thresholds(run_dir: Path) -> list[int | None]:
+    """The transitions of EARLY_MOMENTS for the run in `run_dir` (its config.json)."""
+    from mam_core.schedule import Schedule
+    from services.options import RunConfig
+
+    cfg = RunConfig.from_dict(json.loads((run_dir / rundir.CONFIG).read_text()))
+    s = Schedule.for_run(cfg.algo, cfg.steps)
+    return [None, 1, max(s.random_until, 2), max(s.budget // 2, s.random_until + 1)]
+
+
+def _early_kill(proc: subprocess.Popen, run_dir: Path, moments: list[int | None], done: list[dict[str, Any]],
+                started: float, log) -> None:
+    """Kill the learner at the next of EARLY_MOMENTS once it is reached (one per call at most)."""
+    i = len(done)
+    if i >= len(moments):
+        return
+    learners = [pid for pid, role in children_of(proc.pid) if role == "learner"]
+    if not learners:
+        return
+    steps = _learner_steps(run_dir)
+    if moments[i] is None:  # the learner is up, and no checkpoint generation is on disk yet
+        if rundir.has_checkpoint(run_dir):
+            done.append({"moment": EARLY_MOMENTS[i], "missed": "a checkpoint was already on disk"})
+            return
+    elif steps < moments[i]:
+        return
+    try:
+        os.kill(learners[0], signal.SIGKILL)
+    except ProcessLookupError:
+        return
+    done.append({"moment": EARLY_MOMENTS[i], "t": round(time.monotonic() - started, 1), "pid": learners[0],
+                 "env_steps": steps, "checkpoint_on_disk": rundir.has_checkpoint(run_dir)})
+    log(f"t={done[-1]['t']:7.1f} s  SIGKILL learner (pid {learners[0]}) {EARLY_MOMENTS[i]} (~{steps:,} env steps)")
+
+
 def chaos(run_args: list[str], run_dir: Path, kill_every: tuple[float, float] = (20.0, 40.0), seed: int = 0,
-          roles: tuple[str, ...] = ROLES, log=print, timeout: float = 7200.0) -> dict[str, Any]:
+          roles: tuple[str, ...] = ROLES, log=print, timeout: float = 7200.0,
+          kill_learner_early: bool = False) -> dict[str, Any]:
     """Run `mam run` with kills; returns the figures (see `verify`) with the kills made."""
     rng = random.Random(seed)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -119,6 +164,8 @@ def chaos(run_args: list[str], run_dir: Path, kill_every: tuple[float, float] = 
     env = dict(os.environ, COLUMNS="160", PYTHONWARNINGS="ignore")
     started = time.monotonic()
     kills: list[dict[str, Any]] = []
+    early: list[dict[str, Any]] = []
+    moments: list[int | None] | None = None
     with open(out_path, "wb") as out:
         proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", *run_args, "--run-dir", str(run_dir),
                                  "--no-plot"], cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT)
@@ -128,6 +175,16 @@ def chaos(run_args: list[str], run_dir: Path, kill_every: tuple[float, float] = 
         while proc.poll() is None:
             if time.monotonic() - started > timeout:
                 raise TimeoutError(f"mam run still going after {timeout:.0f} s")
+            if kill_learner_early and len(early) < len(EARLY_MOMENTS):
+                if moments is None and (run_dir / rundir.CONFIG).is_file():
+                    try:
+                        moments = _early_thresholds(run_dir)
+                    except (OSError, ValueError, KeyError):
+                        moments = None
+                if moments is not None:
+                    _early_kill(proc, run_dir, moments, early, started, log)
+                time.sleep(0.05)
+                continue  # the random kills wait until the early ones are made
             if time.monotonic() < next_kill:
                 time.sleep(0.2)
                 continue
@@ -150,6 +207,12 @@ def chaos(run_args: list[str], run_dir: Path, kill_every: tuple[float, float] = 
     by_role: dict[str, int] = {}
     for k in kills:
         by_role[k["role"]] = by_role.get(k["role"], 0) + 1
+    if kill_learner_early:
+        made = [k for k in early if "missed" not in k]
+        figures["early_kills"] = early
+        if len(made) < len(EARLY_MOMENTS):
+            figures["problems"].append(f"{len(made)} of {len(EARLY_MOMENTS)} early learner kills made "
+                                       f"(the run ended or a moment was missed): {early}")
     figures.update(kills=len(kills), kills_by_role=by_role, kill_log=kills,
                    chaos_wall_time_s=round(time.monotonic() - started, 1), run_args=run_args)
     return figures
@@ -173,6 +236,9 @@ def chaos_command(
     seed: int = typer.Option(0, "--chaos-seed", help="seed of the kill schedule and of the victims"),
     roles: str = typer.Option(",".join(ROLES), help="roles that may be killed"),
     out: Path = typer.Option(None, help="write the figures here (default RUN_DIR/chaos.json)"),
+    kill_learner_early: bool = typer.Option(False, "--kill-learner-early",
+                                            help="first kill the learner before its first checkpoint, at its first "
+                                                 "transitions, at the end of the random phase and half way"),
 ) -> None:
     """Kill random children of a `mam run` with SIGKILL and check that the run still finishes."""
     args = list(ctx.args)
@@ -182,7 +248,8 @@ def chaos_command(
     run_dir = Path(args[i + 1])
     del args[i:i + 2]
     lo, hi = (float(x) for x in kill_every.split(","))
-    figures = chaos(args, run_dir, (lo, hi), seed, tuple(r.strip() for r in roles.split(",") if r.strip()))
+    figures = chaos(args, run_dir, (lo, hi), seed, tuple(r.strip() for r in roles.split(",") if r.strip()),
+                    kill_learner_early=kill_learner_early)
     path = out or run_dir / rundir.CHAOS
     path.write_text(json.dumps(figures, indent=2))
     print(json.dumps({k: v for k, v in figures.items() if k != "kill_log"}, indent=2))

@@ -36,6 +36,7 @@ STOP_GRACE_S = 15.0
 EXIT_WRITE_ERROR = 75  # the learner could not write its checkpoint (services/checkpoint.py, same value)
 LOW_DISK_BYTES = 1 << 20  # a child that dies with less than this free in the run directory: the disk is full
 MAX_STALL_ACTIONS = 2  # watchdog restarts in a row without progress; one more stall stops the run
+STARTUP_GRACE_S = 60.0  # the watchdog's limit until a (re)started learner's first stats arrive, if longer
 # `mam experiment --parallel`: the cores of a run's learner ("0,1"); its referee and workers float
 LEARNER_CPUS_ENV = "MAM_LEARNER_CPUS"
 CHECKPOINT_FILE = rundir.LEARNER_CHECKPOINT
@@ -285,6 +286,8 @@ class LocalCluster:
         with --resume); after MAX_STALL_ACTIONS such restarts without progress RunStalled stops
         the run with the diagnosis."""
         limit = self.cfg.stall_timeout
+        if self.last_stats_at is None and limit > 0:  # a learner starting up (torch, a resume) gets longer
+            limit = max(limit, STARTUP_GRACE_S)
         if limit <= 0 or self.done or self.stopping or self.pending or now - self.progress_at < limit:
             return
         diagnosis, victims = self.diagnose(now)
