@@ -13,7 +13,10 @@ from) and `mam_lab.view` (the progress view); their docstrings say how each work
     EXP_DIR/report.md, EXP_DIR/figures/ `mam report EXP_DIR` (run at the end unless --no-report)
 
 Runs are ordered seed by seed (all envs and variants of seed 0, then seed 1, ...), so a grid
-stopped early still has balanced results across algorithms.
+stopped early still has balanced results across algorithms (a grid file's `order = "env"` runs env
+by env instead, and `[env-seeds]` gives an env its own seeds). `--stop-by TIME` starts no run that
+its estimated wall time would carry past TIME (see mam_lab.scheduler); runs in flight at TIME are
+allowed to finish and are recorded when they do.
 """
 
 from __future__ import annotations

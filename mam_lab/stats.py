@@ -1,11 +1,19 @@
-"""Statistics of the lab, pure numpy: IQM, stratified bootstrap CIs, the probability of
-improvement P(X > Y), the Wilson interval of a share, the verdict word, and a bootstrap band of
-learning curves. Nothing here reads files or knows about runs (tests/test_stats.py checks each
-against values computed by hand).
+"""Statistics of the lab, pure numpy (and itertools): IQM, stratified bootstrap CIs, the probability
+of improvement P(X > Y), the Wilson interval of a share, a bootstrap band of learning curves, the
+exact one-sided permutation (Mann-Whitney) test, Holm's correction, and the verdict word with its
+stability over bootstrap seeds. Nothing here reads files or knows about runs (tests/test_stats.py
+and tests/test_verdict.py check each against values computed by hand).
 
 Written after Agarwal et al. 2021 ("Deep RL at the edge of the statistical precipice", rliable):
 the IQM is the mean of the middle 50% of the scores, CIs are percentile bootstrap CIs where the
 seeds are resampled within each env (stratum), and P(X > Y) counts ties as ½.
+
+The verdict (issue #18): *better* only when the bootstrap CI of P(X > Y) (N_BOOT_VERDICT resamples)
+lies above ½ and the exact one-sided p, Holm-adjusted over the rows sharing a baseline, is below
+ALPHA; *worse* the mirror image; the word must be the same under STABILITY_SEEDS bootstrap seeds,
+else *not separated*; *too few runs* below MIN_RUNS runs a side. The exact test enumerates every
+split of the pooled scores (itertools) up to ENUMERATE_MAX splits, and beyond counts the same
+splits by dynamic programming over the doubled mid-ranks: exact in both cases, ties included.
 """
 
 from __future__ import annotations
