@@ -6,11 +6,12 @@ importing it costs seconds of start-up and a few hundred MB per process. This mo
 what acting needs, with numpy alone; the learner's `ActorEnsemble` shares the parameter layout
 (`member_shapes`), and `tests/test_policy.py` checks that both compute the same function.
 
-A trained policy, three lines, numpy only (no torch, no Zenoh):
+A trained policy in a few lines, numpy only (no torch, no Zenoh):
 
     from mam_core.policy import load_policy
     pi = load_policy("runs/NAME")        # the survivor; load_policy("runs/NAME", actor=1) for actor 1
     action = pi(obs)                     # obs [obs_dim] -> [act_dim], or [B, obs_dim] -> [B, act_dim]
+    env = pi.make_env()                  # the env it was trained on (gymnasium; AppleCollect registered)
 
 It reads RUN_DIR/checkpoints/policy.npz, which the learner writes next to every checkpoint
 (`save_policy_file`; format in docs/DESIGN-DECISIONS.md, "Trained policies on disk").
@@ -247,6 +248,15 @@ class TrainedPolicy:
             raise ValueError(f"observation of shape {obs.shape}: this policy takes [{self.spec.obs_dim}] or "
                              f"[B, {self.spec.obs_dim}] ({self.env_id})")
         return self._policy(obs)
+
+    def make_env(self, **make_kwargs: Any) -> Any:
+        """A fresh env of the kind this policy was trained on: `gym.make(env_id, **env_kwargs,
+        **make_kwargs)` (e.g. `render_mode="rgb_array"`), with AppleCollect registered and a
+        `module:EnvId` module imported (mam_core.envs.make_env). Imports gymnasium; the policy
+        itself needs numpy only."""
+        from mam_core.envs import make_env
+
+        return make_env(self.env_id, self.env_kwargs, **make_kwargs)
 
     def __repr__(self) -> str:
         return (f"TrainedPolicy(actor={self.actor}, env={self.env_id!r}, obs_dim={self.spec.obs_dim}, "

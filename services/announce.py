@@ -8,6 +8,7 @@ started by hand (`mam-learner`, roles spread over machines) says the same in its
 from __future__ import annotations
 
 import logging
+import os
 import threading
 from typing import Any
 
@@ -15,6 +16,7 @@ from services import bus
 from services.options import RunConfig, budget_warnings, learner_banner
 
 WORKER_GRACE_S = 30.0  # how long after start a split-role learner waits before it counts its workers
+WORKER_GRACE_ENV = "MAM_WORKER_GRACE_S"  # another grace in seconds (tests)
 
 
 def announce_learner(cfg: RunConfig, listen: list[str] | None, connect: list[str] | None,
@@ -29,7 +31,9 @@ class WorkerCount:
     """Warns once when, `grace_s` after start, fewer than M workers of the run are up (liveliness),
     and again if the count falls below M after all M had joined. `close()` stops it."""
 
-    def __init__(self, session: Any, cfg: RunConfig, log: logging.Logger, grace_s: float = WORKER_GRACE_S) -> None:
+    def __init__(self, session: Any, cfg: RunConfig, log: logging.Logger, grace_s: float | None = None) -> None:
+        if grace_s is None:
+            grace_s = float(os.environ.get(WORKER_GRACE_ENV) or WORKER_GRACE_S)
         self.cfg, self.log, self.grace_s = cfg, log, grace_s
         self.watch = bus.watch_alive(session, cfg.run, "worker")
         self.stop = threading.Event()

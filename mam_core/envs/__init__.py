@@ -62,9 +62,40 @@ def _has_module(directory: str, name: str) -> bool:
         os.path.isfile(os.path.join(directory, name, "__init__.py"))
 
 
+def quiet_mujoco() -> None:
+    """MuJoCo prints every warning on stdout and appends it to MUJOCO_LOG.TXT in the working directory
+    (HalfCheetah's deprecated `settotalmass`, once per env made: dozens of times in a referee). Route
+    them to the `mam.mujoco` logger at DEBUG instead (`--verbose` shows them). Idempotent."""
+    global _MUJOCO_QUIET
+    if _MUJOCO_QUIET:
+        return
+    try:
+        import mujoco
+    except ImportError:
+        return
+    import logging
+
+    logger = logging.getLogger("mam.mujoco")
+    mujoco.set_mju_user_warning(lambda message: logger.debug("MuJoCo warning: %s", message))
+    _MUJOCO_QUIET = True
+
+
+_MUJOCO_QUIET = False
+
+
+def _uses_mujoco(env_id: str) -> bool:
+    try:
+        return "mujoco" in str(gym.spec(env_id).entry_point)
+    except gym.error.Error:
+        return False
+
+
 def make_env(env_id: str, env_kwargs: Mapping[str, Any] | None = None, **make_kwargs: Any) -> gym.Env:
-    """`gym.make(env_id, **env_kwargs, **make_kwargs)` with clear errors (`EnvError`)."""
+    """`gym.make(env_id, **env_kwargs, **make_kwargs)` with clear errors (`EnvError`); MuJoCo's
+    warnings go to the log, not the terminal or the working directory (`quiet_mujoco`)."""
     import_env_module(env_id)
+    if _uses_mujoco(env_id):
+        quiet_mujoco()
     try:
         return gym.make(env_id, **dict(env_kwargs or {}), **make_kwargs)
     except gym.error.Error as e:
