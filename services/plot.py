@@ -6,7 +6,8 @@ Reads the JSONL metrics a run writes (`eval.jsonl`, `allocation.jsonl`, `learner
 - `learning_curves.png`  mean evaluation return per actor (±1 std over episodes), elimination at C
 - `allocation.png`       I_k (slots per actor, stacked) and P_k (Eq. 8) over env steps
 - `bias.png`             estimation bias rate (Eq. 17) from `bias.jsonl` (runs with `--bias-every`)
-- `learner.png`          critic loss, actor loss, updates per transition, mean Q per actor
+- `learner.png`          critic loss, actor loss, updates per iteration (or per transition under
+                         `--schedule equal-data`), mean Q per actor
 
 A run may still be going: the last JSONL line can be half written and is skipped. A plot whose
 data is absent is skipped. Figures use the object API (`Figure` + Agg canvas), never pyplot,
@@ -16,6 +17,7 @@ so plotting changes no global matplotlib state of the calling process.
 from __future__ import annotations
 
 import math
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -79,6 +81,22 @@ def _title(config: dict[str, Any]) -> str:
     return " · ".join(parts)
 
 
+def _set_title(ax: Axes, what: str, title: str) -> None:
+    """`what — run · algo · env`, wrapped so a long run name is never cut at the figure's edge."""
+    text = f"{what} — {title}" if title else what
+    ax.set_title("\n".join(textwrap.wrap(text, 70)) or what, fontsize="medium")
+
+
+def _last_per_x(xs: list[float], *columns: list[float]) -> tuple[list[float], ...]:
+    """One point per x, the last one recorded there (the run's final evaluation comes after the
+    last periodic one at the same env step: both drawn gave a vertical zigzag at the last x)."""
+    keep: dict[float, int] = {}
+    for i, x in enumerate(xs):
+        keep[x] = i
+    order = sorted(keep.values())
+    return tuple([col[i] for i in order] for col in (xs, *columns))
+
+
 def _actor_label(k: int, survivor: int | None) -> str:
     return f"actor {k} (survivor)" if k == survivor else f"actor {k}"
 
@@ -135,6 +153,7 @@ def plot_learning_curves(
             std.append(float(np.std(episodes)) if episodes else 0.0)
         if not xs:
             continue
+        xs, mean, std = _last_per_x(xs, mean, std)
         x, m, s = np.asarray(xs), np.asarray(mean), np.asarray(std)
         color = f"C{k % 10}"
         ax.plot(x, m, color=color, marker="o", markersize=3, linewidth=2.2 if k == survivor else 1.5,
@@ -143,7 +162,7 @@ def plot_learning_curves(
     _mark_elimination(ax, elimination)
     ax.set_xlabel(xlabel)
     ax.set_ylabel("mean evaluation return")
-    ax.set_title(f"Learning curves — {title}" if title else "Learning curves")
+    _set_title(ax, "Learning curves", title)
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize="small")
     return _save(fig, path)
@@ -183,7 +202,7 @@ def plot_allocation(
     if m_total > 0:
         ax_i.set_ylim(0, m_total)
         ax_i.set_yticks(range(int(m_total) + 1))
-    ax_i.set_title(f"Allocation — {title}" if title else "Allocation")
+    _set_title(ax_i, "Allocation", title)
     ax_i.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small")
     _mark_elimination(ax_i, elimination, label=False)
     for k in range(k_actors):
@@ -217,7 +236,7 @@ def plot_bias(evals: list[dict[str, Any]], title: str, path: Path, xlabel: str =
                   label=f"actor {k}: Monte-Carlo $Q^*$")
     ax_rate.axhline(0.0, color="0.3", linewidth=0.8)
     ax_rate.set_ylabel("bias rate $(\\hat Q - Q^*)/|Q^*|$")
-    ax_rate.set_title(f"Estimation bias (Eq. 17) — {title}" if title else "Estimation bias (Eq. 17)")
+    _set_title(ax_rate, "Estimation bias (Eq. 17)", title)
     ax_rate.grid(alpha=0.3)
     ax_rate.legend(loc="best", fontsize="small")
     ax_q.set_ylabel("Q at start states")
@@ -228,8 +247,9 @@ def plot_bias(evals: list[dict[str, Any]], title: str, path: Path, xlabel: str =
 
 
 def plot_learner(learner: list[dict[str, Any]], target_utd: float | None, title: str, path: Path,
-                 xlabel: str = TRANSITIONS) -> Path | None:
-    """Critic loss, actor loss, updates per transition and mean Q per actor over env steps."""
+                 xlabel: str = TRANSITIONS, utd_unit: str = "transition") -> Path | None:
+    """Critic loss, actor loss, updates per schedule step (`utd_unit`: iteration under the paper's
+    schedule, transition under equal-data) and mean Q per actor over env steps."""
     rows = _rows_with_steps(learner)
     if not rows:
         return None
@@ -246,14 +266,14 @@ def plot_learner(learner: list[dict[str, Any]], target_utd: float | None, title:
     if np.isfinite(critic).any() and np.nanmin(critic) > 0:
         ax_c.set_yscale("log")
     ax_c.set_ylabel("critic loss")
-    ax_c.set_title(f"Learner — {title}" if title else "Learner")
+    _set_title(ax_c, "Learner", title)
     ax_a.plot(x, actor, color="C1", linewidth=1.2)
     ax_a.set_ylabel("actor loss")
     ax_u.plot(x, utd, color="C2", linewidth=1.2, label="measured")
     if target_utd is not None:
         ax_u.axhline(target_utd, color="0.3", linestyle="--", linewidth=1.0, label=f"target {target_utd:g}")
         ax_u.legend(loc="best", fontsize="small")
-    ax_u.set_ylabel("updates / transition")
+    ax_u.set_ylabel(f"updates / {utd_unit}")
     if q_keys:
         for key in q_keys:
             k = key.removeprefix("q/actor")
@@ -306,6 +326,9 @@ def plot_run(run_dir: Path, x: str = "transitions") -> list[Path]:
     title = _title(config)
     utd = _num(_algo_config(config).get("utd"))
     target_utd = utd if math.isfinite(utd) else None
+    # learner.jsonl's utd counts updates per schedule step: per iteration under the paper's schedule
+    # (runs from before the schedules have no `schedule` and counted transitions)
+    utd_unit = "iteration" if _algo_config(config).get("schedule") == "paper" else "transition"
 
     out = run_dir / PLOTS_DIR
     out.mkdir(exist_ok=True)
@@ -314,7 +337,7 @@ def plot_run(run_dir: Path, x: str = "transitions") -> list[Path]:
         plot_allocation(allocation, last_step, survivor, elimination, title, out / f"allocation{suffix}.png",
                         xlabel),
         plot_bias(evals + on_axis(read_jsonl(run_dir / rundir.BIAS), x), title, out / f"bias{suffix}.png", xlabel),
-        plot_learner(learner, target_utd, title, out / f"learner{suffix}.png", xlabel),
+        plot_learner(learner, target_utd, title, out / f"learner{suffix}.png", xlabel, utd_unit),
     ]
     return [p for p in written if p is not None]
 

@@ -108,3 +108,86 @@ def test_toml_reads_table_options_and_refuses_unknown_keys(tmp_path: Path):
         build_run_config({}, f)
     with pytest.raises(typer.BadParameter, match="unknown option 'endpoint'"):
         build_run_config({"env": "AppleCollect-v0", "steps": 10, "endpoint": "tcp/1.2.3.4:1"}, None)
+
+
+def _help_panels(text: str) -> dict[str, str]:
+    """`--help` output split into rich panels: title -> the panel's text."""
+    import re
+
+    panels: dict[str, list[str]] = {}
+    current = None
+    for line in text.splitlines():
+        title = re.match(r"^╭─ (.+?) ─+╮$", line)
+        if title:
+            current = title.group(1)
+            panels[current] = []
+        elif line.startswith("╰"):
+            current = None
+        elif current is not None:
+            panels[current].append(line.strip("│").rstrip())
+    return {name: "\n".join(lines) for name, lines in panels.items()}
+
+
+def _option_blocks(panel: str) -> dict[str, str]:
+    """Flag -> its rows (help text joined) in one panel."""
+    blocks: dict[str, list[str]] = {}
+    flag = None
+    for line in panel.splitlines():
+        if line.startswith(" --"):  # an option's row; its help wraps onto indented rows
+            flag = line.split()[0]
+            blocks[flag] = []
+        if flag is not None:
+            blocks[flag].append(line)
+    return {f: " ".join(" ".join(rows).split()) for f, rows in blocks.items()}
+
+
+def test_help_snapshot_every_option_in_a_panel_with_its_default_at_80_columns():
+    """`mam run --help` at 80 columns: every run option sits in one of the named panels, whole (no
+    name cut with …), with its default (per --algo where they differ), and no `<bool>` tag."""
+    import os
+    import subprocess
+    import sys
+
+    from services.options import HELP_PANELS, cli_options, default_text
+
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, COLUMNS="80", TERM="dumb", NO_COLOR="1")
+    text = subprocess.run([sys.executable, "-m", "services.cli", "run", "--help"], cwd=root, env=env,
+                          capture_output=True, text=True, timeout=120).stdout
+    assert "<bool>" not in text and max(len(line) for line in text.splitlines()) <= 80
+    panels = _help_panels(text)
+    assert set(panels) <= set(HELP_PANELS) | {"Options"}  # Options: typer's own --help only
+    blocks = {name: _option_blocks(body) for name, body in panels.items()}
+    assert set(blocks.get("Options", {})) <= {"--help"}
+    for option in cli_options():
+        flag = option.decls[0].split("/")[0]
+        where = [name for name, b in blocks.items() if flag in b]
+        assert where == [option.help_panel], (flag, where)
+        block = blocks[option.help_panel][flag]
+        default = default_text(option)
+        if default:
+            assert f"[default: {default}]" in block, (flag, block)
+    for flag in ("--config", "--run-dir", "--max-restarts", "--restart-window", "--no-plot"):
+        assert any(flag in b for b in blocks.values()), flag
+    assert "…" not in " ".join(f for b in blocks.values() for f in b)  # no flag cut short
+    algorithm = blocks["Algorithm (the paper's symbols)"]
+    assert "[default: ma-td3: 2; td3, ddpg: 1; ma-ddpg: 3]" in algorithm["--actors"]
+    assert algorithm["--eliminate-at"].startswith("--eliminate-at <int> [C] ")
+
+
+def test_steps_error_speaks_the_schedule_s_units():
+    with pytest.raises(typer.BadParameter, match=r"--steps \[T\] must be a positive number of iterations "
+                                                 r"\(under --schedule paper\), not -5"):
+        build_run_config({"env": "AppleCollect-v0", "steps": -5}, None)
+    with pytest.raises(typer.BadParameter, match="transitions"):
+        build_run_config({"env": "AppleCollect-v0", "steps": 0, "schedule": "equal-data"}, None)
+
+
+def test_a_toml_typo_gets_did_you_mean_and_points_to_help(tmp_path: Path):
+    f = tmp_path / "run.toml"
+    f.write_text('env = "AppleCollect-v0"\nsteps = 500\neliminate-att = 300\n')
+    with pytest.raises(typer.BadParameter) as e:
+        build_run_config({}, f)
+    message = str(e.value)
+    assert "unknown option 'eliminate-att'; did you mean 'eliminate-at'?" in message
+    assert "mam run --help" in message and "services/options.py" not in message

@@ -141,3 +141,72 @@ def test_plot_run_on_the_iterations_axis(tmp_path):
     assert {p.name for p in files} >= {"learning_curves_iterations.png", "allocation_iterations.png"}
     with pytest.raises(ValueError):
         plot_run(run, x="seconds")
+
+
+def _svg_text(path: Path) -> str:
+    return path.read_text()
+
+
+def test_learner_plot_labels_updates_per_schedule_step(tmp_path):
+    """learner.jsonl's utd counts updates per iteration under the paper's schedule, per transition
+    under equal-data: the axis says which (it said "updates / transition" for both)."""
+    import matplotlib
+
+    from services.plot import plot_learner
+
+    rows = [{"env_steps": s, "utd": 1.0, "loss/critic": 1.0, "loss/actor": -1.0} for s in (0, 100, 200)]
+    with matplotlib.rc_context({"svg.fonttype": "none"}):  # text stays text in the SVG
+        paper = plot_learner(rows, 1.0, "r", tmp_path / "paper.svg", utd_unit="iteration")
+        equal = plot_learner(rows, 1.0, "r", tmp_path / "equal.svg", utd_unit="transition")
+    assert "updates / iteration" in _svg_text(paper) and "updates / transition" not in _svg_text(paper)
+    assert "updates / transition" in _svg_text(equal)
+    run = make_run(tmp_path / "run")
+    config = json.loads((run / "config.json").read_text())
+    config["algo"] = {**config.pop("algo_config"), "schedule": "paper"}
+    (run / "config.json").write_text(json.dumps(config))
+    with matplotlib.rc_context({"svg.fonttype": "none"}):
+        from services import plot
+
+        assert plot.plot_run(run)  # the paper schedule's run: the label comes from its config
+    assert (run / "plots" / "learner.png").is_file()
+
+
+def test_a_long_title_wraps_inside_the_figure():
+    """learning_curves.png cut its title (run · algo · env) at the figure's edge."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from services.plot import _set_title
+
+    fig = Figure(figsize=(8, 4.8), layout="constrained")
+    ax = fig.add_subplot()
+    _set_title(ax, "Learning curves", "ma-ddpg-applecollect-20261201-184711-1237 · ma-ddpg · AppleCollect-v1")
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    box, frame = ax.title.get_window_extent(canvas.get_renderer()), fig.bbox
+    assert box.x0 >= frame.x0 and box.x1 <= frame.x1 and box.y1 <= frame.y1
+    assert "\n" in ax.get_title() and ax.get_title().replace("\n", " ").endswith("AppleCollect-v1")
+
+
+def test_final_evaluation_at_the_last_step_draws_one_point(tmp_path):
+    """The referee's final evaluation lands at the same env step as the last periodic one: one point
+    per x (the last), not a vertical zigzag there."""
+    import matplotlib
+
+    from services.plot import _last_per_x, plot_learning_curves
+
+    assert _last_per_x([0, 10, 20, 20], [1, 2, 3, 4]) == ([0, 10, 20], [1, 2, 4])
+    rows = [{"env_steps": 100, "mean": [1.0]}, {"env_steps": 200, "mean": [2.0]}, {"env_steps": 200, "mean": [5.0]}]
+    captured = {}
+    real_plot = matplotlib.axes.Axes.plot
+
+    def plot(self, *args, **kwargs):  # record what is drawn, then draw it
+        captured["x"], captured["y"] = list(args[0]), list(args[1])
+        return real_plot(self, *args, **kwargs)
+
+    matplotlib.axes.Axes.plot = plot
+    try:
+        assert plot_learning_curves(rows, 0, None, "t", tmp_path / "lc.png") is not None
+    finally:
+        matplotlib.axes.Axes.plot = real_plot
+    assert captured == {"x": [100.0, 200.0], "y": [1.0, 5.0]}
