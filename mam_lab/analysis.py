@@ -122,6 +122,8 @@ class VariantStats:
     curves_by_axis: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # axis -> (grid, curves)
     deployed_final: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per run: the headline score
     deployed_auc: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per run: AUC after start-steps
+    deployed_curves: tuple[np.ndarray, np.ndarray] | None = None  # (grid, runs × grid) on deployed_axis
+    deployed_axis: str = "iterations"  # schedule steps: iterations, or transitions for runs without them
 
     @property
     def n(self) -> int:
@@ -366,7 +368,8 @@ def variant_stats(env: str, variant: str, runs: list[RunRecord], spacing: float,
         updates=_mean_of(runs, "updates"), env_steps=_mean_of(runs, "env_steps"),
         wall_time_s=_mean_of(runs, "wall_time_s"), launcher_wall_time_s=_mean_of(runs, "launcher_wall_time_s"),
         axis=axis, reached=reached, curves_by_axis=by_axis, deployed_final=deployed_final,
-        deployed_auc=deployed_auc)
+        deployed_auc=deployed_auc, deployed_curves=aligned_curves([r.deployed_xy() for r in runs], sched),
+        deployed_axis="iterations" if any(r.has_iterations for r in runs) else "transitions")
 
 
 def comparison_pairs(variants: Sequence[str]) -> list[tuple[str, str]]:

@@ -47,8 +47,9 @@ def _label_steps_axes(ax: Any, ylabel: str, title: str, axis: str = "transitions
 
 def plot_env_curves(env: str, vs: Sequence[VariantStats], path: Path, n_boot: int = 1000, seed: int = 0,
                     axis: str = "transitions") -> Path | None:
-    """Mean best-live-actor return over seeds per variant on `axis`, with a bootstrap 95% CI band;
-    the legend gives each variant's mean wall-clock time per run."""
+    """Mean best-live-actor (best-of-K) return over seeds per variant on `axis`, with a bootstrap 95%
+    CI band, and for multi-actor variants the deployed actor's mean return (dashed, on the
+    schedule-step axis); the legend gives each variant's mean wall-clock time per run."""
     curves = [(v, *v.curves_by_axis.get(axis, (v.grid, v.curves))) for v in vs]
     if not any(grid.size for _, grid, _ in curves):
         return None
@@ -64,6 +65,12 @@ def plot_env_curves(env: str, vs: Sequence[VariantStats], path: Path, n_boot: in
         ax.plot(grid, mean, color=color, linewidth=1.8, marker="o", markersize=2.5,
                 label=f"{v.variant} (n={v.n}{wall_text})")
         ax.fill_between(grid, lo, hi, color=color, alpha=0.18, linewidth=0)
+        multi = (v.runs[0].algo_config.get("actors") or 1) > 1
+        if multi and v.deployed_curves is not None and v.deployed_axis == axis and v.deployed_curves[0].size:
+            d_grid, d_matrix = v.deployed_curves
+            seen = np.isfinite(d_matrix).sum(axis=0)
+            d_mean = np.where(seen > 0, np.nansum(d_matrix, axis=0) / np.maximum(seen, 1), np.nan)
+            ax.plot(d_grid, d_mean, color=color, linewidth=1.4, linestyle="--", label=f"{v.variant}: deployed actor")
         algo = v.runs[0].algo_config
         c = algo.get("eliminate_at")  # in schedule steps: iterations (paper) or transitions (equal-data)
         k = algo.get("actors") or 1
@@ -73,8 +80,8 @@ def plot_env_curves(env: str, vs: Sequence[VariantStats], path: Path, n_boot: in
             ax.axvline(c, color=color, linestyle=":", linewidth=1.0)
     if is_apple_collect(env):
         ax.axhline(SUCCESS_RETURN, color="0.5", linestyle="--", linewidth=0.8, label=f"return {SUCCESS_RETURN:.2f}")
-    _label_steps_axes(ax, "evaluation return (best live actor)",
-                      f"{env}: mean over seeds, 95% bootstrap CI (dotted: elimination C)", axis)
+    _label_steps_axes(ax, "evaluation return", f"{env}: mean over seeds, 95% bootstrap CI\n(solid: best live actor, "
+                      "best-of-K; dashed: deployed actor; dotted: elimination C)", axis)
     return _save(fig, path)
 
 
@@ -158,7 +165,7 @@ def plot_bias(env: str, bs: Sequence[BiasStats], path: Path) -> Path | None:
 
 
 def plot_iqm(report: Report, path: Path) -> Path | None:
-    """IQM of the last-10 scores with 95% CIs, one panel per env (+ the normalised aggregate)."""
+    """IQM of the best-of-K last-10 scores with 95% CIs, one panel per env (+ the normalised aggregate)."""
     panels = [(env, [(v.variant, v.iqm) for v in vs]) for env, vs in report.envs.items()]
     if report.aggregate:
         panels.append(("all envs (normalised)", [(n, i) for n, _, i in report.aggregate]))
@@ -180,5 +187,5 @@ def plot_iqm(report: Report, path: Path) -> Path | None:
         ax.set_yticks(y, [n for n, _ in items])
         ax.set_title(title, fontsize="medium")
         ax.grid(alpha=0.3, axis="x")
-    fig.suptitle("IQM of the last-10 scores, 95% bootstrap CI")
+    fig.suptitle("IQM of the best-of-K last-10 scores (secondary), 95% bootstrap CI")
     return _save(fig, path)
