@@ -131,11 +131,11 @@ def _damage(run_dir: Path, how: str) -> str | None:
     """Damage the newest generation (`how`); the damaged path, or None if it cannot be done now."""
     g = generations(run_dir)[0]
     ck = run_dir / "checkpoints"
-    if how == "flip":  # 64 random bytes into the middle of learner.pt, in place (the newest generation's file)
-        with open(ck / "learner.pt", "r+b") as f:
-            f.seek((ck / "learner.pt").stat().st_size // 2)
-            f.write(os.urandom(64))
+    if how == "flip":  # 64 random bytes into the middle of the learner state, in place (learner.pt links to it)
         path = ck / f"learner-{g:06d}.pt"
+        with open(path, "r+b") as f:
+            f.seek(path.stat().st_size // 2)
+            f.write(os.urandom(64))
     elif how == "truncate":
         path = ck / f"learner-{g:06d}.pt"
         os.truncate(path, path.stat().st_size // 2)
@@ -154,7 +154,7 @@ def _damage(run_dir: Path, how: str) -> str | None:
 
 def test_damaged_checkpoints_resume_from_the_previous_generation(tmp_path: Path) -> None:
     run, run_dir = unique_run("damaged"), tmp_path / "run"
-    proc, out = start_mam_run(run, run_dir, *APPLE, "--steps", "4000", "--workers", "2", "--checkpoint-seconds", "1",
+    proc, out = start_mam_run(run, run_dir, *APPLE, "--steps", "6000", "--workers", "2", "--checkpoint-seconds", "1",
                               "--max-restarts", "10")
     log = run_dir / "logs" / "learner.log"
     done: list[str] = []
