@@ -13,6 +13,9 @@ Resumable: a run whose `summary.json` exists, or whose record is in the ledger, 
 checking that its config matches the grid); a run directory without either (an interrupted or
 failed run) is removed and redone. Runs are ordered seed by seed (all envs and variants of seed 0,
 then seed 1, ...), so a grid stopped early still has balanced results across algorithms.
+
+Wall-time estimates (`wall_estimates`, for `--stop-by`): the record.json wall times of the
+finished runs of each env and variant, here and in the ledger; a run's estimate is their median.
 """
 
 from __future__ import annotations

@@ -125,8 +125,12 @@ def report_command(
         "--config", help="grid TOML file whose runs count as planned too: a row not finished says how many of "
                          "its runs are in the ledger (EXP_DIR may then not exist yet)")] = None,
 ) -> None:
-    """Tables (last-10 mean, IQM and P(improvement) with 95% CIs, Table 4's max average return,
-    updates, wall time, Eq. 17 bias) and figures (learning curves with CI bands, allocation, bias) of an experiment."""
+    """The verdict of each multi-actor variant against its K=1 baseline (the deployed actor's final
+    return and AUC, P(improvement) with its 95% CI, the exact test's p raw and Holm, the stability
+    over bootstrap seeds, the word), tables (best-of-K last-10 mean, IQM and P(improvement) with 95%
+    CIs, Table 4's max average return, updates, wall time, Eq. 17 bias) and figures (learning curves
+    with CI bands, allocation, bias) of an experiment. Rows not finished say how many of their runs
+    are in the ledger."""
     from rich.console import Console
 
     console = Console()
