@@ -37,6 +37,7 @@ from typing import Any, Callable
 
 import typer
 
+from mam_lab.bench_exact import bench_exact
 from mam_lab.bench_learner import VARIANTS, bench_learner, bench_replay, profile_learner_step
 from mam_lab.bench_runs import bench_collection, bench_e2e
 from mam_lab.bench_sizes import SHAPES, BenchSizes
@@ -55,6 +56,8 @@ TARGETS: dict[str, tuple[str, float]] = {
     "e2e_bf16_vs_single_process": ("le", 0.7),
     "transport_transitions_per_s": ("ge", 50_000.0),
     "weights_latency_p99_ms": ("le", 10.0),
+    "exact_vs_async_env_steps": ("ge", 0.85),  # lock-step Algorithm 1 against the asynchronous collection
+    "exact_vs_async_updates": ("ge", 0.85),
 }
 
 
@@ -116,7 +119,7 @@ def resolve_device(device: str) -> str:
 
 
 PIECES = ("learner", "e2e", "transport", "weights", "collection")
-EXTRA_PIECES = ("replay",)  # only when asked for: --only replay
+EXTRA_PIECES = ("replay", "exact")  # only when asked for: --only replay, --only exact
 
 
 def run_bench(sizes: BenchSizes, pieces: tuple[str, ...] = PIECES, device: str = "auto", threads: int = 1,
@@ -144,6 +147,8 @@ def run_bench(sizes: BenchSizes, pieces: tuple[str, ...] = PIECES, device: str =
         result.update(bench_collection(sizes, log))
     if "replay" in pieces:
         result.update(bench_replay(log=log))
+    if "exact" in pieces:
+        result.update(bench_exact(sizes, log))
     if profile:
         log("profiles: one learner update step, one worker step")
         result["profile_learner_ms"] = profile_learner_step(device=device, threads=threads, sizes=sizes)

@@ -79,7 +79,8 @@ def test_reference_driver_paper_schedule_accounting():
     result = run_reference("AppleCollect-v1", cfg, 450)
     assert (result.iterations, result.env_steps, result.updates) == (450, 1650, 350)
     assert [row["env_steps"] for row in result.allocations] == [0, 500, 1000, 1500]
-    assert [row["iterations"] for row in result.evaluations[:3]] == [100, 200, 300]
+    # the competitions (learning-curve evaluations, on other episodes, sit beside them)
+    assert [row["iterations"] for row in result.evaluations if row["purpose"] != "curve"][:3] == [100, 200, 300]
 
 
 def test_reference_driver_equal_data_schedule_follows_transitions():

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -166,14 +167,14 @@ def test_a_killed_worker_ends_exactness_and_the_run_finishes(tmp_path: Path) -> 
     try:
         deadline = time.monotonic() + 120
         victim = None
-        while time.monotonic() < deadline and victim is None:  # a worker that has sent rows
-            time.sleep(0.5)
+        while time.monotonic() < deadline and victim is None:  # a worker whose rows are in the replay
+            time.sleep(0.2)
+            rows = read_jsonl(run_dir / "learner.jsonl") if (run_dir / "learner.jsonl").is_file() else []
             out = subprocess.run(["pgrep", "-f", f"services.worker --run {name} .*--id w1 "], capture_output=True,
                                  text=True).stdout.split()
-            if out and (run_dir / "learner.jsonl").is_file() and (run_dir / "learner.jsonl").stat().st_size > 0:
+            if out and rows and rows[-1]["iterations"] >= 300:
                 victim = int(out[0])
         assert victim is not None, "no worker to kill"
-        import os
         os.kill(victim, signal.SIGKILL)
         out, _ = proc.communicate(timeout=300)
     finally:
