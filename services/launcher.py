@@ -12,6 +12,7 @@ RUN_DIR/logs/<role>.log (a restarted child appends to the same log).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -19,11 +20,12 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import zenoh
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
@@ -252,6 +254,9 @@ class LocalCluster:
             except OSError as e:  # a full disk: say so, do not crash
                 self._print(f"[red]cannot write to {dead.log}: {e.strerror or e} ({disk_free(self.run_dir)} free)[/]")
             args = self.learner_args() if role == "learner" else dead.args
+            if role.startswith("worker-"):  # a restarted slot draws the next generation of its streams
+                args = [a for a in args if not a.startswith("--generation=")] + \
+                    [f"--generation={len(self.restarts[role])}"]
             try:
                 new = self.spawn(role, args)
             except OSError as e:
@@ -486,6 +491,26 @@ def last_line(path: Path, needle: str) -> str:
     return lines[-1].strip()[-400:] if lines else ""
 
 
+@contextlib.contextmanager
+def supervised_session(conf: Any, cluster: LocalCluster, timeout: float = 120.0) -> Iterator[Any]:
+    """The launcher's session to its learner, opened while supervising: a learner killed before the
+    launcher could connect (before its first checkpoint) is restarted meanwhile, not waited for."""
+    deadline = time.monotonic() + timeout
+    while True:
+        cluster.supervise()
+        try:
+            session = bus.open_session(conf)
+            break
+        except zenoh.ZError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.2)
+    try:
+        yield session
+    finally:
+        session.close()
+
+
 def audit_transport(run_dir: Path) -> dict[str, Any]:
     """Every row a worker sent against the rows the learner counted into its replay, per
     worker incarnation and over all learner incarnations; written into transport.json (`audit`).
@@ -671,7 +696,7 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
     RoleKeepsDying when one dies too often).
     """
     conf = bus.make_config(connect=[endpoint])
-    with bus.session_scope(conf, retry_for=60.0) as session:
+    with supervised_session(conf, cluster) as session:  # a learner that dies before we connect is restarted
         stats = bus.Latest.subscribe(session, keys.learner_stats(cfg.run))
         allocation = bus.Latest.subscribe(session, keys.allocation(cfg.run))
         evals = bus.Latest.subscribe(session, keys.eval(cfg.run))

@@ -21,9 +21,14 @@ import time
 import uuid
 from pathlib import Path
 
+import numpy as np
 import pytest
+import torch
 import zenoh
 
+from mam_core.config import resolve
+from mam_core.policy import read_policy_file
+from mam_core.reference import run_reference
 from services import bus, keys
 from tests.e2e import ROOT, assert_exactly_once, load, stop, unique_run
 
@@ -449,6 +454,16 @@ def test_a_run_across_two_hosts_through_a_router(two_hosts: Netns, tmp_path: Pat
     assert {w["worker"] for w in result["workers"]} == {f"b{i}" for i in range(WORKERS)}
     assert all(w["sent_rows"] > 0 for w in result["workers"])  # both hosts' workers contributed
     assert result["summary"]["survivor"] == result["allocation"][-1]["survivor"]
+    # Exact mode (the default) across hosts: the one-process Algorithm 1, bit for bit.
+    assert result["summary"]["exact"] is True, result["summary"]
+    torch.set_num_threads(1)
+    ref = run_reference("AppleCollect-v0", resolve("ma-ddpg", schedule="equal-data", workers=WORKERS, hidden=(32, 32),
+                                                   batch_size=32, start_steps=300, compete_every=500,
+                                                   eliminate_at=1000, eval_episodes=3, seed=3), STEPS)
+    assert [e["returns"] for e in result["eval"]] == [e["returns"] for e in ref.evaluations]
+    assert result["summary"]["survivor"] == ref.survivor
+    _, params = read_policy_file(run_dir / "checkpoints" / "policy.npz")
+    assert all(np.array_equal(params[k][n], ref.policy[k][n]) for k in range(len(ref.policy)) for n in ref.policy[k])
     # The workers' traffic really crossed the virtual wire (measured: 150-190 kB for this run).
     assert hosts.bytes_over_veth() - before > 50_000
     if transport == "tls":  # the ACL allowed everything the real system does: not one message refused
