@@ -136,9 +136,10 @@ def _early_kill(proc: subprocess.Popen, run_dir: Path, moments: list[int | None]
     if i >= len(moments):
         return
     learners = [pid for pid, role in children_of(proc.pid) if role == "learner"]
-    if not learners:
+    if not learners or (done and learners[0] == done[-1].get("pid")):
         return
-    steps = _learner_steps(run_dir)
+    # What this learner reached: the rows it wrote itself (after the previous kill), not its predecessor's.
+    steps = _learner_steps(run_dir, done[-1]["log_bytes"] if done and "log_bytes" in done[-1] else 0)
     if moments[i] is None:  # the learner is up, and no checkpoint generation is on disk yet
         if rundir.has_checkpoint(run_dir):
             done.append({"moment": EARLY_MOMENTS[i], "missed": "a checkpoint was already on disk"})
@@ -149,8 +150,12 @@ def _early_kill(proc: subprocess.Popen, run_dir: Path, moments: list[int | None]
         os.kill(learners[0], signal.SIGKILL)
     except ProcessLookupError:
         return
+    try:
+        size = (run_dir / rundir.LEARNER_LOG).stat().st_size
+    except OSError:
+        size = 0
     done.append({"moment": EARLY_MOMENTS[i], "t": round(time.monotonic() - started, 1), "pid": learners[0],
-                 "env_steps": steps, "checkpoint_on_disk": rundir.has_checkpoint(run_dir)})
+                 "env_steps": steps, "checkpoint_on_disk": rundir.has_checkpoint(run_dir), "log_bytes": size})
     log(f"t={done[-1]['t']:7.1f} s  SIGKILL learner (pid {learners[0]}) {EARLY_MOMENTS[i]} (~{steps:,} env steps)")
 
 
@@ -218,9 +223,12 @@ def chaos(run_args: list[str], run_dir: Path, kill_every: tuple[float, float] = 
     return figures
 
 
-def _learner_steps(run_dir: Path) -> int:
+def _learner_steps(run_dir: Path, offset: int = 0) -> int:
+    """env_steps of the last learner.jsonl row (of those after byte `offset`); 0 if none."""
     try:
-        lines = (run_dir / rundir.LEARNER_LOG).read_text().splitlines()
+        with open(run_dir / rundir.LEARNER_LOG, "rb") as f:
+            f.seek(offset)
+            lines = [ln for ln in f.read().decode(errors="replace").splitlines() if ln.strip()]
         return int(json.loads(lines[-1])["env_steps"]) if lines else 0
     except (OSError, ValueError, KeyError):
         return 0
