@@ -47,8 +47,10 @@ OWN_WORK=0
 mkdir -p "$WORK/logs"
 LOGS="$WORK/logs"
 exec > >(tee "$OUT/gpu.log") 2>&1
+export PYTHONUNBUFFERED=1
 T_START=$(date +%s)
 declare -A T
+FAILED=()
 say() { echo "[gpu.sh $(( $(date +%s) - T_START ))s] $*"; }
 die() { say "FAILED: $*"; finish; exit 1; }
 timed() {  # timed NAME LIMIT_S CMD...: run with a time limit, log to $LOGS/NAME.log, seconds into T[NAME]
@@ -58,15 +60,19 @@ timed() {  # timed NAME LIMIT_S CMD...: run with a time limit, log to $LOGS/NAME
   timeout --signal=TERM --kill-after=30 "$limit" "$@" >"$LOGS/$name.log" 2>&1; rc=$?
   T[$name]=$(( $(date +%s) - t0 ))
   say "$name: exit $rc after ${T[$name]} s"
-  [ "$rc" = 0 ] || tail -n 25 "$LOGS/$name.log"
+  [ "$rc" = 0 ] || { FAILED+=("$name"); tail -n 25 "$LOGS/$name.log"; }
   return "$rc"
 }
 finish() {  # the one JSON (from whatever steps ran) and the logs
   local timings="{" k
   for k in "${!T[@]}"; do timings+="\"$k\": ${T[$k]}, "; done
+  local failed=""
+  [ "${#FAILED[@]}" -gt 0 ] && failed="$(printf '"%s",' "${FAILED[@]}")"
+  timings+="\"failed_steps\": [${failed%,}], "
   timings+="\"total\": $(( $(date +%s) - T_START ))}"
   echo "$timings" >"$LOGS/timings.json"
   local py="${VPY:-${BASE_PY:-python3}}"
+  [ -x "$py" ] || command -v "$py" >/dev/null || py=python3
   "$py" benchmarks/gpu_steps.py combine --device "$DEVICE" $([ "$DRY" = 1 ] && echo --dry-run) \
     --bench "$LOGS/bench.json" --e2e "$LOGS/e2e.json" --e2e-async "$LOGS/e2e_async.json" \
     --experiment "$LOGS/experiment.json" --wheels "$LOGS/wheels_check.json" --setup "$LOGS/setup.json" \
@@ -185,11 +191,11 @@ elif [ -n "$(py312)" ] && compgen -G "$WHEELS/*.whl" >/dev/null && compgen -G "$
       >"$LOGS/pip_wheels312.log" 2>&1; then
     T[venv312]=$(( $(date +%s) - T0 ))
     "$BASE_PY" -m pip --python "$WORK/venv312/bin/python" check >"$LOGS/pip_check312.log" 2>&1 \
-      || say "pip check in the Python 3.12 venv: $(cat "$LOGS/pip_check312.log")"
+      || { FAILED+=(pip_check312); say "pip check in the Python 3.12 venv: $(cat "$LOGS/pip_check312.log")"; }
     timed wheels_check 120 "$WORK/venv312/bin/python" benchmarks/gpu_steps.py wheels-check \
       --out "$LOGS/wheels_check.json"
   else
-    say "the fresh Python 3.12 venv could not install the wheels (see logs)"
+    FAILED+=(venv312); say "the fresh Python 3.12 venv could not install the wheels (see logs)"
   fi
 else
   say "no Python 3.12 or no wheels here: the wheels check is skipped"
@@ -227,3 +233,5 @@ d = json.load(open(sys.argv[1]))
 print(json.dumps({"device": d["device"], "dry_run": d["dry_run"], **d["derived"], "goals": d["goals"],
                   "timings_s": d["timings_s"]}, indent=1, default=str))
 EOF
+[ "${#FAILED[@]}" = 0 ] || { say "failed steps: ${FAILED[*]}"; sleep 1; exit 1; }
+sleep 1  # tee writes the last lines of gpu.log

@@ -68,4 +68,4 @@ def test_gpu_script_dry_run(tmp_path: Path) -> None:
     if d["wheels_check"] is not None:  # a Python 3.12 and the wheels were there
         assert d["wheels_check"]["ok"] and d["wheels_check"]["python"].startswith("3.12")
         assert d["wheels_check"]["versions"]["mujoco"] == "4.0.0"
-    assert positive(d["timings_s"]["total"])
+    assert positive(d["timings_s"]["total"]) and d["timings_s"]["failed_steps"] == []
