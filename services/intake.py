@@ -27,6 +27,7 @@ class WorkerTally:
     received: int = 0  # rows, all incarnations
     incarnation_rows: int = 0  # rows from the current incarnation
     redundant_rows: int = 0  # resent rows of the current incarnation that were already held
+    rejected_rows: int = 0  # rows of the current incarnation refused after decoding (not in flight any more)
     last_seq: int = -1  # of the current incarnation
     lag: int = 0  # policy versions behind at its last batch
     rate: float = 0.0  # rows per second, updated about once a second
@@ -40,6 +41,7 @@ class WorkerTally:
             self.rate, self.rows_since, self.t_since = self.rows_since / dt, 0, now
         return WorkerCounters(received=self.received, last_seq=self.last_seq, incarnation=self.incarnation,
                               incarnation_rows=self.incarnation_rows, redundant_rows=self.redundant_rows,
+                              rejected_rows=self.rejected_rows,
                               actor=self.actor, lag=self.lag, rate=round(self.rate, 2))
 
 
@@ -56,6 +58,7 @@ class Intake:
         self.workers: dict[str, WorkerTally] = {}
         self.stream_rows: dict[str, int] = {}  # rows per worker/incarnation (proof of exactly-once)
         self.episode_returns: list[float] = []
+        self.incarnation = ""  # the learner's (rows acted with another incarnation's weights are accepted)
 
     def ingest(self, items: Sequence[bus.Received], versions: Sequence[int]) -> int:
         """Add what is valid among `items` (`versions`: the learner's policy versions); rows added."""
@@ -71,16 +74,29 @@ class Intake:
         return added
 
     def validate(self, item: bus.Received, versions: Sequence[int]) -> TransitionBatch | None:
-        """The decoded batch, or None (rejected and counted)."""
+        """The decoded batch, or None (rejected and counted; a decoded batch's rows are told back
+        to its worker as `rejected_rows`, so it does not wait for them).
+
+        Rows acted with the weights of another learner incarnation (a learner that died, whose
+        versions count from its own start) are real transitions: they are accepted, and only
+        rows tagged with this learner's incarnation (or untagged) must not carry a version it
+        has not reached."""
         sender = keys.parse_last(item.key)
         try:
             batch = TransitionBatch.from_bytes(item.payload, self.spec, max_bytes=self.max_message)
+        except MessageError as e:
+            self.rejects.reject(sender, e)
+            return None
+        try:
             if batch.worker != sender:
                 raise MessageError("sender_mismatch", f"key says {sender}, message says {batch.worker}")
-            if batch.version > versions[batch.actor]:
+            ours = batch.policy_from in ("", self.incarnation)
+            if ours and batch.version > versions[batch.actor]:
                 raise MessageError("future_version", f"version {batch.version} > {versions[batch.actor]}")
         except MessageError as e:
             self.rejects.reject(sender, e)
+            if e.reason != "sender_mismatch":
+                self._tally(batch).rejected_rows += batch.rows
             return None
         return batch
 
@@ -90,6 +106,7 @@ class Intake:
         status = self.tracker.observe(batch.worker, batch.incarnation, batch.batch_seq, resend=batch.resend)
         if status == bus.DUPLICATE:
             self.rejects.reject(batch.worker, "duplicate")
+            self._tally(batch).rejected_rows += batch.rows
             return False
         w = self._tally(batch)
         if status == bus.REDUNDANT:  # a resend of what this learner already has: dropped
@@ -116,6 +133,7 @@ class Intake:
         w = self.workers.setdefault(batch.worker, WorkerTally(actor=batch.actor))
         if w.incarnation != batch.incarnation:
             w.incarnation, w.incarnation_rows, w.redundant_rows, w.last_seq = batch.incarnation, 0, 0, -1
+            w.rejected_rows = 0
         return w
 
     def counters(self, now: float, acked: dict[str, tuple[str, int]]) -> dict[str, WorkerCounters]:

@@ -70,6 +70,7 @@ class Learner:
                               max_action=max(self.spec.max_action))
         max_message = spec.max_rows * (2 * self.spec.obs_dim + self.spec.act_dim + 2) * 4 + (1 << 16)
         self.intake = Intake(self.buffer, spec, max_message)
+        self.intake.incarnation = self.incarnation
         self.replay_log = ReplayLog(replay_dir(run_dir)) if cfg.save_replay else None
         # Per worker: (incarnation, seq) such that all its batches up to seq are in the last
         # checkpoint (with the replay). Workers keep the batches after it and resend them to a
@@ -272,7 +273,8 @@ class Learner:
         for k in range(self.algo.actors):
             if live[k] or all_actors:
                 msg = Weights(k, self.agent.versions[k], self.agent.actor_params(k), self.spec.obs_dim,
-                              self.spec.act_dim, max(self.spec.max_action), tuple(self.algo.hidden))
+                              self.spec.act_dim, max(self.spec.max_action), tuple(self.algo.hidden),
+                              self.incarnation)
                 self.weights_pubs[k].put(msg.to_bytes(self.id, self._next_seq()))
 
     def _next_seq(self) -> int:
@@ -517,7 +519,8 @@ class Learner:
             for k, alive in enumerate(self.agent.live_actors):
                 if alive:
                     msg = Weights(k, self.agent.versions[k], self.agent.actor_params(k), self.spec.obs_dim,
-                                  self.spec.act_dim, max(self.spec.max_action), tuple(self.algo.hidden))
+                                  self.spec.act_dim, max(self.spec.max_action), tuple(self.algo.hidden),
+                                  self.incarnation)
                     self.snapshot_pubs[k].put(msg.to_bytes(self.id, self._next_seq()))
 
     def finish(self) -> None:

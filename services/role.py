@@ -159,14 +159,16 @@ class WeightsFollower:
     """A role's CPU copy of every actor, kept up to date from the learner's weights topic
     (the worker acts with it, the referee evaluates it); like Acme's variable client.
 
-    Rule: a message is loaded only if its version is strictly newer than the copy's. A
-    version names one set of parameters: the learner re-publishes the current weights
-    (heartbeats, after an elimination, at the end) and the publishers' caches replay them to
-    late joiners, so an equal version carries the same parameters and loading it again is
-    wasted work; an older one is a reordered or cached stale message. A restarted learner
-    numbers its versions past anything its predecessor published (services/learner.py
-    `_restore`), so "strictly newer" also follows a new learner. Malformed messages and
-    versions implausibly far ahead of the learner's stats are rejected and counted.
+    Rule: a message is loaded only if its version is strictly newer than the copy's, or if
+    it comes from the learner incarnation the stats name and the copy is from another one. A
+    version names one set of parameters of one learner incarnation: the learner re-publishes
+    the current weights (heartbeats, after an elimination, at the end) and the publishers'
+    caches replay them to late joiners, so an equal version carries the same parameters and
+    loading it again is wasted work; an older one is a reordered or cached stale message. A
+    new learner incarnation (a restart, with or without a checkpoint) counts its own versions:
+    its weights replace a dead incarnation's even when their counter is lower, and once the
+    stats name the new incarnation nothing of the old one is loaded again. Malformed messages
+    and versions implausibly far ahead of the learner's stats are rejected and counted.
     """
 
     def __init__(self, n_actors: int, spec: Any, hidden: tuple[int, ...], rejects: bus.RejectLog) -> None:
@@ -174,6 +176,7 @@ class WeightsFollower:
         self.shapes = self.actors.shapes
         self.n_actors = n_actors
         self.versions = [-1] * n_actors  # -1: no weights yet
+        self.incarnations = [""] * n_actors  # the learner incarnation each copy came from
         self.rejects = rejects
 
     def update(self, items: Mapping[str, bus.Received], stats: LearnerStats | None) -> list[int]:
@@ -186,12 +189,18 @@ class WeightsFollower:
             except MessageError as e:
                 self.rejects.reject(sender, e)
                 continue
-            if not plausible_version(w, stats):
+            current = stats.incarnation if stats is not None and stats.incarnation else ""
+            if current and w.incarnation and w.incarnation != current:
+                continue  # a dead learner's weights (cached or late): never loaded once its successor is known
+            newer_learner = bool(w.incarnation) and w.incarnation != self.incarnations[w.actor] and \
+                (not current or w.incarnation == current)
+            if not newer_learner and not plausible_version(w, stats):
                 self.rejects.reject(sender, MessageError("future_version", f"v{w.version}"))
                 continue
-            if w.version > self.versions[w.actor]:
+            if w.version > self.versions[w.actor] or newer_learner:
                 self.actors.load_member(w.actor, w.params)
                 self.versions[w.actor] = w.version
+                self.incarnations[w.actor] = w.incarnation
                 loaded.append(w.actor)
         return loaded
 

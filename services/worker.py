@@ -116,6 +116,7 @@ class Worker:
         self.p_actor = -1
         self.p_version = -1
         self.p_iteration = -1  # exact mode: the iteration of the first pending row
+        self.p_from = ""  # the learner incarnation of the pending rows' weights
         self.p_started = time.monotonic()
 
     # -- the loop -----------------------------------------------------------------------------
@@ -344,7 +345,7 @@ class Worker:
         mine = self.stats.per_worker.get(self.id)
         seen = 0
         if mine and mine.incarnation == self.incarnation:
-            seen = (mine.incarnation_rows or 0) + (mine.redundant_rows or 0)
+            seen = (mine.incarnation_rows or 0) + (mine.redundant_rows or 0) + (mine.rejected_rows or 0)
         return max(self.put_rows - self.sent_base - seen, 0)
 
     def may_send(self) -> bool:
@@ -370,8 +371,9 @@ class Worker:
         else:
             actor, version = self.actor, self.versions[self.actor]
             action = explore(self.policies[actor], self.obs, self.rng, self.algo.explore_noise, self.max_action)
-        if self.p_n and (actor != self.p_actor or version != self.p_version):
-            self.flush()  # a batch carries one actor and one policy version
+        policy_from = self.follower.incarnations[actor] if version >= 0 else ""
+        if self.p_n and (actor != self.p_actor or version != self.p_version or policy_from != self.p_from):
+            self.flush()  # a batch carries one actor and one policy version (of one learner incarnation)
         try:
             next_obs, reward, terminated, truncated = self.env_step(action)
         except EnvFault as fault:
@@ -383,7 +385,7 @@ class Worker:
         self.p_reward[i] = reward
         self.p_next[i] = next_obs
         self.p_term[i] = terminated  # truncation is not terminal: the target still bootstraps
-        self.p_actor, self.p_version = actor, version
+        self.p_actor, self.p_version, self.p_from = actor, version, policy_from
         if self.p_n == 0:
             self.p_started = time.monotonic()
         self.p_n += 1
@@ -460,7 +462,8 @@ class Worker:
             rows = tuple(a.copy() for a in rows)
         batch = TransitionBatch(self.id, self.incarnation, self.batch_seq, self.p_actor, self.p_version,
                                 *rows, tuple(self.finished_returns) or None,
-                                iteration=self.p_iteration if self.exact else -1, slot=self.slot if self.exact else -1)
+                                iteration=self.p_iteration if self.exact else -1, slot=self.slot if self.exact else -1,
+                                policy_from=self.p_from)
         if self.batch_log is not None:
             self.batch_log.write(f"{self.batch_seq} {n}\n")
         self.pub.put(batch.to_bytes())

@@ -20,6 +20,7 @@ from services.codec.wire import (
     _id,
     _int,
     _ints,
+    _text,
     decode,
     encode,
 )
@@ -63,6 +64,7 @@ class TransitionBatch:
     resend: bool = False  # sent again to a restarted learner (the tracker de-duplicates it)
     iteration: int = -1  # exact mode: Algorithm 1's iteration of the first row (one row per iteration)
     slot: int = -1  # exact mode: the environment slot that collected the rows
+    policy_from: str = ""  # the learner incarnation whose weights `version` counts (empty: unknown)
 
     @property
     def rows(self) -> int:
@@ -89,6 +91,8 @@ class TransitionBatch:
         if self.iteration >= 0:
             body["iteration"] = self.iteration
             body["slot"] = self.slot
+        if self.policy_from:
+            body["policy_from"] = self.policy_from
         return encode(
             self.KIND,
             body,
@@ -136,8 +140,9 @@ class TransitionBatch:
         resend = _bool(msg, "resend") if "resend" in msg else False
         iteration = _int(msg, "iteration", lo=1) if "iteration" in msg else -1
         slot = _int(msg, "slot", lo=0, hi=1 << 20) if iteration >= 0 else -1
+        policy_from = _id(msg, "policy_from") if "policy_from" in msg else ""
         return cls(worker, incarnation, batch_seq, actor, version, obs, action, reward,
-                   next_obs, term, episode_return, resend, iteration, slot)
+                   next_obs, term, episode_return, resend, iteration, slot, policy_from)
 
     @classmethod
     def from_bytes(cls, payload: bytes, spec: TransitionSpec, *,
@@ -158,9 +163,11 @@ class Weights:
     act_dim: int
     max_action: float
     hidden: tuple[int, ...]
+    incarnation: str = ""  # the learner incarnation that made them: its versions count from its own start
 
     def to_bytes(self, sender: str, seq: int) -> bytes:
         body = {
+            "incarnation": self.incarnation,
             "actor": self.actor,
             "version": self.version,
             "params": {str(k): _f32(v) for k, v in self.params.items()},
@@ -209,7 +216,8 @@ class Weights:
         hidden = _ints(msg, "hidden", lo=1)
         if len(hidden) > 16:
             raise MessageError("range:hidden", "more than 16 hidden layers")
-        return cls(actor, version, params, obs_dim, act_dim, max_action, hidden)
+        incarnation = _text(msg, "incarnation") if "incarnation" in msg else ""
+        return cls(actor, version, params, obs_dim, act_dim, max_action, hidden, incarnation)
 
     @classmethod
     def from_bytes(cls, payload: bytes, expected: Mapping[str, tuple[int, ...]] | None = None,

@@ -43,6 +43,7 @@ class WorkerCounters(Mapping):
     incarnation: str | None = None  # its current incarnation
     incarnation_rows: int | None = None  # rows received from that incarnation
     redundant_rows: int | None = None  # resent rows of that incarnation already held (dropped)
+    rejected_rows: int | None = None  # rows of that incarnation refused (they are not in flight any more)
     actor: int | None = None  # the actor of its last batch
     lag: int | None = None  # policy versions between its last batch and the learner
     rate: float | None = None  # rows per second, over the last second or so
@@ -74,7 +75,7 @@ class WorkerCounters(Mapping):
         if "acked_seq" in d or "acked_incarnation" in d:  # the checkpointed prefix of its stream
             values["acked_seq"] = _int(d, "acked_seq", lo=-1)
             values["acked_incarnation"] = _id(d, "acked_incarnation")
-        for name in ("incarnation_rows", "redundant_rows", "actor", "lag"):
+        for name in ("incarnation_rows", "redundant_rows", "rejected_rows", "actor", "lag"):
             if d.get(name) is not None:
                 values[name] = _int(d, name)
         if d.get("incarnation") is not None:
