@@ -77,7 +77,9 @@ finish() {  # the one JSON (from whatever steps ran) and the logs
     --bench "$LOGS/bench.json" --e2e "$LOGS/e2e.json" --e2e-async "$LOGS/e2e_async.json" \
     --experiment "$LOGS/experiment.json" --wheels "$LOGS/wheels_check.json" --setup "$LOGS/setup.json" \
     --timings "$LOGS/timings.json" --out "$OUT/gpu.json" || say "combine failed"
-  for f in "$WORK"/e2e-*/learner.jsonl; do [ -f "$f" ] && cp "$f" "$LOGS/$(basename "$(dirname "$f")").learner.jsonl"; done
+  for f in "$WORK"/e2e-*/learner.jsonl; do
+    [ -f "$f" ] && cp "$f" "$LOGS/$(basename "$(dirname "$f")").learner.jsonl"
+  done
   cp "$WORK"/*.log "$LOGS/" 2>/dev/null
   tar -czf "$OUT/logs.tar.gz" -C "$WORK" logs
   [ "$OWN_WORK" = 1 ] && [ -z "${KEEP_WORK:-}" ] && rm -rf "$WORK"  # venvs and run dirs (KEEP_WORK=1 keeps them)
@@ -95,7 +97,8 @@ else
   # paper schedule (iterations): start 5000 instead of Table 3's 25,000 so the window is spent training
   RUN_SIZES=(--hidden 256,256 --batch-size 256 --start-steps 5000 --compete-every 5000 --eval-episodes 20)
   E2E_SECONDS_SET="${E2E_SECONDS:-}"
-  E2E_SECONDS="${E2E_SECONDS:-150}"; ASYNC_SECONDS="${ASYNC_SECONDS:-45}"; EXPERIMENT_SECONDS="${EXPERIMENT_SECONDS:-60}"
+  E2E_SECONDS="${E2E_SECONDS:-150}"; ASYNC_SECONDS="${ASYNC_SECONDS:-45}"
+  EXPERIMENT_SECONDS="${EXPERIMENT_SECONDS:-60}"
   PARALLEL="${PARALLEL:-8}"; GRID=(--algos ma-td3,td3 --seeds 4 --steps 20000)
 fi
 say "device $DEVICE, dry run $DRY, out $OUT, work $WORK"
