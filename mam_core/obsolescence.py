@@ -13,13 +13,13 @@ recover it from `to_dict()`.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from typing import Any, overload
 
 import numpy as np
 
 from mam_core.config import AlgoConfig
-from mam_core.schedule import first_round_at, round_multiple
+from mam_core.schedule import Schedule
 
 # Mixed signs / zeros: shift so the worst actor sits at this fraction of the return spread
 # above zero. It keeps a small, non-zero chance for the worst actor (it is not eliminated
@@ -28,7 +28,7 @@ SHIFT_FRACTION = 0.1
 # Absolute floor (relative to max |R|) added by the shift, so equal returns give uniform P.
 SHIFT_FLOOR = 1e-12
 
-STATE_SCHEMA = 1
+STATE_SCHEMA = 2  # 2: the schedule (mam_core.schedule.Schedule) instead of a config of its own
 
 
 def _as_returns(returns: Sequence[float] | np.ndarray) -> np.ndarray:
@@ -172,21 +172,6 @@ def competition_returns(means: Sequence[float | None]) -> np.ndarray:
     return np.array([floor if m is None else m for m in means], dtype=np.float64)
 
 
-@dataclass(frozen=True)
-class ObsolescenceConfig:
-    """Schedule of the obsolescence technology, in the paper's symbols."""
-
-    n_actors: int  # K: number of actors
-    compete_every: int  # A: env steps between evaluation rounds
-    eliminate_at: int  # C: env step at which all but the best actor are eliminated
-    enabled: bool = True  # False is `--no-ot`: uniform fixed round-robin allocation, no elimination
-    first_round: int = 0  # no round before this step (`--skip-random-rounds`: the first multiple of A after the start)
-
-    def __post_init__(self) -> None:
-        if self.n_actors < 1 or self.compete_every < 1 or self.eliminate_at < 1:
-            raise ValueError(f"K, A and C must be >= 1, got {self}")
-
-
 class Obsolescence:
     """Where the obsolescence schedule stands: P_k, rounds done, who is eliminated.
 
@@ -197,9 +182,12 @@ class Obsolescence:
     happens once, at the first evaluation recorded at a step >= C (Alg. 1 line 18).
     """
 
-    def __init__(self, config: ObsolescenceConfig) -> None:
-        self.config = config
-        k = config.n_actors
+    def __init__(self, n_actors: int, schedule: Schedule) -> None:
+        if n_actors < 1:
+            raise ValueError(f"K must be >= 1, got {n_actors}")
+        self.n_actors = n_actors
+        self.schedule = schedule  # A, C, the first round: the run's one description (mam_core.schedule)
+        k = n_actors
         self.probabilities = np.full(k, 1.0 / k)  # P_k starts uniform
         self.round = 0  # evaluation rounds applied (elimination included)
         self.eliminated = np.zeros(k, dtype=bool)
@@ -209,20 +197,24 @@ class Obsolescence:
         self.last_round_at = 0  # the multiple of A of the last round applied (0: none yet)
 
     @property
+    def enabled(self) -> bool:
+        """Rounds and the elimination happen: K > 1 without `--no-ot` (the schedule has a C)."""
+        return self.schedule.eliminate_at is not None
+
+    @property
     def live(self) -> np.ndarray:
         return ~self.eliminated
 
     def due_round(self, env_steps: int) -> bool:
         """A competition round is due at each new multiple of A strictly before C
         (mam_core.schedule.round_multiple, the rule the learner's barriers follow too)."""
-        if not self.config.enabled or self.survivor is not None:
+        if not self.enabled or self.survivor is not None:
             return False
-        c = self.config
-        return round_multiple(env_steps, c.compete_every, c.eliminate_at, c.first_round, self.last_round_at) is not None
+        return self.schedule.round_due(env_steps, self.last_round_at) is not None
 
     def due_elimination(self, env_steps: int) -> bool:
         """Elimination is due once, at the first step >= C."""
-        return self.config.enabled and self.survivor is None and env_steps >= self.config.eliminate_at
+        return self.enabled and self.survivor is None and env_steps >= self.schedule.eliminate_at
 
     def record_evaluation(self, env_steps: int, returns: Sequence[float] | np.ndarray,
                           rng: np.random.Generator | None = None) -> np.ndarray:
@@ -233,28 +225,28 @@ class Obsolescence:
         evaluation, `--no-ot`, or after elimination) the returns are only remembered.
         """
         r = _as_returns(returns)
-        if r.size != self.config.n_actors:
-            raise ValueError(f"expected {self.config.n_actors} returns, got {r.size}")
+        if r.size != self.n_actors:
+            raise ValueError(f"expected {self.n_actors} returns, got {r.size}")
         if self.due_elimination(env_steps):
             self.eliminate(choose_survivor(r, self.live, rng))
             self.round += 1
-            self.last_round_at = (env_steps // self.config.compete_every) * self.config.compete_every
+            self.last_round_at = (env_steps // self.schedule.compete_every) * self.schedule.compete_every
         elif self.due_round(env_steps):
             self.probabilities = allocation_probabilities(r)  # Eq. 8
             self.round += 1
-            self.last_round_at = (env_steps // self.config.compete_every) * self.config.compete_every
+            self.last_round_at = (env_steps // self.schedule.compete_every) * self.schedule.compete_every
         self.last_returns = r
         self.last_evaluation_step = int(env_steps)
         return self.probabilities.copy()
 
     def eliminate(self, survivor: int) -> None:
         """Keep only `survivor`: the others stop collecting (and training)."""
-        if not 0 <= survivor < self.config.n_actors:
+        if not 0 <= survivor < self.n_actors:
             raise ValueError(f"survivor {survivor} out of range")
         self.survivor = int(survivor)
-        self.eliminated = np.ones(self.config.n_actors, dtype=bool)
+        self.eliminated = np.ones(self.n_actors, dtype=bool)
         self.eliminated[survivor] = False
-        self.probabilities = np.zeros(self.config.n_actors)
+        self.probabilities = np.zeros(self.n_actors)
         self.probabilities[survivor] = 1.0
 
     @overload
@@ -263,8 +255,8 @@ class Obsolescence:
     def allocation(self, slots: Sequence[str], rng: np.random.Generator) -> dict[str, int]: ...
     def allocation(self, slots: Sequence[str] | int, rng: np.random.Generator) -> dict[str, int] | list[int]:
         """Slot -> actor from the current P; every slot runs the survivor after elimination."""
-        k = self.config.n_actors
-        if not self.config.enabled:  # --no-ot: fixed round-robin over sorted slots
+        k = self.n_actors
+        if not self.enabled:  # --no-ot: fixed round-robin over sorted slots
             if isinstance(slots, int):
                 return [i % k for i in range(slots)]
             return {name: i % k for i, name in enumerate(_slot_names(slots))}
@@ -278,7 +270,8 @@ class Obsolescence:
         """JSON-friendly state, so a restarted referee resumes the same schedule."""
         return {
             "schema": STATE_SCHEMA,
-            "config": asdict(self.config),
+            "n_actors": self.n_actors,
+            "schedule": asdict(self.schedule),
             "probabilities": self.probabilities.tolist(),
             "round": self.round,
             "eliminated": self.eliminated.tolist(),
@@ -292,8 +285,8 @@ class Obsolescence:
     def from_dict(cls, data: Mapping[str, Any]) -> Obsolescence:
         if data.get("schema") != STATE_SCHEMA:
             raise ValueError(f"unknown obsolescence state schema {data.get('schema')!r}")
-        state = cls(ObsolescenceConfig(**data["config"]))
-        k = state.config.n_actors
+        state = cls(int(data["n_actors"]), Schedule(**data["schedule"]))
+        k = state.n_actors
         p = np.asarray(data["probabilities"], dtype=np.float64)
         eliminated = np.asarray(data["eliminated"], dtype=bool)
         if p.shape != (k,) or eliminated.shape != (k,) or not np.all(np.isfinite(p)):
@@ -309,10 +302,7 @@ class Obsolescence:
         return state
 
 
-def obsolescence_for(cfg: AlgoConfig) -> Obsolescence:
+def obsolescence_for(cfg: AlgoConfig, steps: int = 1) -> Obsolescence:
     """The schedule an algorithm configuration asks for (disabled for K=1 and `no_ot`), in the
     units of its `schedule` (iterations or transitions: mam_core.schedule)."""
-    return Obsolescence(ObsolescenceConfig(
-        n_actors=cfg.actors, compete_every=cfg.compete_every, eliminate_at=max(cfg.eliminate_at, 1),
-        enabled=not cfg.no_ot and cfg.actors > 1,
-        first_round=first_round_at(cfg.compete_every, cfg.start_steps, cfg.skip_random_rounds)))
+    return Obsolescence(cfg.actors, Schedule.for_run(cfg, steps))

@@ -72,7 +72,7 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
     budget = plan.schedule.budget
     buffer = ReplayBuffer(min(cfg.buffer_size, max(budget, cfg.batch_size)), spec.obs_dim, spec.act_dim, device,
                           cfg.seed)
-    state = obsolescence_for(cfg)
+    state = obsolescence_for(cfg, steps)
     rng = stream(cfg.seed, "allocation")
     actors = NumpyActors(cfg.actors, spec, cfg.hidden)  # what the workers and the referee act with
     for k in range(cfg.actors):

@@ -121,9 +121,9 @@ class Learner:
 
     def serve(self) -> None:
         run, s = self.cfg.run, self.session
-        self.config_pub = bus.declare_latest_publisher(s, keys.config(run))
+        self.config_pub = bus.declare_latest_publisher(s, keys.config(run), drop=True)  # heartbeats: never block
         self.weights_pubs = [bus.declare_latest_publisher(s, keys.weights(run, k)) for k in range(self.algo.actors)]
-        self.stats_pub = bus.declare_latest_publisher(s, keys.learner_stats(run))
+        self.stats_pub = bus.declare_latest_publisher(s, keys.learner_stats(run), drop=True)  # 10 Hz, latest only
         self.done_pub = bus.declare_latest_publisher(s, keys.done(run))
         self.token = bus.declare_alive(s, run, "learner", self.id)
         self.workers = bus.watch_alive(s, run, "worker")
@@ -656,6 +656,10 @@ def learner_command(
         listen = [cfg.endpoint]  # a resumed or launched learner comes back where its clients look
     listen = listen or ([] if connect or zenoh_config else [role.LISTEN_ALL])
     conf = bus.make_config(connect=connect, listen=listen, config_file=zenoh_config)
+    if zenoh_config is None or "wait_before_close" not in zenoh_config.read_text():
+        # A blocking put (weights, done) on a cut link holds the loop at most this long, then Zenoh
+        # closes that transport (default 5 s; docs/ZENOH-NOTES.md, "Congestion").
+        conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close", "1000000")
     announce.announce_learner(cfg, listen, connect, log)  # where it listens, what it waits for, budget notes
     directory = resume or run_dir or Path("runs") / cfg.run
     main(cfg, conf, directory, resume=resume is not None)

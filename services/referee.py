@@ -51,7 +51,7 @@ class Referee:
         self.follower = role.WeightsFollower(self.algo.actors, self.spec, self.algo.hidden, self.rejects)
         self.actors = self.follower.actors  # acting only: no torch
         self.versions = self.follower.versions
-        self.schedule: Obsolescence = obsolescence_for(self.algo)  # counts schedule steps (units)
+        self.schedule: Obsolescence = obsolescence_for(self.algo, cfg.steps)  # counts schedule steps (units)
         self.clock = Schedule.for_run(self.algo, cfg.steps)  # transitions <-> iterations
         self.rng = stream(self.algo.seed, "allocation")  # slot draws and the tie-break at C (mam_core.seeding)
         self.plan = Algorithm1.for_run(self.algo, cfg.steps)
@@ -313,7 +313,7 @@ class Referee:
         the actors that shared the best return in this round (recorded in allocation.jsonl)."""
         live_workers = sorted(self.workers.live())
         self.drawn_over = set(live_workers)
-        if redraw or self.schedule.survivor is not None or not self.schedule.config.enabled:
+        if redraw or self.schedule.survivor is not None or not self.schedule.enabled:
             self.slots = dict(self.schedule.allocation(live_workers, self.rng)) if live_workers else {}
         else:
             kept = {w: k for w, k in self.slots.items() if w in live_workers and self.schedule.live[k]}

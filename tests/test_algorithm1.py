@@ -15,7 +15,7 @@ from mam_core.agent import EnvSpec, MultiActorAgent, weighted_target, weighted_t
 from mam_core.config import resolve
 from mam_core.envs.apple_collect import random_hit_rates
 from mam_core.evaluation import bias_rate, estimation_bias
-from mam_core.obsolescence import Obsolescence, ObsolescenceConfig, best_actors, choose_survivor, obsolescence_for
+from mam_core.obsolescence import Obsolescence, best_actors, choose_survivor, obsolescence_for
 from mam_core.reference import run_reference
 from mam_core.replay import ReplayBuffer
 from mam_core.schedule import Schedule
@@ -218,7 +218,7 @@ def test_survivor_ties_are_broken_by_the_seeded_rng():
     assert set(picks) == {0, 1, 3}  # every tied actor can win, never the worse one
     again = [choose_survivor(returns, rng=np.random.default_rng(seed)) for seed in range(30)]
     assert picks == again  # the run's seed decides
-    schedule = Obsolescence(ObsolescenceConfig(n_actors=4, compete_every=10, eliminate_at=20))
+    schedule = Obsolescence(4, Schedule("paper", slots=1, steps=100, start=0, compete_every=10, eliminate_at=20))
     schedule.record_evaluation(20, returns, rng=np.random.default_rng(7))
     assert schedule.survivor == choose_survivor(returns, rng=np.random.default_rng(7))
 

@@ -7,12 +7,12 @@ import pytest
 
 from mam_core.obsolescence import (
     Obsolescence,
-    ObsolescenceConfig,
     allocate,
     allocation_probabilities,
     choose_survivor,
     counts,
 )
+from mam_core.schedule import Schedule
 
 # --- Eq. 8 ---------------------------------------------------------------------------------
 
@@ -142,7 +142,8 @@ def test_choose_survivor_best_with_ties_to_lowest():
 
 
 def _state(enabled: bool = True) -> Obsolescence:
-    return Obsolescence(ObsolescenceConfig(n_actors=3, compete_every=1000, eliminate_at=3500, enabled=enabled))
+    return Obsolescence(3, Schedule("equal-data", slots=1, steps=10_000, start=0, compete_every=1000,
+                                    eliminate_at=3500 if enabled else None))
 
 
 def test_initial_state_is_uniform():
@@ -236,6 +237,6 @@ def test_state_round_trips_through_json():
 
 def test_config_validation():
     with pytest.raises(ValueError):
-        ObsolescenceConfig(n_actors=0, compete_every=1, eliminate_at=1)
+        Obsolescence(0, Schedule("paper", slots=1, steps=1, start=0, compete_every=1, eliminate_at=1))
     with pytest.raises(ValueError):
-        ObsolescenceConfig(n_actors=2, compete_every=0, eliminate_at=1)
+        Obsolescence(2, Schedule("paper", slots=1, steps=1, start=0, compete_every=0, eliminate_at=1))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mam_core.obsolescence import Obsolescence, ObsolescenceConfig
+from mam_core.obsolescence import Obsolescence
 from mam_core.pacing import CheckpointRule, Pacer
 from mam_core.schedule import Schedule
 
@@ -73,7 +73,7 @@ def test_obsolescence_rounds_follow_the_schedule_rule(first_round: int):
     schedule = Schedule(kind="equal-data", slots=2, steps=1000, start=first_round - 100, compete_every=200,
                         eliminate_at=900, skip_random_rounds=first_round > 200)
     assert schedule.first_round() == first_round
-    obs = Obsolescence(ObsolescenceConfig(n_actors=2, compete_every=200, eliminate_at=900, first_round=first_round))
+    obs = Obsolescence(2, schedule)  # the same description of the schedule
     last = 0
     rounds = []
     for units in range(0, 1000, 70):  # the counter jumps, sometimes past a multiple

@@ -138,18 +138,22 @@ def declare_reliable_publisher(
     )
 
 
-def declare_latest_publisher(session: zenoh.Session, key: str) -> AdvancedPublisher:
+def declare_latest_publisher(session: zenoh.Session, key: str, *, drop: bool = False) -> AdvancedPublisher:
     """RELIABLE + BLOCK publisher that keeps its last sample for late joiners.
 
     Zenoh's advanced publisher with a one-sample cache; ``publisher_detection`` lets
     subscribers that started earlier query it as soon as it appears. Needs
-    ``timestamping/enabled`` (``make_config`` sets it).
+    ``timestamping/enabled`` (``make_config`` sets it). ``drop``: a put that finds the
+    queue full drops the sample after ~1 ms (50 ms for a fragmented one) instead of
+    blocking up to ``wait_before_close`` (5 s): for topics re-published every fraction
+    of a second, whose latest value is all that counts (the learner's stats and config;
+    docs/ZENOH-NOTES.md, "Congestion"). Replies to late joiners still block.
     """
     block = zenoh.CongestionControl.BLOCK
     return declare_advanced_publisher(
         session,
         key,
-        congestion_control=block,
+        congestion_control=zenoh.CongestionControl.DROP if drop else block,
         reliability=zenoh.Reliability.RELIABLE,
         cache=CacheConfig(max_samples=1, replies_config=RepliesConfig(congestion_control=block)),
         # Sequence numbers per publisher instead of the default per-session timestamps:
