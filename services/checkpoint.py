@@ -55,6 +55,7 @@ REPLAY_DIR = rundir.REPLAY  # RUN_DIR/checkpoints/replay/chunk-<first>-<rows>.np
 KEEP = 2  # generations kept: the newest and one to fall back to
 MANIFEST_FORMAT = 1
 EXIT_WRITE_ERROR = 75  # the learner's exit status when it cannot write its checkpoint (EX_TEMPFAIL)
+EXIT_CORRUPT = 65  # ... when no checkpoint generation verifies at a resume (EX_DATAERR)
 _MANIFEST = re.compile(r"^manifest-(\d{6,})\.json$")
 # run dir -> the generation this process's learner state derives from (resumed from or last
 # written): the one a new generation keeps beside itself. Newer ones (damaged: the resume fell

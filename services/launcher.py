@@ -36,6 +36,7 @@ from services.options import RunConfig, budget_warnings, write_json
 
 STOP_GRACE_S = 15.0
 EXIT_WRITE_ERROR = 75  # the learner could not write its checkpoint (services/checkpoint.py, same value)
+EXIT_CORRUPT = 65  # no checkpoint generation verifies (services/checkpoint.py, same value)
 LOW_DISK_BYTES = 1 << 20  # a child that dies with less than this free in the run directory: the disk is full
 MAX_STALL_ACTIONS = 2  # watchdog restarts in a row without progress; one more stall stops the run
 STARTUP_GRACE_S = 60.0  # the watchdog's limit until a (re)started learner's first stats arrive, if longer
@@ -274,6 +275,9 @@ class LocalCluster:
             line = last_line(c.log, "stopping:")
             raise RunStopped(f"{c.role} cannot write to {self.run_dir} ({disk_free(self.run_dir)} free there)"
                              f"{': ' + line if line else ''}; the last verified checkpoint is intact; see {c.log}")
+        if c.role == "learner" and rc == EXIT_CORRUPT:
+            line = last_line(c.log, "stopping:")
+            raise RunStopped(f"the learner cannot resume: {line or 'no checkpoint generation verifies'}; see {c.log}")
         if rc == runlock.EXIT_REFUSED:
             line = last_line(c.log, "refusing")
             raise RunStopped(f"{c.role} refused to start{': ' + line if line else ''}; see {c.log}")

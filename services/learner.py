@@ -28,7 +28,14 @@ from mam_core.pacing import CheckpointRule, Pacer
 from mam_core.replay import ReplayBuffer, ReplayLog
 from mam_core.schedule import Schedule
 from services import announce, bus, keys, options, role, rundir, runlock, tb
-from services.checkpoint import exit_on_write_error, load_checkpoint, replay_dir, save_checkpoint
+from services.checkpoint import (
+    EXIT_CORRUPT,
+    CheckpointCorrupt,
+    exit_on_write_error,
+    load_checkpoint,
+    replay_dir,
+    save_checkpoint,
+)
 from services.codec import Allocation, Done, LearnerStats, MessageError, TransitionSpec, Weights, decode, encode
 from services.exact import ExactnessLost, SlotStage, snapshot_versions
 from services.intake import Intake
@@ -609,7 +616,11 @@ def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None
         log.error("%s", e)
         raise SystemExit(runlock.EXIT_REFUSED) from None
     with lock, exit_on_write_error(run_dir):  # a full disk: one line naming the path, exit EXIT_WRITE_ERROR
-        state = load_checkpoint(run_dir) if resume else None
+        try:
+            state = load_checkpoint(run_dir) if resume else None
+        except CheckpointCorrupt as e:  # every generation is damaged: nothing to resume from
+            log.error("stopping: %s", e)
+            raise SystemExit(EXIT_CORRUPT) from None
         if state is not None:
             cfg = RunConfig.from_dict({**json.loads(state["config"]), "steps": cfg.steps})
         with bus.session_scope(conf, retry_for=30.0) as session:  # a router may still be starting

@@ -1,0 +1,105 @@
+"""The stall watchdog of `mam run` (LocalCluster.check_stall): what it blames and kills, on real
+child processes, from the learner stats it has seen."""
+
+from __future__ import annotations
+
+import io
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from rich.console import Console
+
+from mam_core.config import resolve
+from mam_core.schedule import Schedule
+from services.codec import LearnerStats
+from services.launcher import STARTUP_GRACE_S, Child, LocalCluster, RunStalled
+from services.options import RunConfig
+
+ROLES = ("learner", "referee", "worker-0", "worker-1")
+
+
+@pytest.fixture
+def cluster(tmp_path: Path):
+    cfg = RunConfig(run="wd", env_id="AppleCollect-v0", steps=2000, algo=resolve("ma-ddpg", actors=2, workers=2),
+                    stall_timeout=5.0)
+    out = io.StringIO()
+    c = LocalCluster(cfg, tmp_path, "tcp/127.0.0.1:1", console=Console(file=out, width=400))
+    c.out = out
+    for role in ROLES:
+        proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+        c.children.append(Child(role, proc, tmp_path / f"{role}.log"))
+    yield c
+    for child in c.children:
+        if child.proc.poll() is None:
+            child.proc.kill()
+        child.proc.wait()
+
+
+def stats(env_steps: int, updates: int, accept_until: int) -> LearnerStats:
+    return LearnerStats(env_steps=env_steps, updates=updates, accept_until=accept_until, utd=1.0, versions=(3, 3),
+                        workers=2, rejected={"future_version": 7})
+
+
+def killed(c: LocalCluster) -> list[str]:
+    time.sleep(0.3)
+    return [ch.role for ch in c.children if ch.proc.poll() is not None]
+
+
+def test_a_learner_without_stats_gets_the_startup_grace_then_is_killed(cluster: LocalCluster) -> None:
+    t0 = cluster.progress_at
+    cluster.check_stall(t0 + 10)  # past stall_timeout, within the start-up grace
+    assert killed(cluster) == []
+    cluster.check_stall(t0 + STARTUP_GRACE_S + 1)
+    assert killed(cluster) == ["learner"]
+    text = " ".join(cluster.out.getvalue().split())
+    assert "stalled: no new transition or update for 61 s; learner stats: never" in text
+    assert "restarting learner" in text
+
+
+def test_frozen_stats_blame_the_learner(cluster: LocalCluster) -> None:
+    cluster.observe(stats(800, 400, 900))
+    now = cluster.progress_at + 6
+    cluster.check_stall(now)
+    assert killed(cluster) == ["learner"]
+    assert "learner stats: not for 6 s" in cluster.out.getvalue()
+
+
+def test_a_credit_held_at_a_round_barrier_blames_the_referee(cluster: LocalCluster) -> None:
+    s = Schedule.for_run(cluster.cfg.algo, cluster.cfg.steps)
+    updates = 600
+    free = min(s.budget, max(s.transitions_consumed(updates), s.random_until) + cluster.cfg.tolerance)
+    at = free - 64  # the credit stops short of what the updates allow: a barrier
+    cluster.observe(stats(at, updates, at))
+    cluster.last_stats_at = cluster.progress_at + 5.5  # stats still come, nothing moves
+    cluster.check_stall(cluster.progress_at + 6)
+    assert killed(cluster) == ["referee"]
+    text = " ".join(cluster.out.getvalue().split())
+    assert "round barrier, waiting for the referee's allocation" in text and f"accept_until {at:,} (room 0)" in text
+
+
+def test_open_credit_and_no_rows_blames_the_workers_then_stops_the_run(cluster: LocalCluster) -> None:
+    cluster.observe(stats(1000, 900, 1200))
+    for _ in range(2):  # two watchdog restarts without progress ...
+        now = cluster.progress_at + 6
+        cluster.last_stats_at = now - 0.5
+        cluster.check_stall(now)
+    assert killed(cluster) == ["worker-0", "worker-1"]
+    text = " ".join(cluster.out.getvalue().split())
+    assert "the credit is open and no transitions arrive from the workers" in text
+    assert "rejected {'future_version': 7}" in text and "versions [3, 3]" in text
+    now = cluster.progress_at + 6
+    cluster.last_stats_at = now - 0.5
+    with pytest.raises(RunStalled, match="the run is stalled: .*2 watchdog restarts did not help"):
+        cluster.check_stall(now)  # ... and the third stall stops the run
+
+
+def test_progress_resets_the_watchdog(cluster: LocalCluster) -> None:
+    cluster.observe(stats(100, 10, 400))
+    t = cluster.progress_at
+    cluster.observe(stats(132, 10, 400))
+    assert cluster.progress_at >= t and cluster.stall_actions == 0
+    cluster.check_stall(cluster.progress_at + 4.9)
+    assert killed(cluster) == []
