@@ -258,3 +258,19 @@ def test_learner_killed_before_its_first_checkpoint_and_three_more_times(tmp_pat
     assert figures["lost_rows"] == 0 and figures["duplicated_rows"] == 0
     assert figures["restarts"]["learner"] == 4
     assert processes_of(run) == []
+
+
+def test_sigint_exits_130(tmp_path: Path) -> None:
+    run, run_dir = unique_run("sigint"), tmp_path / "run"
+    proc, out = start_mam_run(run, run_dir, *APPLE, "--steps", "1000000", "--workers", "1")
+    try:
+        wait_until(lambda: learner_steps(run_dir) > 0, 180, "training", proc)
+        proc.send_signal(signal.SIGINT)
+        proc.wait(90)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(30)
+    assert proc.returncode == 130, flat(out)
+    assert load_checkpoint(run_dir)["checkpoint"]["skipped"] == []  # the learner's last checkpoint verifies
+    assert processes_of(run) == []
