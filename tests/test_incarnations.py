@@ -70,7 +70,7 @@ def test_a_learner_killed_without_a_checkpoint_and_three_more_times_the_run_fini
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
 
     def learner_pid() -> int | None:
-        out = subprocess.run(["pgrep", "-f", f"services.learner .*{name}"], capture_output=True, text=True).stdout
+        out = subprocess.run(["pgrep", "-f", f"services.learner .*{run_dir}"], capture_output=True, text=True).stdout
         return int(out.split()[0]) if out.split() else None
 
     def updates() -> int:
