@@ -22,15 +22,17 @@ from typing import Any, Callable
 from mam_lab.bench_sizes import ROOT, BenchSizes, _child_env, _stop
 
 
-def training_rates(rows: list[dict[str, Any]]) -> tuple[float, float]:
-    """Env steps/s and updates/s between the first learner.jsonl row with updates and the last."""
+def training_rates(rows: list[dict[str, Any]]) -> tuple[float, float, float]:
+    """Env steps/s, updates/s and the share of the time the exact learner waited for rows,
+    between the first learner.jsonl row with updates and the last (NaN share: async)."""
     rows = [r for r in rows if "t" in r]
     train = [r for r in rows if r.get("updates", 0) > 0]
     if len(train) < 2:
         raise ValueError("fewer than two learner rows after the first update: run longer")
     a, b = train[0], train[-1]
     dt = b["t"] - a["t"]
-    return (b["env_steps"] - a["env_steps"]) / dt, (b["updates"] - a["updates"]) / dt
+    wait = (b["exact_wait_s"] - a["exact_wait_s"]) / dt if "exact_wait_s" in a and "exact_wait_s" in b else float("nan")
+    return (b["env_steps"] - a["env_steps"]) / dt, (b["updates"] - a["updates"]) / dt, wait
 
 
 def one_run(collection: str, sizes: BenchSizes, work: Path, iterations: int, seed: int) -> dict[str, float]:
@@ -54,8 +56,9 @@ def one_run(collection: str, sizes: BenchSizes, work: Path, iterations: int, see
         raise RuntimeError(f"mam run --collection {collection} exited {proc.returncode}: "
                            f"{(work / f'{run}.out').read_text()[-2000:]}")
     rows = [json.loads(line) for line in (run_dir / "learner.jsonl").read_text().splitlines() if line.strip()]
-    steps_s, updates_s = training_rates(rows)
-    return {"env_steps_per_s": steps_s, "updates_per_s": updates_s, "wall_s": time.monotonic() - t0}
+    steps_s, updates_s, wait = training_rates(rows)
+    return {"env_steps_per_s": steps_s, "updates_per_s": updates_s, "learner_wait_share": wait,
+            "wall_s": time.monotonic() - t0}
 
 
 def bench_exact(sizes: BenchSizes, log: Callable[[str], None] = print, rounds: int = 2,
@@ -83,4 +86,5 @@ def bench_exact(sizes: BenchSizes, log: Callable[[str], None] = print, rounds: i
             "async_env_steps_per_s": med(s["env_steps_per_s"] for s in sides["async"]),
             "exact_updates_per_s": med(s["updates_per_s"] for s in sides["exact"]),
             "async_updates_per_s": med(s["updates_per_s"] for s in sides["async"]),
+            "exact_learner_wait_share": med(s["learner_wait_share"] for s in sides["exact"]),
             "exact_rounds": rounds, "exact_iterations": iterations}

@@ -338,6 +338,8 @@ class Learner:
                "rejected": self.intake.rejects.total, "buffer": len(self.buffer),
                "received": {w: t.received for w, t in self.intake.workers.items()}}
         row.update(self.metrics)
+        if self.exact:
+            row["exact_wait_s"] = round(getattr(self, "exact_wait_s", 0.0), 3)
         if self.intake.episode_returns:
             row["train_return"] = float(np.mean(self.intake.episode_returns))
             self.intake.episode_returns.clear()
@@ -391,6 +393,7 @@ class Learner:
         self.rates, self._rate_base = (0.0, 0.0), (self.env_steps, self.agent.updates, time.monotonic())
         self.workers_seen: set[str] = set()
         self.referee_id: str | None = None
+        self.exact_wait_s = 0.0  # seconds the loop waited for an iteration's rows (learner.jsonl: where time goes)
         try:
             while not self.stop_requested:
                 index = self.iteration + 1
@@ -398,6 +401,7 @@ class Learner:
                     self.finish()
                     return True
                 it = plan.iteration(index)
+                waited = time.perf_counter()
                 while not stage.ready(index, it.slots):  # line 9: the iteration's transitions
                     self.receive_exact(stage, timeout=0.002)
                     now = time.monotonic()
@@ -409,6 +413,7 @@ class Learner:
                         self.write_log(now)
                     if self.stop_requested:
                         break
+                self.exact_wait_s += time.perf_counter() - waited
                 if self.stop_requested:
                     break
                 if index == 1:

@@ -132,7 +132,8 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
          "from --seed; async: workers collect ahead, rate-limited (more throughput, not reproducible)",
          target=RUN),
     _opt("run", str, "run name: the key-expression namespace mam/<run>/...", target=RUN),
-    _opt("sync_every", int, "publish actor weights every N updates", target=RUN),
+    _opt("sync_every", int, "publish actor weights every N updates (async collection; exact mode publishes them "
+         "whenever they change, every d iterations)", target=RUN),
     _opt("save_replay", bool, "persist the replay buffer beside the checkpoint as append-only chunks",
          target=RUN, flags=("--save-replay/--no-save-replay",)),
     _opt("checkpoint_every", int, "checkpoint every N updates ...", target=RUN),

@@ -185,3 +185,15 @@ def test_a_killed_worker_ends_exactness_and_the_run_finishes(tmp_path: Path) -> 
     assert summary["exact"] is False and summary["inexact"], summary
     assert summary["env_steps"] == Schedule.for_run(resolve("ma-ddpg", workers=3, actors=2, start_steps=200,
                                                             compete_every=500, eliminate_at=2000), 3000).budget
+
+
+def test_bench_rates_count_the_training_part_only():
+    from mam_lab.bench_exact import training_rates
+
+    rows = [{"t": 1.0, "env_steps": 300, "updates": 0},  # the random phase: not counted
+            {"t": 2.0, "env_steps": 600, "updates": 10, "exact_wait_s": 0.5},
+            {"t": 6.0, "env_steps": 1000, "updates": 210, "exact_wait_s": 1.5}]
+    steps_s, updates_s, wait = training_rates(rows)
+    assert (steps_s, updates_s, wait) == (100.0, 50.0, 0.25)
+    with pytest.raises(ValueError, match="run longer"):
+        training_rates(rows[:2])
