@@ -611,10 +611,10 @@ def at_text(cfg: RunConfig, transitions: int) -> str:
 def progress_text(cfg: RunConfig, transitions: int, updates: int, rates: tuple[float, float] | None) -> str:
     """The progress bar's text: iterations (paper), updates, env steps/s and updates/s."""
     clock = Schedule.for_run(cfg.algo, cfg.steps)
-    text = f"it {clock.units_at(transitions):,}/{cfg.steps:,}  " if clock.paper else ""
+    text = f"it {clock.units_at(transitions):,}/{cfg.steps:,} " if clock.paper else ""
     text += f"upd {updates:,}"
     if rates is not None:
-        text += f"  {rates[0]:,.0f} steps/s  {rates[1]:,.0f} upd/s"
+        text += f" {rates[0]:,.0f} steps/s {rates[1]:,.0f} upd/s"
     return text
 
 
@@ -713,7 +713,7 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
         cluster.start_workers()
         alloc: Allocation | None = None
         last_eval = ""
-        columns = (TextColumn("[bold]transitions"), BarColumn(bar_width=24), MofNCompleteColumn(), TimeElapsedColumn(),
+        columns = (TextColumn("[bold]transitions"), BarColumn(bar_width=16), MofNCompleteColumn(), TimeElapsedColumn(),
                    TimeRemainingColumn(), TextColumn("{task.fields[info]}"))
         try:
             with Progress(*columns, console=console, transient=False) as progress:
@@ -739,7 +739,7 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                     if item is not None:
                         try:
                             ev = Eval.from_bytes(item.payload, cfg.algo.actors)
-                            last_eval = "R=[" + " ".join("-" if m is None else f"{m:.2f}" for m in ev.mean) + "]"
+                            last_eval = "R=[" + " ".join("—" if m is None else f"{m:.2f}" for m in ev.mean) + "]"
                         except MessageError:
                             pass
                     item = stats.fresh().get(keys.learner_stats(cfg.run))
@@ -749,7 +749,7 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                             cluster.observe(st)  # the stall watchdog (supervise -> check_stall)
                             rates = speed.update(st.env_steps, st.updates)
                             info = (f"{progress_text(cfg, st.env_steps, st.updates, rates)}  "
-                                    f"I={list(alloc.counts) if alloc else '-'}  {last_eval}")
+                                    f"{last_eval}")  # I_k: on the allocation lines above
                             progress.update(task, completed=min(st.env_steps, budget), info=info)
                             if st.done and not cluster.done:
                                 cluster.done = True
