@@ -90,8 +90,8 @@ finish() {  # the one JSON (from whatever steps ran) and the logs
 if [ "$DRY" = 1 ]; then
   BENCH_SIZES=(--rounds 2 --updates 3 --hidden 32,32 --batch-size 32)
   RUN_SIZES=(--hidden 32,32 --batch-size 32 --start-steps 300 --compete-every 1000 --eval-episodes 1 --grace 30)
-  E2E_SECONDS="${E2E_SECONDS:-15}"; ASYNC_SECONDS="${ASYNC_SECONDS:-8}"; EXPERIMENT_SECONDS="${EXPERIMENT_SECONDS:-40}"
-  PARALLEL="${PARALLEL:-2}"; GRID=(--algos td3 --seeds 2 --steps 1500)
+  E2E_SECONDS="${E2E_SECONDS:-12}"; ASYNC_SECONDS="${ASYNC_SECONDS:-6}"; EXPERIMENT_SECONDS="${EXPERIMENT_SECONDS:-30}"
+  PARALLEL="${PARALLEL:-2}"; GRID=(--algos td3 --seeds 2 --steps 1000)
 else
   BENCH_SIZES=(--rounds 7 --updates 50 --hidden 256,256 --batch-size 256)
   # paper schedule (iterations): start 5000 instead of Table 3's 25,000 so the window is spent training
@@ -160,7 +160,7 @@ pyver() { "$1" -c 'import sys; print("%d.%d" % sys.version_info[:2])'; }
 T0=$(date +%s)
 make_venv "$VENV" "$BASE_PY" 1 || die "venv over $BASE_PY"
 VPY="$VENV/bin/python"
-PIP=("$BASE_PY" -m pip --python "$VPY" install --quiet --no-index --no-deps --no-cache-dir
+PIP=("$BASE_PY" -m pip --python "$VPY" install --quiet --no-index --no-deps --no-cache-dir --no-compile
      --disable-pip-version-check --ignore-installed)
 WHEELS_INSTALLED=0
 if [ "$(pyver "$VPY")" = 3.12 ] && compgen -G "$WHEELS/*.whl" >/dev/null; then
@@ -191,7 +191,8 @@ if [ "$DRY" = 0 ] || [ "$WHEELS_INSTALLED" = 1 ]; then
 elif [ -n "$(py312)" ] && compgen -G "$WHEELS/*.whl" >/dev/null && compgen -G "$DRY_WHEELS/*.whl" >/dev/null; then
   T0=$(date +%s)
   if make_venv "$WORK/venv312" "$(py312)" 0 && "$BASE_PY" -m pip --python "$WORK/venv312/bin/python" install \
-      --quiet --no-index --no-deps --no-cache-dir --disable-pip-version-check "$WHEELS"/*.whl "$DRY_WHEELS"/*.whl \
+      --quiet --no-index --no-deps --no-cache-dir --no-compile --disable-pip-version-check \
+      "$WHEELS"/*.whl "$DRY_WHEELS"/*.whl \
       >"$LOGS/pip_wheels312.log" 2>&1; then
     T[venv312]=$(( $(date +%s) - T0 ))
     "$BASE_PY" -m pip --python "$WORK/venv312/bin/python" check >"$LOGS/pip_check312.log" 2>&1 \
@@ -211,7 +212,8 @@ timed bench 300 "$VENV/bin/mam" bench --device "$DEVICE" --only learner --ks 1,2
 
 # ---------------------------------------------------------------- b. one mam run, time-boxed
 COLLECTION=()
-if COLUMNS=200 "$VENV/bin/mam" run --help 2>/dev/null | grep -q -- '--collection'; then
+RUN_HELP="$(COLUMNS=200 "$VENV/bin/mam" run --help 2>&1)"  # not piped into grep -q: pipefail and SIGPIPE
+if grep -q -- '--collection' <<<"$RUN_HELP"; then
   COLLECTION=(--collection exact)
   [ "$DRY" = 0 ] && [ -z "${E2E_SECONDS_SET:-}" ] && E2E_SECONDS=120  # room for the async run in 8 minutes
 fi

@@ -214,6 +214,8 @@ def e2e(args: argparse.Namespace) -> dict[str, Any]:
                     "iterations_per_s": (b["iterations"] - a["iterations"]) / dt,
                     "updates": b["updates"], "env_steps": b["env_steps"], "utd": b.get("utd"),
                     "lost": b.get("lost"), "rejected": b.get("rejected")})
+        if "exact_wait_s" in b and "exact_wait_s" in a:  # exact collection: seconds the learner waited for rows
+            out["learner_wait_share"] = (b["exact_wait_s"] - a["exact_wait_s"]) / dt
     if rows:
         out["all_env_steps_per_s"] = rows[-1]["env_steps"] / max(rows[-1]["t"], 1e-9)
     return out
@@ -289,6 +291,9 @@ def combine(args: argparse.Namespace) -> dict[str, Any]:
         "device_time_share": ups * k2_device_ms / 1e3 if finite(ups) and finite(k2_device_ms) else None,
         "device_time_source": bench.get("learner_device_time_source"),
         "nvidia_smi_util_mean_pct": (run.get("gpu") or {}).get("util_mean_pct"),
+        # exact collection: the share of the window the learner waited for the iteration's rows
+        "learner_wait_share": run.get("learner_wait_share"),
+        "e2e_collection": run.get("collection"),
         "exact_vs_async": (run["env_steps_per_s"] / run_async["env_steps_per_s"]
                            if run_async and finite(run_async.get("env_steps_per_s")) and
                            finite(run.get("env_steps_per_s")) else None),

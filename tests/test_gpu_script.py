@@ -64,6 +64,9 @@ def test_gpu_script_dry_run(tmp_path: Path) -> None:
     # estimates from a tiny bench on a shared box: sane, not exact
     assert derived["learner_update_share"] < 5 and derived["device_time_share"] < 5
     assert derived["device_time_source"] == "process cpu time"
+    if "--collection" in run["command"]:  # mam run has exact and async collection: both ran, in the same script
+        assert "--collection exact" in run["command"] and d["e2e_async"]["lost"] == 0
+        assert positive(derived["exact_vs_async"]) and 0 <= derived["learner_wait_share"] < 1.5
     assert set(d["goals"]) == {"k2_vs_td3 >= 0.95 (CUDA)", "e2e_env_steps_per_s >= 1000 (paper schedule)"}
     assert d["experiment"]["runs_started"] >= 1 and positive(d["experiment"]["grid_updates_per_s"])
     if d["wheels_check"] is not None:  # a Python 3.12 and the wheels were there
