@@ -90,7 +90,7 @@ finish() {  # the one JSON (from whatever steps ran) and the logs
 if [ "$DRY" = 1 ]; then
   BENCH_SIZES=(--rounds 2 --updates 3 --hidden 32,32 --batch-size 32)
   RUN_SIZES=(--hidden 32,32 --batch-size 32 --start-steps 300 --compete-every 1000 --eval-episodes 1 --grace 30)
-  E2E_SECONDS="${E2E_SECONDS:-12}"; ASYNC_SECONDS="${ASYNC_SECONDS:-6}"; EXPERIMENT_SECONDS="${EXPERIMENT_SECONDS:-30}"
+  E2E_SECONDS="${E2E_SECONDS:-12}"; ASYNC_SECONDS="${ASYNC_SECONDS:-6}"; EXPERIMENT_SECONDS="${EXPERIMENT_SECONDS:-45}"
   PARALLEL="${PARALLEL:-2}"; GRID=(--algos td3 --seeds 2 --steps 1000)
 else
   BENCH_SIZES=(--rounds 7 --updates 50 --hidden 256,256 --batch-size 256)
