@@ -154,7 +154,7 @@ class Worker:
             self.flush()
             log.info("the run is no longer exact: collecting asynchronously")
         idle_since: float | None = None
-        last_status = time.monotonic()
+        last_status = stall_note = time.monotonic()
         while not self.stop_requested:
             if time.monotonic() - last_status > STATUS_EVERY_S:
                 st = self.stats
@@ -171,6 +171,13 @@ class Worker:
             if self.idle or not self.may_send():
                 self.flush()
                 idle_since = idle_since or time.monotonic()
+                limit, now = self.cfg.stall_timeout, time.monotonic()
+                if 0 < limit < now - idle_since and now - stall_note > limit:  # the split role's stall note
+                    stall_note, st = now, self.stats
+                    log.warning("paused for %.0f s: %s", now - idle_since, "no learner stats" if st is None else
+                                "idle after the elimination" if self.idle else
+                                f"credit used up (learner at {st.env_steps}, accept_until {st.accept_until}, "
+                                f"{self.in_flight()} rows of mine not yet counted)")
                 self.stats_sub.wait_fresh(timeout=0.05)  # pause (rate limiter or no learner): no spinning
                 continue
             idle_since = None
