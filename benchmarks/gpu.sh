@@ -177,9 +177,16 @@ fi
 T[setup]=$(( $(date +%s) - T0 ))
 "$VPY" - "$LOGS/setup.json" "$BASE_PY" "$WHEELS_INSTALLED" <<'EOF' || die "the venv does not import the project"
 import importlib.metadata as md, json, sys, torch, mam_core.agent, services.cli  # noqa: E401
+def version(d):
+    try:
+        return md.version(d)
+    except md.PackageNotFoundError:
+        return None
+names = ("mujoco", "gymnasium", "eclipse-zenoh", "numpy", "typer", "click", "rich", "msgpack", "tensorboard",
+         "matplotlib", "imageio")
 out = {"base_python": sys.argv[2], "venv_python": sys.version.split()[0], "torch": torch.__version__,
        "torch_file": torch.__file__, "cuda_available": torch.cuda.is_available(), "carried_wheels_installed":
-       sys.argv[3] == "1", "packages": {d: md.version(d) for d in ("mujoco", "gymnasium", "eclipse-zenoh", "numpy")}}
+       sys.argv[3] == "1", "packages": {d: version(d) for d in names}}
 out["package_files"] = {m: __import__(m).__file__ for m in ("mujoco", "gymnasium", "zenoh")}
 json.dump(out, open(sys.argv[1], "w"), indent=1)
 EOF
