@@ -11,6 +11,7 @@ set -euo pipefail
 HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 REQ="$HERE/gpu-requirements.txt"
 PIP="${PIP:-$(command -v python3) -m pip}"
+PYVER="${PYVER:-3.12}"  # the GPU image's Python (2026-11: 3.12.3); benchmarks/gpu.sh reads the same variable
 section() {  # the pins of one section of $REQ, one per line
   awk -v want="[$1]" '/^# \[/ {on = ($2 == want); next} on && $0 !~ /^#/ && NF {print $1}' "$REQ"
 }
@@ -20,7 +21,8 @@ fetch() {  # fetch DEST SECTION
   [ "${#names[@]}" -gt 0 ] || { echo "no pins in section [$2] of $REQ" >&2; exit 1; }
   mkdir -p "$dest"
   # --no-deps: every needed wheel is pinned in $REQ (one version each: two would stop the offline install)
-  $PIP download --quiet --no-deps --only-binary=:all: --python-version 3.12 --implementation cp --abi cp312 \
+  $PIP download --quiet --no-deps --only-binary=:all: --python-version "$PYVER" --implementation cp \
+    --abi "cp${PYVER/./}" \
     --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
     --platform manylinux2014_x86_64 --platform manylinux1_x86_64 --abi abi3 --abi none \
     -d "$dest" "${names[@]}"

@@ -163,7 +163,8 @@ VPY="$VENV/bin/python"
 PIP=("$BASE_PY" -m pip --python "$VPY" install --quiet --no-index --no-deps --no-cache-dir --no-compile
      --disable-pip-version-check --ignore-installed)
 WHEELS_INSTALLED=0
-if [ "$(pyver "$VPY")" = 3.12 ] && compgen -G "$WHEELS/*.whl" >/dev/null; then
+PYVER="${PYVER:-3.12}"  # the Python the carried wheels are for (benchmarks/gpu-wheels.sh)
+if [ "$(pyver "$VPY")" = "$PYVER" ] && compgen -G "$WHEELS/*.whl" >/dev/null; then
   "${PIP[@]}" "$WHEELS"/*.whl >"$LOGS/pip_wheels.log" 2>&1 || die "offline install of $WHEELS (see logs)"
   WHEELS_INSTALLED=1
 else

@@ -312,7 +312,14 @@ def combine(args: argparse.Namespace) -> dict[str, Any]:
             "wheels_check": load(args.wheels), "timings_s": timings}
 
 
+def _terminate(signum: int, frame: Any) -> None:
+    """SIGTERM (gpu.sh's `timeout`) unwinds like an exception, so the `finally` blocks stop the runs this
+    process started in their own sessions: left running, they would outlive the script on the GPU machine."""
+    raise SystemExit(128 + signum)
+
+
 def main() -> None:
+    signal.signal(signal.SIGTERM, _terminate)
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="step", required=True)
     w = sub.add_parser("wheels-check")
