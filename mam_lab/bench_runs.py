@@ -187,7 +187,8 @@ def collection_rate(workers: int, sizes: BenchSizes, work_dir: Path, seed: int =
                "--steps", "1000000000", "--utd", "0.001", "--start-steps", str(sizes.collection_start_steps),
                "--workers", str(workers), "--batch-size", str(sizes.batch_size),
                "--hidden", ",".join(map(str, sizes.hidden)), "--seed", str(seed), "--device", "cpu",
-               "--config", str(toml), "--run", run, "--listen", endpoint, "--run-dir", str(run_dir)]
+               "--config", str(toml), "--run", run, "--listen", endpoint, "--run-dir", str(run_dir),
+               "--collection", "async"]  # no referee: lock-step collection would wait for its allocation
     procs: list[subprocess.Popen] = []
     logs = []
     try:

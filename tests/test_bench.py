@@ -60,7 +60,7 @@ def test_learner_transport_and_weights_pieces() -> None:
 
 
 def test_end_to_end_and_collection_pieces() -> None:
-    result = bench_json(start_bench("--only", "e2e,collection"))
+    result = bench_json(start_bench("--only", "e2e,collection"), timeout=300)  # three runs start torch and MuJoCo
     assert_positive(result, ["e2e_vs_single_process", "e2e_bf16_vs_single_process", "e2e_single_process_s",
                              "e2e_mam_run_to_done_s", "e2e_mam_run_wall_s", "collection_steps_per_s_m4"])
     assert result["e2e_mam_run_startup_s"] <= result["e2e_mam_run_to_done_s"] <= result["e2e_mam_run_wall_s"]
