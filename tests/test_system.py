@@ -164,6 +164,7 @@ def test_late_worker_gets_weights_and_allocation_within_a_second(tmp_path: Path)
     endpoint = bus.loopback_endpoint(bus.free_tcp_port())
     learner = spawn("learner", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--steps", "1000000",
                     "--start-steps", "200", "--compete-every", "300", "--eliminate-at", "100000", *SMALL,
+                    "--collection", "async",  # one worker for M = 5 slots: lock-step collection would wait
                     "--run", run, "--listen", endpoint, "--run-dir", str(tmp_path), log=tmp_path / "learner.log")
     referee = spawn("referee", "--run", run, "--connect", endpoint, "--run-dir", str(tmp_path),
                     log=tmp_path / "referee.log")
@@ -209,7 +210,9 @@ def test_two_runs_on_one_router_never_cross(tmp_path: Path) -> None:
     """Two runs share one `mam router`, with the same worker ids: namespaces keep them apart."""
     endpoint = bus.loopback_endpoint(bus.free_tcp_port())
     runs = [unique_run("iso-a"), unique_run("iso-b")]
-    common = ["--env", "AppleCollect-v0", "--algo", "ddpg", "--steps", "600", "--start-steps", "300", *SMALL]
+    # no referee and two workers on one slot: the asynchronous collection (lock-step needs both)
+    common = ["--env", "AppleCollect-v0", "--algo", "ddpg", "--steps", "600", "--start-steps", "300", *SMALL,
+              "--collection", "async"]
     procs = [spawn("router", "--listen", endpoint, log=tmp_path / "router.log")]
     try:
         for run in runs:
