@@ -26,7 +26,7 @@ from mam_core.evaluation import evaluate_policy
 from mam_core.obsolescence import competition_returns, obsolescence_for
 from mam_core.policy import NumpyActors
 from mam_core.replay import ReplayBuffer
-from mam_core.seeding import curve_seed, elimination_seed, final_seed, round_seed, stream
+from mam_core.seeding import evaluation_seed, stream
 from mam_core.slot import SlotStreams, explore, uniform
 
 
@@ -45,18 +45,6 @@ class ReferenceResult:
         """Mean return of the best live actor at the last evaluation."""
         last = self.evaluations[-1]
         return max(m for m in last["mean"] if m is not None)
-
-
-def evaluation_seed(seed: int, it: Iteration, purpose: str) -> int:
-    """The episodes of an evaluation: a competition's by its round, the elimination's, a curve
-    point's by its index, the final one's (each its own stream: mam_core.seeding)."""
-    if purpose == "round":
-        return round_seed(seed, it.round)
-    if purpose == "elimination":
-        return elimination_seed(seed)
-    if purpose == "curve":
-        return curve_seed(seed, it.curve)
-    return final_seed(seed)
 
 
 def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str, Any] | None = None,
@@ -86,7 +74,7 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
                                "probabilities": state.probabilities.tolist()})
 
     def evaluate(it: Iteration, purpose: str) -> list[float | None]:
-        seed = evaluation_seed(cfg.seed, it, purpose)
+        seed = evaluation_seed(cfg.seed, purpose, it.round if purpose == "round" else it.curve)
         means: list[float | None] = []
         returns: list[list[float]] = []
         for k in range(cfg.actors):

@@ -52,6 +52,20 @@ def stream_seed(seed: int, purpose: str, index: int = 0, generation: int = 0) ->
     return int(state[0]) & 0x3FFF_FFFF  # leaves room for + episode under 2**31
 
 
+def evaluation_seed(seed: int, purpose: str, index: int | None = None) -> int:
+    """The episodes of one evaluation: `round` j (the competition at j·A), `elimination`,
+    `curve` j (at j·eval-every) or `final`. Evaluation episode e is reset with this + e."""
+    if purpose == "round":
+        return round_seed(seed, int(index))
+    if purpose == "curve":
+        return curve_seed(seed, int(index))
+    if purpose == "elimination":
+        return elimination_seed(seed)
+    if purpose == "final":
+        return final_seed(seed)
+    raise ValueError(f"unknown evaluation purpose {purpose!r}")
+
+
 def round_seed(seed: int, round_index: int) -> int:
     """Episodes of the competition at round_index·A (every arm with this seed sees the same)."""
     return stream_seed(seed, "round", round_index)

@@ -27,7 +27,7 @@ from mam_core.evaluation import evaluate_policy
 from mam_core.obsolescence import Obsolescence, best_actors, competition_returns, counts, obsolescence_for
 from mam_core.policy import EnvSpec, NumpyActors, Policy
 from mam_core.schedule import Schedule
-from mam_core.seeding import curve_seed, elimination_seed, final_seed, round_seed, stream
+from mam_core.seeding import evaluation_seed, stream
 from services import bus, keys, options, role, rundir, tb
 from services.codec import Allocation, Eval, LearnerStats, MessageError, Weights
 from services.exact import WeightsHistory
@@ -137,7 +137,7 @@ class Referee:
             if self.schedule.due_elimination(units) or self.schedule.due_round(units):
                 self.compete(steps)
             elif units >= self.next_curve_eval and units >= self.algo.start_steps:
-                self.evaluate(steps, curve_seed(self.algo.seed, units // self.algo.eval_every), "curve")
+                self.evaluate(steps, evaluation_seed(self.algo.seed, "curve", units // self.algo.eval_every), "curve")
                 self.next_curve_eval = (units // self.algo.eval_every + 1) * self.algo.eval_every
                 self._save_state()
             else:
@@ -167,12 +167,7 @@ class Referee:
             for k in live:
                 scratch.load_member(k, history.get(k, version))
             versions = [version if k in live else -1 for k in range(self.algo.actors)]
-            if purpose == "round":
-                seed = round_seed(self.algo.seed, it.round)
-            elif purpose == "elimination":
-                seed = elimination_seed(self.algo.seed)
-            else:
-                seed = curve_seed(self.algo.seed, it.curve) if purpose == "curve" else final_seed(self.algo.seed)
+            seed = evaluation_seed(self.algo.seed, purpose, it.round if purpose == "round" else it.curve)
             means = self.evaluate(it.transitions[1], seed, purpose, scratch, versions, it.units[1],
                                   it.updates[0] if competes else it.updates[1])
             if competes:  # lines 15-20: Eq. 8 or the survivor; the slots draw for iteration index+1 on
@@ -295,9 +290,9 @@ class Referee:
         """One obsolescence round (Eq. 8), or the elimination at C."""
         units = self.clock.units_at(steps)
         eliminating = self.schedule.due_elimination(units)
-        seed = elimination_seed(self.algo.seed) if eliminating else \
-            round_seed(self.algo.seed, units // self.algo.compete_every)
-        means = self.evaluate(steps, seed, "elimination" if eliminating else "round")
+        purpose = "elimination" if eliminating else "round"
+        seed = evaluation_seed(self.algo.seed, purpose, units // self.algo.compete_every)
+        means = self.evaluate(steps, seed, purpose)
         returns = competition_returns(means)  # no return: the lowest seen, never favoured
         best = best_actors(returns, self.schedule.live)
         self.schedule.record_evaluation(units, returns, rng=self.rng)  # a tie at C: the seeded rng picks
@@ -357,7 +352,7 @@ class Referee:
         time.sleep(0.5)  # the final weights are published just before done
         self.refresh()
         steps = self.stats.env_steps if self.stats else 0
-        seed = final_seed(self.algo.seed)
+        seed = evaluation_seed(self.algo.seed, "final")
         means = self.evaluate(steps, seed, "final")
         self.write_summary(steps, means, seed, list(self.versions))
 
