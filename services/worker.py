@@ -511,7 +511,7 @@ def worker_command(
     generation: int = typer.Option(0, help="restarts of this slot so far (the launcher counts them): a restarted "
                                    "worker draws fresh streams and collects asynchronously"),
     run_dir: options.RunDir = None,
-    verbose: bool = typer.Option(False, "--verbose", "-v"),
+    verbose: bool = typer.Option(False, "--verbose", "-v", metavar="", help="debug logging"),
 ) -> None:
     """Run one environment slot of a run (needs only --run and --connect)."""
     role.setup_logging(verbose)
