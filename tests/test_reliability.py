@@ -6,12 +6,10 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
 import time
-import uuid
 from pathlib import Path
 
 import pytest
@@ -191,21 +189,6 @@ def test_damaged_checkpoints_resume_from_the_previous_generation(tmp_path: Path)
     assert json.loads((run_dir / "transport.json").read_text())["env_steps"] >= budget(run_dir)
     assert load_checkpoint(run_dir)["checkpoint"]["skipped"] == []
     assert processes_of(run) == []
-
-
-@pytest.fixture
-def tmpfs(tmp_path: Path):
-    mnt = tmp_path / f"tmpfs-{uuid.uuid4().hex[:6]}"
-    mnt.mkdir()
-    if shutil.which("mount") is None or os.geteuid() != 0:
-        pytest.skip("needs root and mount for a small tmpfs")
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(mnt)], capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"mount not permitted here: {r.stderr.strip()}")
-    try:
-        yield mnt
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
 
 
 def test_a_full_disk_stops_the_run_naming_the_path_and_free_space(tmp_path: Path, tmpfs: Path) -> None:

@@ -6,8 +6,6 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-import subprocess
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -140,21 +138,6 @@ def test_a_new_generation_after_a_fallback_drops_the_damaged_one(tmp_path: Path)
     assert generations(tmp_path) == [3, 1]  # the damaged 2 is gone, 1 kept to fall back to
     assert load_checkpoint(tmp_path)["checkpoint"]["generation"] == 3
     assert len(load_replay(tmp_path)) == 60
-
-
-@pytest.fixture
-def tmpfs(tmp_path: Path):
-    mnt = tmp_path / f"tmpfs-{uuid.uuid4().hex[:6]}"
-    mnt.mkdir()
-    if shutil.which("mount") is None or os.geteuid() != 0:
-        pytest.skip("needs root and mount for a small tmpfs")
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(mnt)], capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"mount not permitted here: {r.stderr.strip()}")
-    try:
-        yield mnt
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
 
 
 def fill(directory: Path, leave: int = 0) -> Path:
