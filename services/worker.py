@@ -207,11 +207,11 @@ class Worker:
                 return True
             if not self.refresh_exact(decisions):
                 return False
-            if index > plan.iterations or self.slot not in plan.iteration(index).slots:
+            it = plan.iteration(index) if index <= plan.iterations else None
+            if it is None or self.slot not in it.slots:
                 self.flush()  # this slot's part of the run is over (the survivor runs slot 0 after C)
                 self.done.wait_fresh(timeout=0.1)
                 continue
-            it = plan.iteration(index)
             slots = decisions.get(need)
             actor = None if slots is None else slots.get(name)
             version = -1 if it.random else plan.version_for(index)
