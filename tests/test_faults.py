@@ -71,6 +71,7 @@ def start_run(tmp_path: Path, run: str, endpoint: str, steps: int, extra: list[s
     learner = spawn("learner", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--schedule", "equal-data",
                     "--steps", str(steps),
                     "--start-steps", "300", "--compete-every", "500", "--eliminate-at", "1000000", *SMALL, *extra,
+                    "--collection", "async",  # workers join and leave an allocation over live workers
                     "--run", run, "--listen", endpoint, "--run-dir", str(tmp_path), log=tmp_path / "learner.log")
     referee = spawn("referee", "--run", run, "--connect", endpoint, "--run-dir", str(tmp_path),
                     log=tmp_path / "referee.log")

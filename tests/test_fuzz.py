@@ -151,12 +151,12 @@ def test_fuzz_every_topic_while_a_run_goes_on(tmp_path: Path) -> None:
     learner = spawn("learner", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--schedule", "equal-data",
                     "--steps", str(steps),
                     "--start-steps", "300", "--compete-every", "500", "--eliminate-at", "2000", "--hidden", "32,32",
-                    "--batch-size", "32", "--eval-episodes", "3", "--run", run, "--listen", endpoint,
+                    "--batch-size", "32", "--eval-episodes", "3", "--workers", "2", "--run", run, "--listen", endpoint,
                     "--run-dir", str(tmp_path), log=tmp_path / "learner.log")
     referee = spawn("referee", "--run", run, "--connect", endpoint, "--run-dir", str(tmp_path),
                     log=tmp_path / "referee.log")
-    workers = [spawn("worker", "--run", run, "--connect", endpoint, "--id", f"w{i}", "--run-dir", str(tmp_path),
-                     log=tmp_path / f"w{i}.log") for i in range(2)]
+    workers = [spawn("worker", "--run", run, "--connect", endpoint, "--id", f"w{i}", "--slot", str(i),
+                     "--run-dir", str(tmp_path), log=tmp_path / f"w{i}.log") for i in range(2)]
     sent = Counter()
     role_stats: dict[str, dict] = {}
     try:
