@@ -394,6 +394,7 @@ class Learner:
         self.workers_seen: set[str] = set()
         self.referee_id: str | None = None
         self.exact_wait_s = 0.0  # seconds the loop waited for an iteration's rows (learner.jsonl: where time goes)
+        self.unstaged: list[bus.Received] = []  # what arrived with the batch that ended exactness
         try:
             while not self.stop_requested:
                 index = self.iteration + 1
@@ -445,6 +446,7 @@ class Learner:
             self.inexact = str(e)
             self.exact = False
             self.insert_leftovers(stage)
+            self.ingest(self.unstaged)
             self.publish_stats()
             return False
         self.write_log()
@@ -457,11 +459,16 @@ class Learner:
         if not items:
             item = self.inbox.get(timeout=timeout)
             items = [item] if item is not None else []
-        for item in items:
+        for n, item in enumerate(items):
             batch = self.intake.validate(item, self.agent.versions)
-            if batch is not None:
+            if batch is None:
+                continue
+            try:
                 stage.add(batch)
-                self.workers_seen.add(batch.worker)
+            except ExactnessLost:
+                self.unstaged = items[n:]  # this batch and what came after it: ingested asynchronously
+                raise
+            self.workers_seen.add(batch.worker)
         self.follow_allocation()
         if self.inexact:
             raise ExactnessLost(self.inexact)
