@@ -392,6 +392,7 @@ class Learner:
         stats, heartbeat, log_row = role.Every(STATS_PERIOD_S), role.Every(HEARTBEAT_S), role.Every(LOG_PERIOD_S)
         self.rates, self._rate_base = (0.0, 0.0), (self.env_steps, self.agent.updates, time.monotonic())
         self.workers_seen: set[str] = set()
+        self.workers_were_live: set[str] = set()
         self.referee_id: str | None = None
         self.exact_wait_s = 0.0  # seconds the loop waited for an iteration's rows (learner.jsonl: where time goes)
         self.unstaged: list[bus.Received] = []  # what arrived with the batch that ended exactness
@@ -473,7 +474,8 @@ class Learner:
         if self.inexact:
             raise ExactnessLost(self.inexact)
         live = self.workers.live()
-        gone = sorted(self.workers_seen - set(live))
+        self.workers_were_live |= live  # a first batch can arrive before its sender's token: not "gone"
+        gone = sorted((self.workers_seen & self.workers_were_live) - set(live))
         if gone:
             raise ExactnessLost(f"worker {gone[0]} left before the end of the run")
         referees = self.referees.live()
