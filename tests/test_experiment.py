@@ -721,8 +721,11 @@ r = run_grid(specs, Path({str(exp)!r}), quiet(), launcher=FakeLauncher("ok", "ha
 print("RESULT", r.interrupted, len(r.finished), len(r.failed), flush=True)
 sys.exit(130 if r.interrupted else 0)
 """
+    # Ctrl-C as a shell delivers it: the default disposition, whatever this process inherited
+    # (an ignored SIGINT survives exec, and Python then never raises KeyboardInterrupt)
     proc = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+                            stderr=subprocess.STDOUT, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     specs = plan(small_grid())
     deadline = time.monotonic() + 60
     # run 0 finishes at once, then runs 1 and 2 hang side by side
