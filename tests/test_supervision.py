@@ -67,7 +67,11 @@ def test_kill_9_of_a_worker_the_referee_and_the_learner_and_the_run_finishes(tmp
         os.kill(child_pid(proc, "worker", "w1"), signal.SIGKILL)
         wait_until(lambda: learner_steps(run_dir) > 3000, 180, "3000 steps", proc)
         os.kill(child_pid(proc, "referee"), signal.SIGKILL)
-        wait_until(lambda: learner_steps(run_dir) > 4500 and (run_dir / "checkpoints" / "learner.pt").is_file(),
+        referee_killed = time.time()
+        # a checkpoint written after both kills (the learner writes one at start too): it holds the
+        # killed worker's rows, which no worker can resend any more
+        ckpt = run_dir / "checkpoints" / "learner.pt"
+        wait_until(lambda: learner_steps(run_dir) > 4500 and ckpt.is_file() and ckpt.stat().st_mtime > referee_killed,
                    180, "4500 steps and a checkpoint", proc)
         killed_learner_at = learner_steps(run_dir)
         os.kill(child_pid(proc, "learner"), signal.SIGKILL)
