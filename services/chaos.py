@@ -80,6 +80,7 @@ def verify(run_dir: Path, returncode: int) -> dict[str, Any]:
     budget = cfg.get("steps", 0)
     figures.update(budget=budget, env_steps=transport.get("env_steps"), updates=transport.get("updates"),
                    restarts=summary.get("restarts"), restarts_total=summary.get("restarts_total"),
+                   restarts_cancelled=sum((summary.get("restarts_cancelled") or {}).values()),
                    sent_rows=audit.get("sent_rows"), replay_rows=audit.get("replay_rows"),
                    lost_rows=audit.get("lost_rows"), duplicated_rows=audit.get("duplicated_rows"),
                    worker_incarnations=audit.get("streams"), lost_batches=transport.get("lost"),

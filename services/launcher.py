@@ -158,6 +158,7 @@ class LocalCluster:
     policy: RestartPolicy = field(default_factory=RestartPolicy)
     console: Console | None = None
     restarts: dict[str, list[float]] = field(default_factory=dict)  # role -> restart times
+    cancelled: dict[str, int] = field(default_factory=dict)  # role -> restarts not made: the run finished first
     pending: dict[str, tuple[float, Child]] = field(default_factory=dict)  # role -> (due, dead child)
     stopping: bool = False
     done: bool = False  # the learner reported the budget reached
@@ -246,6 +247,7 @@ class LocalCluster:
                 continue
             del self.pending[role]
             if not self.needs_restart(dead):  # e.g. the run finished meanwhile
+                self.cancelled[role] = self.cancelled.get(role, 0) + 1
                 continue
             self.restarts.setdefault(role, []).append(now)
             try:
@@ -360,6 +362,8 @@ class LocalCluster:
         """SIGTERM (the learner checkpoints), then SIGKILL what is still up after `grace`.
         Nothing is restarted from now on."""
         self.stopping = True
+        for role in self.pending:  # waiting out their backoff when the run ended
+            self.cancelled[role] = self.cancelled.get(role, 0) + 1
         self.pending.clear()
         for c in self.running():
             c.proc.send_signal(signal.SIGTERM)
@@ -445,6 +449,7 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
         summary["launcher_wall_time_s"] = round(time.monotonic() - started, 2)
         summary["restarts"] = restarts
         summary["restarts_total"] = sum(restarts.values())
+        summary["restarts_cancelled"] = dict(cluster.cancelled)  # died in their backoff as the run finished
         audit = audit_transport(run_dir)
         if audit:
             summary["transport"] = {k: v for k, v in audit.items() if k != "per_stream"}
@@ -459,6 +464,9 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
     if summary:
         total = summary["restarts_total"]
         text = ", ".join(f"{r} {n}" for r, n in restarts.items() if n) if total else "none"
+        if cluster.cancelled:
+            text += "; not restarted, the run finished first: " + ", ".join(
+                f"{r} {n}" for r, n in cluster.cancelled.items())
         returns = ", ".join("—" if r is None else f"{r:.2f}" for r in summary.get("final_returns") or [])
         console.print(f"[bold green]done[/] in {summary['launcher_wall_time_s']:.0f} s: final returns [{returns}], "
                       f"survivor {summary.get('survivor')}; restarts: {text}", highlight=False)

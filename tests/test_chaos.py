@@ -28,8 +28,10 @@ def test_chaos_run_reaches_its_budget_with_every_transition_exactly_once(tmp_pat
                  "rows sent, rows in the replay and env_steps differ"}
     assert [p for p in figures["problems"] if p not in lost_only] == [], figures
     assert figures["exit_status"] == 0 and figures["env_steps"] >= 45000
-    # the last kill may hit a child that was finishing
-    assert figures["kills"] >= 3 and figures["restarts_total"] >= figures["kills"] - 1
+    # Every kill is restarted, unless the run finished while the child waited out its backoff (counted
+    # in summary.json) or the last kill hit a child that was finishing.
+    assert figures["kills"] >= 3
+    assert figures["restarts_total"] + figures["restarts_cancelled"] >= figures["kills"] - 1, figures
     worker_kills = sum(n for role, n in figures["kills_by_role"].items() if role.startswith("worker"))
     band = max(4 * 3 * 32, 256)  # the credit band: a worker's rows in flight stay within it
     assert figures["duplicated_rows"] == 0 and figures["lost_rows"] <= band * worker_kills
