@@ -76,7 +76,8 @@ def experiment_command(
     variants_opt: Annotated[Optional[str], typer.Option(
         "--variants", help="run only these variants of the grid (comma-separated names)")] = None,
     stop_by: Annotated[Optional[str], typer.Option(
-        "--stop-by", help="deadline, HH:MM (today, local time) or an ISO datetime: start no run whose estimated "
+        "--stop-by", help="deadline, HH:MM (local time, the next time the clock shows it) or an ISO datetime: "
+                          "start no run whose estimated "
                           "wall time (median of the finished runs of its env and variant, here and in the ledger) "
                           "would end after it; a run with no estimate yet starts while the deadline is ahead. Runs "
                           "still in flight at the deadline are allowed to finish and are recorded when they do "

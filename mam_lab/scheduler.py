@@ -33,7 +33,7 @@ import traceback
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from datetime import datetime
+from datetime import datetime, timedelta
 from pathlib import Path
 from typing import IO, Any
 
@@ -134,20 +134,24 @@ def may_start(now: float, stop_by: float | None, estimate_s: float | None) -> bo
 
 
 def parse_stop_by(text: str, now: datetime | None = None) -> datetime:
-    """--stop-by TIME: "HH:MM" (today, local time) or an ISO datetime ("2026-12-02T18:30",
-    local time unless it names its offset); an aware datetime. TIME already past is an error."""
+    """--stop-by TIME: "HH:MM" (local time, the next time the clock shows it: "00:30" typed at
+    22:00 is tonight's) or an ISO datetime ("2026-12-02T18:30", local time unless it names its
+    offset); an aware datetime. An ISO datetime already past is an error."""
     now = now if now is not None else datetime.now().astimezone()
     text = text.strip()
     m = re.fullmatch(r"(\d{1,2}):(\d{2})", text)
     try:
         if m:
             when = now.replace(hour=int(m.group(1)), minute=int(m.group(2)), second=0, microsecond=0)
+            if when <= now:  # that time today is past: the next one, tomorrow
+                when = (now + timedelta(days=1)).replace(hour=when.hour, minute=when.minute, second=0,
+                                                         microsecond=0)
         else:
             when = datetime.fromisoformat(text)
             if when.tzinfo is None:
                 when = when.replace(tzinfo=now.tzinfo)
     except ValueError as e:
-        raise ValueError(f"--stop-by {text!r}: give HH:MM (today, local time) or an ISO datetime ({e})") from e
+        raise ValueError(f"--stop-by {text!r}: give HH:MM (local time) or an ISO datetime ({e})") from e
     if when <= now:
         raise ValueError(f"--stop-by {text!r}: {when.isoformat(timespec='minutes')} has already passed")
     return when

@@ -34,8 +34,12 @@ def test_stop_by_formats():
     assert parse_stop_by(" 9:05 ", datetime(2026, 12, 1, 8, 0, tzinfo=tz)) == datetime(2026, 12, 1, 9, 5, tzinfo=tz)
     assert parse_stop_by("2026-12-02T07:15", now) == datetime(2026, 12, 2, 7, 15, tzinfo=tz)  # naive: local
     assert parse_stop_by("2026-12-01T19:00:00+00:00", now) == datetime(2026, 12, 1, 20, 0, tzinfo=tz)
+    # HH:MM is the next time the clock shows it: past today means tomorrow (22:05 -> "00:05" is tonight's)
+    assert parse_stop_by("18:40", now) == datetime(2026, 12, 2, 18, 40, tzinfo=tz)
+    late = datetime(2026, 12, 31, 22, 5, tzinfo=tz)
+    assert parse_stop_by("00:05", late) == datetime(2027, 1, 1, 0, 5, tzinfo=tz)
     with pytest.raises(ValueError, match="already passed"):
-        parse_stop_by("18:40", now)
+        parse_stop_by("2026-12-01T18:00", now)
     with pytest.raises(ValueError, match="HH:MM"):
         parse_stop_by("25:00", now)
     with pytest.raises(ValueError, match="HH:MM"):
