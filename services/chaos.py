@@ -249,7 +249,9 @@ def chaos_command(
                                             help="first kill the learner before its first checkpoint, at its first "
                                                  "transitions, at the end of the random phase and half way"),
 ) -> None:
-    """Kill random children of a `mam run` with SIGKILL and check that the run still finishes."""
+    """Kill random children of a `mam run` with SIGKILL and check that the run still finishes.
+
+    Pass the `mam run` flags after these options, `--run-dir DIR` among them (required)."""
     args = list(ctx.args)
     if "--run-dir" not in args:
         raise typer.BadParameter("pass the mam run flags after the chaos flags, --run-dir DIR among them")

@@ -266,8 +266,8 @@ Listen = Annotated[Optional[list[str]], typer.Option(
     "--listen", help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447", rich_help_panel=DISTRIBUTION_PANEL)]
 ZenohConfig = Annotated[Optional[Path], typer.Option("--zenoh-config", help="Zenoh JSON5 config file",
                                                     rich_help_panel=DISTRIBUTION_PANEL)]
-RunDir = Annotated[Optional[Path], typer.Option("--run-dir", help="directory for this process's logs and outputs",
-                                                rich_help_panel=RUN_PANEL)]
+RunDir = Annotated[Optional[Path], typer.Option("--run-dir", help="directory for this process's logs and outputs "
+                                                "(default runs/RUN)", rich_help_panel=RUN_PANEL)]
 
 
 @dataclass(frozen=True)

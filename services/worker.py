@@ -18,7 +18,7 @@ import time
 import uuid
 from collections import deque
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 import typer
@@ -510,7 +510,9 @@ def worker_command(
                              "mode, its place in each iteration"),
     generation: int = typer.Option(0, help="restarts of this slot so far (the launcher counts them): a restarted "
                                    "worker draws fresh streams and collects asynchronously"),
-    run_dir: options.RunDir = None,
+    run_dir: Optional[Path] = typer.Option(None, "--run-dir", help="the run directory for this worker's batch log "
+                                           "(workers/ID-INCARNATION.batches) and report; default: none, neither is "
+                                           "kept", rich_help_panel=options.RUN_PANEL),
     verbose: bool = typer.Option(False, "--verbose", "-v", metavar="", help="debug logging"),
 ) -> None:
     """Run one environment slot of a run (needs only --run and --connect)."""
