@@ -43,6 +43,7 @@ from mam_lab.bench_runs import bench_collection, bench_e2e
 from mam_lab.bench_sizes import SHAPES, BenchSizes
 from mam_lab.bench_transport import bench_transport, bench_weights, profile_worker_step
 from mam_lab.provenance import versions
+from services import options
 
 # The pieces: mam_lab.bench_learner (learner, its profile, replay checkpoints), mam_lab.bench_runs
 # (end to end, collection) and mam_lab.bench_transport (transport, weights, the worker's profile).
@@ -273,7 +274,7 @@ def override_sizes(sizes: BenchSizes, ks: str | None = None, shapes: str | None 
 app = typer.Typer(add_completion=False, help=__doc__)
 
 
-@app.command()
+@app.command(cls=options.PlainFlags)
 def bench_command(
     full: bool = typer.Option(False, "--full/--quick",
                               help="--quick (default): a few minutes on 2 cores; --full: longer, steadier figures"),

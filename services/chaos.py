@@ -31,7 +31,7 @@ from typing import Any
 
 import typer
 
-from services import rundir
+from services import options, rundir
 
 ROOT = Path(__file__).resolve().parents[1]
 ROLES = ("learner", "referee", "worker")
@@ -238,7 +238,7 @@ def _learner_steps(run_dir: Path, offset: int = 0) -> int:
 app = typer.Typer(add_completion=False, help=__doc__)
 
 
-@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+@app.command(cls=options.PlainFlags, context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
 def chaos_command(
     ctx: typer.Context,
     kill_every: str = typer.Option("20,40", help="seconds between kills, drawn uniformly from MIN,MAX"),

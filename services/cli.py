@@ -7,7 +7,6 @@ from pathlib import Path
 from typing import Any, Optional
 
 import typer
-from typer.core import TyperCommand
 
 from services import options
 
@@ -15,14 +14,7 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Multi-actor mechanism (MA-TD3, MA-DDPG) over Zenoh: run, watch and plot training runs.")
 
 
-class PlainFlags(TyperCommand):
-    """typer's command with a plain `--help` flag (no `<bool>` tag beside it)."""
-
-    def get_help_option(self, ctx: Any) -> Any:
-        option = super().get_help_option(ctx)
-        if option is not None:
-            option.metavar = ""
-        return option
+PlainFlags = options.PlainFlags
 
 
 @app.command(cls=PlainFlags)
@@ -68,7 +60,7 @@ def watch(
     watch_command(run_name, connect, zenoh_config, run_dir, timeout, keep, plain)
 
 
-@app.command()
+@app.command(cls=PlainFlags)
 def plot(run_dir: Path = typer.Argument(..., help="a run directory written by `mam run`"),
          x: str = typer.Option("transitions", "--x", help="x-axis: transitions or iterations "
                                                            "(iteration plots get an _iterations suffix)")) -> None:
@@ -115,7 +107,7 @@ def _register_lab() -> None:
             import importlib
 
             sub = typer.Typer(add_completion=False)
-            sub.command()(getattr(importlib.import_module(module), function))
+            sub.command(cls=options.PlainFlags)(getattr(importlib.import_module(module), function))
             sub(ctx.args, prog_name=f"mam {name}", standalone_mode=True)
 
         command.__doc__ = doc
@@ -132,7 +124,7 @@ def _register_eval() -> None:
     """`mam eval RUN_DIR`: a trained actor's returns and video, numpy only (services/eval_command.py)."""
     from services.eval_command import eval_command
 
-    app.command("eval")(eval_command)
+    app.command("eval", cls=options.PlainFlags)(eval_command)
 
 
 _register_eval()

@@ -656,7 +656,7 @@ def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None
 app = typer.Typer(add_completion=False, help=__doc__)
 
 
-@app.command()
+@app.command(cls=options.PlainFlags)
 @options.run_options()
 def learner_command(
     run_opts: dict[str, Any], config: options.ConfigFile = None, connect: options.Connect = None,

@@ -186,7 +186,7 @@ WatchRunDir = typer.Option(None, "--run-dir", help="the run's directory (its con
 Keep = typer.Option(False, "--keep", help="keep watching after the run is done")
 
 
-@app.command()
+@app.command(cls=options.PlainFlags)
 def monitor_command(
     run: options.Run = None, connect: options.Connect = None, zenoh_config: options.ZenohConfig = None,
     run_dir: Path = WatchRunDir, timeout: float = Timeout, keep: bool = Keep, plain: bool = Plain,

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Annotated, Any, Optional
 
 import typer
+from typer.core import TyperCommand
 
 from mam_core import schedule as _schedule
 from mam_core.config import AFTER_ELIMINATION, ALGOS, SCHEDULES, AlgoConfig, defaults_for, resolve
@@ -258,12 +259,31 @@ SingleEnv, Schedule, SharedBatch, AfterElimination, SkipRandomRounds = (
 ConfigFile = Annotated[Optional[Path], typer.Option("--config", help="TOML file holding any of the run options "
                                                    "(flags win over it)", rich_help_panel=RUN_PANEL)]
 
+class PlainFlags(TyperCommand):
+    """typer's command with plain flags: no `<bool>` tag beside `--help` or any on/off flag
+    (every mam command uses it)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        for param in self.params:
+            if getattr(param, "is_flag", False) and getattr(param, "is_bool_flag", True):
+                param.metavar = ""
+
+    def get_help_option(self, ctx: Any) -> Any:
+        option = super().get_help_option(ctx)
+        if option is not None:
+            option.metavar = ""
+        return option
+
+
 # -- network flags ----------------------------------------------------------------------------
 Run = OPTION["run"].annotation
 Connect = Annotated[Optional[list[str]], typer.Option(
-    "--connect", help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447", rich_help_panel=DISTRIBUTION_PANEL)]
+    "--connect", metavar="ENDPOINT", help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447 (repeatable)",
+    rich_help_panel=DISTRIBUTION_PANEL)]
 Listen = Annotated[Optional[list[str]], typer.Option(
-    "--listen", help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447", rich_help_panel=DISTRIBUTION_PANEL)]
+    "--listen", metavar="ENDPOINT", help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
+    rich_help_panel=DISTRIBUTION_PANEL)]
 ZenohConfig = Annotated[Optional[Path], typer.Option("--zenoh-config", help="Zenoh JSON5 config file",
                                                     rich_help_panel=DISTRIBUTION_PANEL)]
 RunDir = Annotated[Optional[Path], typer.Option("--run-dir", help="directory for this process's logs and outputs "

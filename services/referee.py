@@ -402,7 +402,7 @@ def main(run: str, conf: Any, run_dir: Path) -> None:
 app = typer.Typer(add_completion=False, help=__doc__)
 
 
-@app.command()
+@app.command(cls=options.PlainFlags)
 def referee_command(
     run: options.Run = None, connect: options.Connect = None, listen: options.Listen = None,
     zenoh_config: options.ZenohConfig = None, run_dir: options.RunDir = None,

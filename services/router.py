@@ -29,7 +29,7 @@ def serve(conf, stop: threading.Event) -> None:
         stop.wait()
 
 
-@app.command()
+@app.command(cls=options.PlainFlags)
 def router_command(
     listen: options.Listen = None, connect: options.Connect = None, zenoh_config: options.ZenohConfig = None,
 ) -> None:

@@ -501,7 +501,7 @@ def main(run: str, conf: Any, worker_id: str, slot_index: int = 0, run_dir: Path
 app = typer.Typer(add_completion=False, help=__doc__)
 
 
-@app.command()
+@app.command(cls=options.PlainFlags)
 def worker_command(
     run: options.Run = None, connect: options.Connect = None, listen: options.Listen = None,
     zenoh_config: options.ZenohConfig = None,
