@@ -79,10 +79,13 @@ class Learner:
         self.intake = Intake(self.buffer, spec, max_message)
         self.intake.incarnation = self.incarnation
         self.replay_log = ReplayLog(replay_dir(run_dir)) if cfg.save_replay else None
-        # Per worker: (incarnation, seq) such that all its batches up to seq are in the last
-        # checkpoint (with the replay). Workers keep the batches after it and resend them to a
-        # restarted learner (exactly once, with the intake de-duplicating).
+        # Per worker: (incarnation, seq) such that all its batches up to seq are in the checkpoint
+        # generation before the newest (with the replay). Workers keep the batches after it and
+        # resend them to a restarted learner (exactly once, with the intake de-duplicating). One
+        # generation late: when the newest fails to verify at a resume, the learner falls back to
+        # the previous one, and the rows after that are still with the workers.
         self.acked: dict[str, tuple[str, int]] = {}
+        self.acked_newest: dict[str, tuple[str, int]] = {}  # the same for the newest generation
         self.referee_seen = False
         self.other_rejects = bus.RejectLog(log, "message")  # allocation topic
         self.metrics: dict[str, float] = {}
@@ -112,8 +115,8 @@ class Learner:
         # Sequence numbers go on from the checkpoint: a gap then counts what died with the old
         # learner, until the workers' resends fill it.
         self.intake.tracker.restore(json.loads(c.get("per_worker", "{}")))
-        if self.replay_log is not None:
-            self.acked = self.intake.checkpointed_prefixes()
+        if self.replay_log is not None:  # just verified: its rows need not be kept twice
+            self.acked = self.acked_newest = self.intake.checkpointed_prefixes()
         # Policy versions jump past anything the dead incarnation can have published after this
         # checkpoint (at most checkpoint_every updates, one actor step per policy_delay of them).
         # Otherwise workers keep its newer-numbered weights, tag their transitions with versions
@@ -376,8 +379,8 @@ class Learner:
         path = save_checkpoint(self.run_dir, self.agent, self.buffer, counters, self.cfg, self.replay_log,
                                survivor=self.survivor)  # with policy.npz, in a verified generation
         self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
-        if self.replay_log is not None:  # only now on disk: workers may drop what it holds
-            self.acked = self.intake.checkpointed_prefixes()
+        if self.replay_log is not None:  # only now on disk: workers may drop what the previous one holds
+            self.acked, self.acked_newest = self.acked_newest, self.intake.checkpointed_prefixes()
         log.info("checkpoint %s at %d updates, %d transitions (%.2f s)", path, self.agent.updates, self.env_steps,
                  time.monotonic() - started)
 

@@ -325,9 +325,11 @@ class RunConfig:
     @property
     def resend_rows(self) -> int:
         """Most rows a worker keeps for a resend to a restarted learner: what it sent since the
-        learner's last checkpoint is at most `checkpoint_rows` plus one drain of the inbox and the
-        time the acknowledgement takes to come back; twice that plus the credit band leaves room."""
-        return 2 * self.checkpoint_rows + 4 * self.tolerance
+        generation before the learner's newest checkpoint (acknowledgements are one generation
+        late, so a fallback to it loses nothing) is at most 2 · `checkpoint_rows` plus one drain of
+        the inbox and the time the acknowledgement takes to come back; one interval more and the
+        credit band leave room."""
+        return 3 * self.checkpoint_rows + 4 * self.tolerance
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)

@@ -186,6 +186,10 @@ def test_damaged_checkpoints_resume_from_the_previous_generation(tmp_path: Path)
     assert "sha256 does not match" in text and "truncated" in text
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["restarts"]["learner"] == 3
+    # Nothing lost by the fallbacks: the workers had kept every row after the generation before the
+    # newest (acknowledgements are one generation late) and resent them.
+    audit = json.loads((run_dir / "transport.json").read_text())["audit"]
+    assert audit["lost_rows"] == 0 and audit["duplicated_rows"] == 0, audit
     assert json.loads((run_dir / "transport.json").read_text())["env_steps"] >= budget(run_dir)
     assert load_checkpoint(run_dir)["checkpoint"]["skipped"] == []
     assert processes_of(run) == []
