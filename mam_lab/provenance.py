@@ -19,9 +19,17 @@ RESULT_LIBRARIES: dict[str, str] = {"mam": "mam", "torch": "torch", "numpy": "nu
                                     "mujoco": "mujoco", "eclipse-zenoh": "eclipse-zenoh"}
 
 
+RESULTS_DIR = "docs/results/"  # the ledgers: data a grid writes (its experiment.json too), not code
+
+
+def code_changes(modified: list[str]) -> list[str]:
+    """The modified tracked files that are code: a grid writing its own ledger leaves the code clean."""
+    return [path for path in modified if not path.startswith(RESULTS_DIR)]
+
+
 def code_version(root: Path | None = None) -> dict[str, Any]:
     """The commit of the code that runs: {"commit": full hash or None, "dirty": tracked files
-    modified, "modified": [those files]}."""
+    other than the ledgers (`code_changes`) modified, "modified": [those files]}."""
     root = root or ROOT
     out: dict[str, Any] = {"commit": None, "dirty": False, "modified": []}
     try:
@@ -32,7 +40,7 @@ def code_version(root: Path | None = None) -> dict[str, Any]:
         changed = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
                                  capture_output=True, text=True, timeout=20)
         if changed.returncode == 0:
-            out["modified"] = [line[3:] for line in changed.stdout.splitlines() if line.strip()]
+            out["modified"] = code_changes([line[3:] for line in changed.stdout.splitlines() if line.strip()])
             out["dirty"] = bool(out["modified"])
     except (OSError, subprocess.SubprocessError):
         pass
@@ -44,7 +52,9 @@ def commit_label(record: Mapping[str, Any]) -> str:
     commit = record.get("commit")
     if not isinstance(commit, str) or not commit:
         return "unknown"
-    return commit[:12] + ("+modified" if record.get("dirty") else "")
+    modified = record.get("modified")
+    dirty = bool(code_changes(modified)) if isinstance(modified, list) else bool(record.get("dirty"))
+    return commit[:12] + ("+modified" if dirty else "")
 
 
 def versions(libraries: Mapping[str, str] = RESULT_LIBRARIES, *, missing: str | None = None,
