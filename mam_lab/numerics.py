@@ -1,0 +1,64 @@
+"""A digest of Algorithm 1's numerics at the checkout that runs: does a code change alter results?
+
+    python -m mam_lab.numerics [--env HalfCheetah-v5] [--steps 1500] [--seed 7]
+
+Runs `mam_core.reference.run_reference` (one process, the same plan a distributed exact-mode run
+follows bit for bit, tests/test_exact.py) for MA-TD3 under both schedules on a small budget, with
+the default networks, and prints per schedule a sha256 over every evaluation's returns and every
+final actor parameter. Two checkouts that print the same digests compute the same runs from the
+same seed, so ledger records made at either commit can be pooled (docs/RESULTS.md). Run it from
+each checkout with `PYTHONPATH=<checkout>` so that checkout's code is imported.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from typing import Any
+
+import numpy as np
+import typer
+
+from mam_core.config import resolve
+from mam_core.reference import ReferenceResult, run_reference
+
+SCHEDULES = ("paper", "equal-data")
+
+
+def digest(result: ReferenceResult) -> str:
+    """sha256 (16 hex digits) over the evaluations (iteration, purpose, returns) and the final
+    actors' parameters, in a fixed order."""
+    h = hashlib.sha256()
+    for e in result.evaluations:
+        h.update(json.dumps([e.get("iterations"), e.get("purpose"), e.get("returns")]).encode())
+    for actor in result.policy:
+        for name in sorted(actor):
+            h.update(name.encode())
+            h.update(np.ascontiguousarray(actor[name]).tobytes())
+    return h.hexdigest()[:16]
+
+
+def numerics(env_id: str, steps: int, seed: int, **overrides: Any) -> dict[str, dict[str, Any]]:
+    """Per schedule: the digest, the survivor and the updates of a small MA-TD3 reference run."""
+    import torch
+
+    torch.set_num_threads(1)
+    start = max(steps // 5, 1)
+    out = {}
+    for schedule in SCHEDULES:
+        cfg = resolve("ma-td3", start_steps=start, compete_every=start, eliminate_at=3 * start, eval_episodes=2,
+                      eval_every=start, seed=seed, schedule=schedule, **overrides)
+        result = run_reference(env_id, cfg, steps)
+        out[schedule] = {"digest": digest(result), "survivor": result.survivor, "updates": result.updates}
+    return out
+
+
+def main(env: str = typer.Option("HalfCheetah-v5", help="gymnasium env id"),
+         steps: int = typer.Option(1500, help="schedule steps per run (start, A = steps / 5, C = 3A)"),
+         seed: int = typer.Option(7, help="the runs' --seed")) -> None:
+    """Print the numerics digest of this checkout as one JSON object."""
+    print(json.dumps({"env": env, "steps": steps, "seed": seed, **numerics(env, steps, seed)}))
+
+
+if __name__ == "__main__":
+    typer.run(main)
