@@ -46,8 +46,10 @@ log = logging.getLogger("mam.learner")
 STATS_PERIOD_S = 0.1  # stats this often while updating; four times as often while waiting for data
 LOG_PERIOD_S = 1.0
 HEARTBEAT_S = 2.0  # config re-published this often
-REFEREE_GRACE_S = 20.0  # after done: how long to wait for a referee that is gone (a restart) ...
-REFEREE_WAIT_S = 120.0  # ... and at most, in all, for its final evaluation
+# After done: how long to wait for a referee that is gone (a restart: `mam run`'s backoff is up to
+# 15 s, and a referee starting on a loaded box took more than 20 s in the chaos test) ...
+REFEREE_GRACE_S = 60.0
+REFEREE_WAIT_S = 240.0  # ... and at most, in all, for its final evaluation
 
 
 class Learner:
