@@ -14,6 +14,7 @@ import os
 import socket
 import time
 import uuid
+from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -145,6 +146,10 @@ class Learner:
         self.snapshot_pubs = [bus.declare_reliable_publisher(s, keys.eval_weights(run, k))
                               for k in range(self.algo.actors)]
         self.snapshots_sent: set[int] = set()
+        # The snapshot messages of the latest evaluations, re-sent with the current weights while
+        # an iteration's rows are late (`resend_exact`): a sample lost or overwritten on its key
+        # (a Latest subscriber keeps one per key) must not leave a lock-step run waiting forever.
+        self.recent_snapshots: deque[tuple[int, bytes]] = deque(maxlen=4 * max(self.algo.actors, 1))
         self.board = tb.RunBoard(self.run_dir, "learner")  # RUN_DIR/tb/learner: the JSONL rows' scalars
         self.log_writer = self.board.tee(JsonlWriter(self.run_dir / rundir.LEARNER_LOG), tb.learner_scalars)
         self.bias_writer = (self.board.tee(JsonlWriter(self.run_dir / rundir.BIAS), tb.bias_scalars)
@@ -416,6 +421,8 @@ class Learner:
                         self.publish_stats()
                     if heartbeat.due(now):
                         self.publish_config()
+                        if time.perf_counter() - waited > HEARTBEAT_S:  # late: something may be lost
+                            self.resend_exact()
                     if log_row.due(now):
                         self.write_log(now)
                     if self.stop_requested:
@@ -532,6 +539,7 @@ class Learner:
             if heartbeat.due():
                 self.publish_stats()
                 self.publish_config()
+                self.resend_exact()  # the referee may have missed the snapshot it decides on
             self.allocation.wait_fresh(timeout=0.05)
         self.survivor = self.decided_survivor
         self.agent.eliminate(self.survivor)
@@ -546,8 +554,17 @@ class Learner:
                 if alive:
                     msg = Weights(k, self.agent.versions[k], self.agent.actor_params(k), self.spec.obs_dim,
                                   self.spec.act_dim, max(self.spec.max_action), tuple(self.algo.hidden),
-                                  self.incarnation)
-                    self.snapshot_pubs[k].put(msg.to_bytes(self.id, self._next_seq()))
+                                  self.incarnation).to_bytes(self.id, self._next_seq())
+                    self.snapshot_pubs[k].put(msg)
+                    self.recent_snapshots.append((k, msg))
+
+    def resend_exact(self) -> None:
+        """The current weights and the latest snapshots once more (an iteration's rows are late:
+        a worker or the referee may have missed them). Versions equal to what a role holds are
+        not loaded again, so this changes nothing for a role that had them."""
+        self.publish_weights()
+        for k, msg in self.recent_snapshots:
+            self.snapshot_pubs[k].put(msg)
 
     def finish(self) -> None:
         """Budget reached: final weights, checkpoint, then tell everyone until they have left."""

@@ -197,3 +197,49 @@ def test_bench_rates_count_the_training_part_only():
     assert (steps_s, updates_s, wait) == (100.0, 50.0, 0.25)
     with pytest.raises(ValueError, match="run longer"):
         training_rates(rows[:2])
+
+
+@pytest.mark.slow
+def test_weights_overwritten_on_their_keys_neither_hang_nor_change_the_run(tmp_path: Path) -> None:
+    """A stranger floods every weights key (and the referee's snapshot keys) with junk, so the
+    learner's samples are often overwritten before a worker's one-per-key subscriber reads them:
+    the learner re-sends the current weights and the latest snapshots while an iteration's rows
+    are late, the run finishes, and it is still exactly the reference run."""
+    from services import bus, keys
+
+    torch.set_num_threads(1)
+    run, run_dir = unique_run("clobber"), tmp_path / "clobber"
+    args = ["--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--steps", str(APPLE_STEPS), "--workers", "5",
+            "--actors", "3", "--start-steps", "100", "--compete-every", "100", "--eliminate-at", "300",
+            "--eval-episodes", "2", "--eval-every", "100", "--hidden", "16,16", "--batch-size", "16", "--seed", "3",
+            "--run", run, "--run-dir", str(run_dir), "--no-plot"]
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", *args], cwd=ROOT, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONWARNINGS="ignore"))
+    sent = 0
+    try:
+        deadline = time.monotonic() + 60
+        while not (run_dir / "config.json").is_file() or not json.loads((run_dir / "config.json").read_text()).get(
+                "endpoint"):
+            assert proc.poll() is None and time.monotonic() < deadline, "mam run did not start"
+            time.sleep(0.1)
+        endpoint = json.loads((run_dir / "config.json").read_text())["endpoint"]
+        with bus.session_scope(bus.make_config(connect=[endpoint]), retry_for=30) as session:
+            targets = [keys.weights(run, k) for k in range(3)] + [keys.eval_weights(run, k) for k in range(3)]
+            pubs = [session.declare_publisher(key) for key in targets]
+            deadline = time.monotonic() + 240
+            while proc.poll() is None:
+                assert time.monotonic() < deadline, "the run hung"
+                for pub in pubs:
+                    pub.put(b"\x93junk")
+                    sent += 1
+                time.sleep(0.002)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(30)
+    assert proc.returncode == 0 and sent > 1000
+    got = _record(run_dir)
+    ref = run_reference("AppleCollect-v1", resolve("ma-ddpg", seed=3, **APPLE), APPLE_STEPS)
+    assert got["summary"]["exact"] is True
+    assert got["evals"] == [(e["iterations"], e["purpose"], e["returns"]) for e in ref.evaluations]
+    assert _same_params(got["params"], ref.policy)
