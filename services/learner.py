@@ -115,6 +115,9 @@ class Learner:
             if self.buffer.inserted != self.env_steps:
                 raise ValueError(f"checkpoint counts {self.env_steps} transitions, its replay {self.buffer.inserted}")
         self.intake.stream_rows = {k: int(v) for k, v in json.loads(c.get("stream_rows", "{}")).items()}
+        # The run had a referee: a learner resumed at its budget waits for it (its final evaluation)
+        # though none is alive yet, e.g. while `mam run` restarts it.
+        self.referee_seen = bool(int(c.get("referee_seen", 0)))
         # Sequence numbers go on from the checkpoint: a gap then counts what died with the old
         # learner, until the workers' resends fill it.
         self.intake.tracker.restore(json.loads(c.get("per_worker", "{}")))
@@ -382,7 +385,7 @@ class Learner:
     def checkpoint(self) -> None:
         started = time.monotonic()
         counters = {"env_steps": self.env_steps, "per_worker": json.dumps(self.intake.tracker.per_sender()),
-                    "stream_rows": json.dumps(self.intake.stream_rows)}
+                    "stream_rows": json.dumps(self.intake.stream_rows), "referee_seen": int(self.referee_seen)}
         path = save_checkpoint(self.run_dir, self.agent, self.buffer, counters, self.cfg, self.replay_log,
                                survivor=self.survivor)  # with policy.npz, in a verified generation
         self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
@@ -493,6 +496,7 @@ class Learner:
         referees = self.referees.live()
         if self.referee_id is None and len(referees) == 1:
             self.referee_id = next(iter(referees))
+            self.referee_seen = True  # finish() waits for its final evaluation
         elif self.referee_id is not None and self.referee_id not in referees:
             raise ExactnessLost(f"referee {self.referee_id} left before the end of the run")
 
