@@ -14,10 +14,7 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Multi-actor mechanism (MA-TD3, MA-DDPG) over Zenoh: run, watch and plot training runs.")
 
 
-PlainFlags = options.PlainFlags
-
-
-@app.command(cls=PlainFlags)
+@app.command(cls=options.PlainFlags)
 @options.run_options()
 def run(
     run_opts: dict[str, Any], config: options.ConfigFile = None, run_dir: options.RunDir = None,
@@ -25,7 +22,7 @@ def run(
                                              "stops the run", rich_help_panel=options.SUPERVISION_PANEL),
     restart_window: float = typer.Option(300.0, help="seconds over which --max-restarts counts",
                                          rich_help_panel=options.SUPERVISION_PANEL),
-    no_plot: bool = typer.Option(False, "--no-plot", help="skip the PNG plots at the end", metavar="",
+    no_plot: bool = typer.Option(False, "--no-plot", help="skip the PNG plots at the end",
                                  show_default=False, rich_help_panel=options.RUN_PANEL),
 ) -> None:
     """Train on this box: learner + referee + M workers over an embedded loopback Zenoh."""
@@ -41,7 +38,7 @@ def run(
         raise typer.Exit(128 + int(outcome["signal"]) if outcome.get("signal") else 1)
 
 
-@app.command(cls=PlainFlags)
+@app.command(cls=options.PlainFlags)
 def watch(
     run_name: options.Run = None, connect: options.Connect = None, zenoh_config: options.ZenohConfig = None,
     run_dir: Optional[Path] = typer.Option(None, "--run-dir", help="the run's directory (its config.json says "
@@ -49,8 +46,8 @@ def watch(
                                            "then runs/NAME"),
     timeout: float = typer.Option(60.0, "--timeout", help="seconds to wait for the run to appear (and for its "
                                   "first message)"),
-    keep: bool = typer.Option(False, "--keep", metavar="", help="keep watching after the run is done"),
-    plain: Optional[bool] = typer.Option(None, "--plain/--live", show_default=False, metavar="",
+    keep: bool = typer.Option(False, "--keep", help="keep watching after the run is done"),
+    plain: Optional[bool] = typer.Option(None, "--plain/--live", show_default=False,
                                          help="one line per update, or the live view (default: plain when the "
                                          "output is not a terminal)"),
 ) -> None:
@@ -60,7 +57,7 @@ def watch(
     watch_command(run_name, connect, zenoh_config, run_dir, timeout, keep, plain)
 
 
-@app.command(cls=PlainFlags)
+@app.command(cls=options.PlainFlags)
 def plot(run_dir: Path = typer.Argument(..., help="a run directory written by `mam run`"),
          x: str = typer.Option("transitions", "--x", help="x-axis: transitions or iterations "
                                                            "(iteration plots get an _iterations suffix)")) -> None:

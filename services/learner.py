@@ -689,7 +689,7 @@ def learner_command(
     listen: options.Listen = None, zenoh_config: options.ZenohConfig = None, run_dir: options.RunDir = None,
     resume: Path = typer.Option(None, help="resume the run in this run directory from its checkpoint"),
     run_config: Path = typer.Option(None, help="a resolved config.json (written by `mam run`)"),
-    verbose: bool = typer.Option(False, "--verbose", "-v", metavar="", help="debug logging"),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="debug logging"),
 ) -> None:
     """Run the learner: replay buffer, K actors and n·K critics, weights and stats publisher."""
     role.setup_logging(verbose)

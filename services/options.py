@@ -73,11 +73,10 @@ class RunOption:
 
     @property
     def annotation(self) -> Any:
-        """The typer parameter type: Optional[type] with the flag, its help and its panel (a bool is a
-        plain flag: no `<bool>` tag)."""
-        extra: dict[str, Any] = {"metavar": ""} if self.type is bool else {}
+        """The typer parameter type: Optional[type] with the flag, its help and its panel (a bool
+        shows no `<bool>` tag: the commands are `PlainFlags`)."""
         return Annotated[Optional[self.type], typer.Option(*self.decls, help=self.help_text,
-                                                           rich_help_panel=self.help_panel, **extra)]
+                                                           rich_help_panel=self.help_panel)]
 
 
 def _opt(name: str, type_: type, help: str, **kw: Any) -> RunOption:  # noqa: A002
@@ -258,6 +257,7 @@ SingleEnv, Schedule, SharedBatch, AfterElimination, SkipRandomRounds = (
                                    "skip_random_rounds"))
 ConfigFile = Annotated[Optional[Path], typer.Option("--config", help="TOML file holding any of the run options "
                                                    "(flags win over it)", rich_help_panel=RUN_PANEL)]
+
 
 class PlainFlags(TyperCommand):
     """typer's command with plain flags: no `<bool>` tag beside `--help` or any on/off flag

@@ -406,7 +406,7 @@ app = typer.Typer(add_completion=False, help=__doc__)
 def referee_command(
     run: options.Run = None, connect: options.Connect = None, listen: options.Listen = None,
     zenoh_config: options.ZenohConfig = None, run_dir: options.RunDir = None,
-    verbose: bool = typer.Option(False, "--verbose", "-v", metavar="", help="debug logging"),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="debug logging"),
 ) -> None:
     """Run the referee of a run: evaluation rounds, P_k, slot allocation, elimination."""
     role.setup_logging(verbose)

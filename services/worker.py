@@ -513,7 +513,7 @@ def worker_command(
     run_dir: Optional[Path] = typer.Option(None, "--run-dir", help="the run directory for this worker's batch log "
                                            "(workers/ID-INCARNATION.batches) and report; default: none, neither is "
                                            "kept", rich_help_panel=options.RUN_PANEL),
-    verbose: bool = typer.Option(False, "--verbose", "-v", metavar="", help="debug logging"),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="debug logging"),
 ) -> None:
     """Run one environment slot of a run (needs only --run and --connect)."""
     role.setup_logging(verbose)
