@@ -96,9 +96,10 @@ class Referee:
         run, s = self.cfg.run, self.session
         self.alloc_pub = bus.declare_latest_publisher(s, keys.allocation(run))
         self.eval_pub = bus.declare_latest_publisher(s, keys.eval(run))
-        self.weights = bus.Latest.subscribe(s, keys.weights_all(run))
+        self.weights = bus.Latest.subscribe(s, keys.weights_all(run), screen=self.follower.admits)
         # exact mode: the versions each evaluation needs, in order (before the first allocation)
-        self.snapshots = bus.Inbox(maxsize=1024).subscribe(s, keys.eval_weights_all(run))
+        self.snapshots = bus.Inbox.subscribe(s, keys.eval_weights_all(run), maxsize=1024,
+                                            screen=self.follower.admits)
         self.stats_sub = bus.Latest.subscribe(s, keys.learner_stats(run))
         self.done = bus.Latest.subscribe(s, keys.done(run))
         self.workers = bus.watch_alive(s, run, "worker")

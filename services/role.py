@@ -179,6 +179,17 @@ class WeightsFollower:
         self.incarnations = [""] * n_actors  # the learner incarnation each copy came from
         self.rejects = rejects
 
+    def admits(self, item: bus.Received) -> bool:
+        """The subscription's screen (`bus.Latest(screen=...)`): a message that does not decode
+        as weights of this run's shapes is rejected here, in the callback, so a flood of junk on a
+        weights key never takes the place of the learner's last valid message before it is read."""
+        try:
+            Weights.from_bytes(item.payload, self.shapes, self.n_actors)
+        except MessageError as e:
+            self.rejects.reject(keys.parse_last(item.key), e)
+            return False
+        return True
+
     def update(self, items: Mapping[str, bus.Received], stats: LearnerStats | None) -> list[int]:
         """Load the newer weights among `items` (key -> sample); the actors that changed."""
         loaded = []

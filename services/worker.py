@@ -124,7 +124,7 @@ class Worker:
         run, s = self.cfg.run, self.session
         self.pub = bus.declare_reliable_publisher(s, keys.transitions(run, self.id))
         self.report = role.RoleReport(s, run, "worker", self.id)
-        self.weights = bus.Latest.subscribe(s, keys.weights_all(run))
+        self.weights = bus.Latest.subscribe(s, keys.weights_all(run), screen=self.follower.admits)
         self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
         self.stats_sub = bus.Latest.subscribe(s, keys.learner_stats(run))
         self.done = bus.Latest.subscribe(s, keys.done(run))

@@ -187,6 +187,37 @@ def test_late_joiner_gets_latest_weights_and_allocation_within_1s(star):
     assert weights.fresh() == {}
 
 
+def test_a_junk_flood_on_a_weights_key_never_displaces_the_valid_weights(star):
+    """A stranger floods a weights key with junk right after the learner's message: with the
+    follower's screen the junk is rejected in the callback and counted, the `Latest` still holds
+    the learner's weights and the `Inbox` queues only them; without a screen the junk wins."""
+    from mam_core.policy import EnvSpec
+    from services import role
+
+    run = unique_run()
+    rejects = RejectLog(None)
+    follower = role.WeightsFollower(1, EnvSpec(OBS, ACT, (1.0,)), (4,), rejects)
+    params = {name: np.full(shape, 7.0, np.float32) for name, shape in follower.shapes.items()}
+    valid = Weights(0, 3, params, OBS, ACT, 1.0, (4,), "inc").to_bytes("learner", 1)
+    worker = star.client()
+    screened = Latest.subscribe(worker, keys.weights_all(run), screen=follower.admits)
+    plain = Latest.subscribe(worker, keys.weights_all(run))
+    inbox = Inbox.subscribe(worker, keys.weights_all(run), maxsize=16, screen=follower.admits)
+    time.sleep(0.3)
+    key = keys.weights(run, 0)
+    learner, stranger = declare_latest_publisher(star.hub, key), star.client().declare_publisher(key)
+    learner.put(valid)
+    for _ in range(500):
+        stranger.put(b"\x93junk")
+    # each screened subscription (the Latest, the Inbox) rejects each junk message once
+    assert wait_until(lambda: rejects.total == 1000 and plain.received == 501, timeout=10.0), rejects.counts()
+    assert screened.get(key).payload == valid and screened.received == 1
+    assert follower.update(screened.fresh(), None) == [0] and follower.versions == [3]
+    assert plain.get(key).payload == b"\x93junk"
+    assert [item.payload for item in inbox.drain()] == [valid] and inbox.dropped == 0
+    assert set(rejects.counts()) == {"not_msgpack"}
+
+
 def test_subscriber_before_publisher_gets_its_first_value(star):
     run = unique_run()
     worker = star.client()

@@ -201,10 +201,11 @@ def test_bench_rates_count_the_training_part_only():
 
 @pytest.mark.slow
 def test_weights_overwritten_on_their_keys_neither_hang_nor_change_the_run(tmp_path: Path) -> None:
-    """A stranger floods every weights key (and the referee's snapshot keys) with junk, so the
-    learner's samples are often overwritten before a worker's one-per-key subscriber reads them:
-    the learner re-sends the current weights and the latest snapshots while an iteration's rows
-    are late, the run finishes, and it is still exactly the reference run."""
+    """A stranger floods every weights key (and the referee's snapshot keys) with junk. Workers and
+    the referee screen it out in their subscription callbacks, so it never takes the place of the
+    learner's last weights in a one-per-key subscriber nor fills the referee's snapshot queue (the
+    learner's re-sends of late weights stay as the fallback for a sample lost anyway): the run
+    finishes at its usual pace and is still exactly the reference run."""
     from services import bus, keys
 
     torch.set_num_threads(1)

@@ -22,6 +22,7 @@ def test_mam_core_never_imports_zenoh():
 
 @pytest.mark.slow
 @pytest.mark.learning
+@pytest.mark.timeout(3600)  # 20k steps at utd 2 in one process: many minutes on a shared 2-core box
 @pytest.mark.parametrize("algo, extra", [
     ("td3", {}),
     ("ma-td3", dict(workers=2, compete_every=2000, eliminate_at=10_000)),

@@ -1,5 +1,9 @@
 """Receiving: subscriber callbacks only copy samples into an `Inbox` (a bounded queue) or a
-`Latest` (the newest sample per key); the service loop does the work."""
+`Latest` (the newest sample per key); the service loop does the work.
+
+Either may take a *screen*: a cheap check run in the callback, before the sample is stored. A
+sample it refuses (malformed, from anyone on the bus) is dropped there and counted by the screen,
+so it can neither take a valid sample's place in a `Latest` nor a queue slot in an `Inbox`."""
 
 from __future__ import annotations
 
@@ -13,6 +17,8 @@ import zenoh
 from zenoh.ext import HistoryConfig, declare_advanced_subscriber
 
 log = logging.getLogger("services.bus")
+
+Screen = Callable[["Received"], bool]  # True: store the sample; False: drop it (the screen counts it)
 
 
 # --------------------------------------------------------------------------- receiving
@@ -70,8 +76,9 @@ class Inbox:
     keeps up (or a rate limiter upstream) never sees a drop.
     """
 
-    def __init__(self, maxsize: int = 4096, *, put_timeout: float = 1.0) -> None:
+    def __init__(self, maxsize: int = 4096, *, put_timeout: float = 1.0, screen: Screen | None = None) -> None:
         self._q: queue.Queue[Received] = queue.Queue(maxsize)
+        self.screen = screen
         self.put_timeout = put_timeout
         self._closed = threading.Event()
         self._lock = threading.Lock()
@@ -92,7 +99,9 @@ class Inbox:
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         try:
-            self.push(_copy(sample))
+            item = _copy(sample)
+            if self.screen is None or self.screen(item):
+                self.push(item)
         except Exception:  # never let an exception escape into Zenoh's thread
             log.exception("inbox callback failed")
 
@@ -179,8 +188,9 @@ class Latest:
     (late joiner) and keeps following new ones.
     """
 
-    def __init__(self, *, late_join: bool = True) -> None:
+    def __init__(self, *, late_join: bool = True, screen: Screen | None = None) -> None:
         self.late_join = late_join
+        self.screen = screen
         self._cond = threading.Condition()
         self._items: dict[str, Received] = {}
         self._fresh: dict[str, Received] = {}
@@ -208,7 +218,9 @@ class Latest:
     def _on_sample(self, sample: zenoh.Sample) -> None:
         try:
             if sample.kind == zenoh.SampleKind.PUT:
-                self.put(_copy(sample))
+                item = _copy(sample)
+                if self.screen is None or self.screen(item):
+                    self.put(item)
         except Exception:
             log.exception("latest callback failed")
 
