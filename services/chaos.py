@@ -4,7 +4,8 @@
               [--out FILE] -- MAM RUN FLAGS
 
 Runs `mam run MAM RUN FLAGS --no-plot` (a `--run-dir` is required), and until it exits kills a
-random live child (the learner included) with SIGKILL after a uniformly drawn 20–40 s. Then it
+random live child (the learner included) with SIGKILL after a uniformly drawn 20–40 s, once every
+child is back from the previous kill and the learner has logged transitions since it. Then it
 checks what `mam run` promises (docs/RELIABILITY.md): exit status 0, the budget reached,
 every transition a worker sent in the replay exactly once over all incarnations (transport.json's
 `audit`: lost and duplicated rows), the run directory complete, the final checkpoint and its
@@ -172,6 +173,7 @@ def chaos(run_args: list[str], run_dir: Path, kill_every: tuple[float, float] = 
     kills: list[dict[str, Any]] = []
     early: list[dict[str, Any]] = []
     moments: list[int | None] | None = None
+    seen, last_steps = 0, -1  # the most children seen alive at once; the learner's transitions at the last kill
     with open(out_path, "wb") as out:
         proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", *run_args, "--run-dir", str(run_dir),
                                  "--no-plot"], cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT)
@@ -194,14 +196,23 @@ def chaos(run_args: list[str], run_dir: Path, kill_every: tuple[float, float] = 
             if time.monotonic() < next_kill:
                 time.sleep(0.2)
                 continue
-            victims = [(pid, role) for pid, role in children_of(proc.pid) if role in roles]
+            live = children_of(proc.pid)
+            seen = max(seen, len(live))
+            steps = _learner_steps(run_dir)
+            if len(live) < seen or steps <= last_steps:
+                # Progress gate: the next kill waits until every child is back and the learner has logged
+                # transitions since the previous one. Kills on a bare timer could outpace restarts on a
+                # slow box (backoffs grow with each quick death) and keep the run from its budget.
+                time.sleep(0.2)
+                continue
+            victims = [(pid, role) for pid, role in live if role in roles]
             if victims:
                 pid, role = rng.choice(sorted(victims))
-                steps = _learner_steps(run_dir)
                 try:
                     os.kill(pid, signal.SIGKILL)
                 except ProcessLookupError:
                     continue
+                last_steps = steps
                 kills.append({"t": round(time.monotonic() - started, 1), "role": role, "pid": pid, "env_steps": steps})
                 log(f"t={kills[-1]['t']:7.1f} s  SIGKILL {role} (pid {pid}) at ~{steps:,} env steps")
             next_kill = time.monotonic() + rng.uniform(*kill_every)
