@@ -513,9 +513,12 @@ def supervised_session(conf: Any, cluster: LocalCluster, timeout: float = 120.0)
         try:
             session = bus.open_session(conf)
             break
-        except zenoh.ZError:
+        except zenoh.ZError as e:
             if time.monotonic() > deadline:
-                raise
+                restarts = len(cluster.restarts.get("learner", []))
+                raise RunStopped(f"no connection to the learner at {cluster.endpoint} within {timeout:.0f} s "
+                                 f"({restarts} restarts of it meanwhile; {e}); see "
+                                 f"{cluster.run_dir / rundir.role_log('learner')}") from e
             time.sleep(0.2)
     try:
         yield session

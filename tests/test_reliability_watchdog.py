@@ -103,3 +103,23 @@ def test_progress_resets_the_watchdog(cluster: LocalCluster) -> None:
     assert cluster.progress_at >= t and cluster.stall_actions == 0
     cluster.check_stall(cluster.progress_at + 4.9)
     assert killed(cluster) == []
+
+
+def test_no_connection_to_the_learner_stops_the_run_naming_the_endpoint_and_its_log(tmp_path: Path) -> None:
+    """A learner that never stays up long enough to accept the launcher's session (killed over and
+    over as it starts, seen with `mam chaos --kill-every 1,2`) stops the run with a sentence, not a
+    ZError traceback."""
+    from services import bus
+    from services.launcher import RunStopped, supervised_session
+
+    cfg = RunConfig(run="nc", env_id="AppleCollect-v0", steps=2000, algo=resolve("ma-ddpg", actors=2, workers=2))
+    endpoint = bus.loopback_endpoint(bus.free_tcp_port())  # nothing listens there
+    cluster = LocalCluster(cfg, tmp_path, endpoint, console=Console(file=io.StringIO()))
+    t0 = time.monotonic()
+    with pytest.raises(RunStopped) as e:
+        with supervised_session(bus.make_config(connect=[endpoint]), cluster, timeout=1.0):
+            pass
+    assert time.monotonic() - t0 < 30
+    text = str(e.value)
+    assert f"no connection to the learner at {endpoint} within 1 s (0 restarts of it meanwhile" in text
+    assert text.endswith(str(tmp_path / "logs" / "learner.log"))
