@@ -8,33 +8,43 @@ An *iteration* is one sweep over the live environment slots. Under `--schedule p
 Algorithm 1's iteration t (M transitions before C, one after: the survivor runs slot 0);
 under `equal-data` a sweep is M transitions and the schedule's units are transitions.
 
-The order of operations of iteration i (Algorithm 1's line numbers):
+The order of operations of iteration i (Algorithm 1's line numbers), with a lag B >= 0
+(`--lag`, 0 by default: Algorithm 1 as printed):
 
 1. Collect (lines 5-10): every slot of `slots` steps once, in slot order, with the actor the
-   allocation gives it and the actor weights after iteration i-1's updates (`version_for`);
+   allocation in force gives it (`decision_for(i)`: the latest competition j with
+   j + 1 + B <= i) and that actor's weights after iteration i-1-B's updates (`version_for`);
    uniform random actions while `random`. The transitions enter the replay buffer in slot
-   order.
+   order. With B >= 1 a worker may step up to B iterations ahead of the learner's updates.
 2. Critic updates (lines 11-13): the agent's update counter goes from `updates[0]` to
    `updates[1]`, one mini-batch per actor each.
-3. A competition (lines 15-17) if `round` is set: the live actors are evaluated *as they acted
-   in this iteration* (the critic update does not touch them: `version_for(i)`), P_k follows
-   Eq. 8, and the allocation it draws applies from iteration i+1 on.
+3. A competition (lines 15-17) if `round` is set: the live actors are evaluated as they stand
+   after iteration i-1's updates (`judged_version`: at B = 0 the actors that acted in i; the
+   critic update does not touch them), P_k follows Eq. 8, and the allocation it draws
+   applies from iteration i+1+B on.
 4. The elimination (lines 18-20) if `eliminate`: evaluated like a round; it applies right
    before the first delayed actor update of this iteration (or at its end if it has none), so
-   the eliminated actors' last version is `version_for(i)`.
+   the eliminated actors' last version is `version_after(i-1)`. From i+1 on the survivor's
+   schedule holds (one slot under `paper`); slot 0 acts with the allocation in force, which
+   names the survivor from i+1+B on.
 5. Delayed actor and target updates (lines 21-24): whenever the update counter is a multiple
    of d (TD3's rule; with one update per iteration this is Algorithm 1's t mod d).
 6. A learning-curve evaluation after the updates if `curve` is set (`version_after(i)`),
    on episodes disjoint from every competition's.
 
+Every evaluation judges the newest actors the learner has when it is due, whatever B: the lag
+delays only when decisions and weights reach the slots (docs/DESIGN-DECISIONS.md, "The lag").
 Weights change only in iterations with an actor update (`weights_change`): the others need no
 new weights, so a worker steps through them without waiting.
 """
 
 from __future__ import annotations
 
+import bisect
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 from mam_core.config import AlgoConfig
 from mam_core.schedule import Schedule
@@ -67,10 +77,16 @@ class Algorithm1:
     policy_delay: int  # d
     eval_every: int  # learning-curve evaluations every this many units
     single_env: bool = True  # after the elimination the survivor runs one slot (slot 0)
+    lag: int = 0  # B: iteration t acts with the actors after iteration t-1-B; decisions apply B iterations later
+
+    def __post_init__(self) -> None:
+        if self.lag < 0:
+            raise ValueError(f"lag must be >= 0, not {self.lag}")
 
     @classmethod
     def for_run(cls, cfg: AlgoConfig, steps: int) -> Algorithm1:
-        return cls(Schedule.for_run(cfg, steps), cfg.batch_size, cfg.policy_delay, cfg.eval_every, cfg.single_env)
+        return cls(Schedule.for_run(cfg, steps), cfg.batch_size, cfg.policy_delay, cfg.eval_every, cfg.single_env,
+                   cfg.lag)
 
     # -- shape of the run -------------------------------------------------------------------------
     @property
@@ -118,6 +134,10 @@ class Algorithm1:
                 hi = mid - 1
         return lo
 
+    def replay_capacity(self, buffer_size: int) -> int:
+        """Rows the replay buffer holds: the run's transitions, at most `buffer_size`."""
+        return min(buffer_size, max(self.schedule.budget, self.batch_size))
+
     # -- one iteration ----------------------------------------------------------------------------
     def updates_after(self, index: int) -> int:
         """The agent's update counter after iteration `index` (0 before the first)."""
@@ -138,13 +158,30 @@ class Algorithm1:
         if not eliminate and s.eliminate_at is not None:
             multiple = s.round_due(u1, last_round_at=u0)  # a multiple of A in (u0, u1], before C
             round_ = None if multiple is None else multiple // s.compete_every
-        every = self.eval_every
-        curve = u1 // every if u1 // every > u0 // every else None
+        curve = _crossed(u0, u1, self.eval_every)
         return Iteration(index=index, slots=tuple(range(after - before)) if after - before < self.width(index)
                          else tuple(range(self.width(index))),
                          transitions=(before, after), units=(u0, u1), random=before < s.random_until,
                          updates=(self.updates_after(index - 1), self.updates_after(index)),
                          round=round_, eliminate=eliminate, curve=curve, last=index == self.iterations)
+
+    def crossing(self, index: int, every: int) -> int | None:
+        """j when iteration `index` reaches j·`every` units (the largest such j), else None (and
+        always for `every` <= 0): the rule of the curve points, applied to any period (the
+        learner's bias points)."""
+        return _crossed(*self.iteration(index).units, every) if every > 0 else None
+
+    def iteration_at(self, transitions: int) -> int:
+        """The iterations complete once `transitions` transitions are collected."""
+        lo, hi = 0, self.iterations
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            if self.transitions_before(mid + 1) <= transitions or (mid == self.iterations
+                                                                    and self.schedule.budget <= transitions):
+                lo = mid
+            else:
+                hi = mid - 1
+        return lo
 
     # -- weights ----------------------------------------------------------------------------------
     def version_after(self, index: int) -> int:
@@ -152,8 +189,19 @@ class Algorithm1:
         return self.updates_after(index) // self.policy_delay
 
     def version_for(self, index: int) -> int:
-        """The version a live actor acts with in iteration `index` (after iteration index-1)."""
-        return self.version_after(index - 1)
+        """The version an actor acts with in iteration `index`: after iteration index-1-B's
+        updates (an actor eliminated at C acts until C+B, never past its last version)."""
+        return self.version_after(index - 1 - self.lag)
+
+    def judged_version(self, index: int, purpose: str) -> int:
+        """The version an evaluation of iteration `index` judges: a competition (`round`,
+        `elimination`) the actors after iteration index-1's updates, a `curve` point or the
+        `final` evaluation those after iteration index's."""
+        if purpose in ("round", "elimination"):
+            return self.version_after(index - 1)
+        if purpose in ("curve", "final"):
+            return self.version_after(index)
+        raise ValueError(f"unknown evaluation purpose {purpose!r}")
 
     def weights_change(self, index: int) -> bool:
         return self.version_after(index) != self.version_after(index - 1)
@@ -170,10 +218,47 @@ class Algorithm1:
         first = (u0 // d + 1) * d
         return first if first <= u1 else None
 
+    def run_updates(self, it: Iteration, agent: Any, sample: Callable[[], Any], eliminate: Callable[[], None],
+                    each: Callable[[dict[str, float]], None] | None = None) -> dict[str, float]:
+        """Iteration `it`'s updates (lines 11-24) on `agent` (mam_core.agent.MultiActorAgent):
+        one `sample()`d mini-batch per update, critics then, when due, actors; at C
+        `eliminate()` comes right before the first actor phase (or after the updates). `each`
+        sees every update's metrics. The metrics of the last update."""
+        at = self.elimination_update() if it.eliminate else None
+        metrics: dict[str, float] = {}
+        for _ in range(it.updates[0], it.updates[1]):
+            batch = sample()
+            metrics = agent.update_critics(batch)
+            if agent.actor_phase_due:
+                if agent.updates == at:
+                    eliminate()
+                metrics.update(agent.update_actors(batch))
+            if each is not None:
+                each(metrics)
+        if it.eliminate and at is None:
+            eliminate()
+        return metrics
+
     # -- evaluations ------------------------------------------------------------------------------
+    @cached_property
+    def _competitions(self) -> tuple[int, ...]:
+        return tuple(i for i, purpose in self.events() if purpose in ("round", "elimination"))
+
     def competitions(self) -> list[int]:
         """The iterations with a competition or the elimination, in order."""
-        return [i for i in range(1, self.iterations + 1) if self.iteration(i).competes]
+        return list(self._competitions)
+
+    def decision_for(self, index: int) -> int:
+        """The iteration whose allocation applies in iteration `index`: the latest competition
+        j with j + 1 + B <= index, or 0 (the initial allocation)."""
+        n = bisect.bisect_right(self._competitions, index - 1 - self.lag)
+        return self._competitions[n - 1] if n else 0
+
+    def slot_width(self, decided_at: int) -> int:
+        """Slots an allocation decided at iteration `decided_at` names: one (the survivor's)
+        once the elimination is decided under the one-slot rule, else M."""
+        e = self.elimination
+        return 1 if e is not None and decided_at >= e and (self.single_env or self.schedule.paper) else self.slots
 
     def first_reaching(self, units: int) -> int:
         """The first iteration whose units (after it) reach `units` (the last one if none)."""
@@ -189,9 +274,13 @@ class Algorithm1:
         return lo
 
     def events(self) -> list[tuple[int, str]]:
-        """The run's evaluations in order, (iteration, purpose): `round` and `elimination` see
-        the actors that acted in the iteration, `curve` and `final` the actors after its
-        updates (a curve point at the last iteration is the final evaluation)."""
+        return list(self._events)
+
+    @cached_property
+    def _events(self) -> tuple[tuple[int, str], ...]:
+        """The run's evaluations in order, (iteration, purpose): `round` and `elimination` judge
+        the actors after the previous iteration's updates, `curve` and `final` the actors after
+        its own (`judged_version`; a curve point at the last iteration is the final evaluation)."""
         s = self.schedule
         final_units = self.iteration(self.iterations).units[1]
         candidates = {self.iterations}
@@ -212,4 +301,9 @@ class Algorithm1:
                 out.append((i, "curve"))
             elif it.last:
                 out.append((i, "final"))
-        return out
+        return tuple(out)
+
+
+def _crossed(before: int, after: int, every: int) -> int | None:
+    """j if (before, after] holds a multiple of `every` (the largest), else None."""
+    return after // every if after // every > before // every else None

@@ -52,6 +52,7 @@ class AlgoConfig:
     seed: int = 0
     device: str = "auto"  # auto | cpu | cuda
     precision: str = "fp32"  # fp32 | bf16: the learner's hidden-to-hidden GEMMs in bfloat16 (mixed precision)
+    lag: int = 0  # B: iteration t acts with the actors after iteration t-1-B (mam_core.algorithm1); 0 = Algorithm 1
 
     @property
     def single_env(self) -> bool:
@@ -152,6 +153,12 @@ def validate(cfg: AlgoConfig) -> AlgoConfig:
         problems.append(f"schedule must be one of {', '.join(SCHEDULES)}")
     if cfg.after_elimination not in AFTER_ELIMINATION:
         problems.append(f"after_elimination must be one of {', '.join(AFTER_ELIMINATION)}")
+    if cfg.lag < 0:
+        problems.append("lag (B) must be >= 0")
+    elif cfg.lag and cfg.actors > 1 and not cfg.no_ot and \
+            (cfg.lag + 1) * (1 if cfg.schedule == "paper" else cfg.workers) > cfg.compete_every:
+        problems.append("lag (B) must be shorter than the iterations between two competitions (A): a decision "
+                        "applies B+1 iterations after it is drawn, before the next one")
     if cfg.precision not in PRECISIONS:
         problems.append(f"precision must be one of {', '.join(PRECISIONS)}")
     if problems:

@@ -57,21 +57,23 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
     spec = EnvSpec.from_env(envs[0])
     torch.manual_seed(cfg.seed)
     agent = MultiActorAgent(cfg, spec, device)
-    budget = plan.schedule.budget
-    buffer = ReplayBuffer(min(cfg.buffer_size, max(budget, cfg.batch_size)), spec.obs_dim, spec.act_dim, device,
-                          cfg.seed)
+    buffer = ReplayBuffer(plan.replay_capacity(cfg.buffer_size), spec.obs_dim, spec.act_dim, device, cfg.seed)
     state = obsolescence_for(cfg, steps)
     rng = stream(cfg.seed, "allocation")
-    actors = NumpyActors(cfg.actors, spec, cfg.hidden)  # what the workers and the referee act with
+    actors = NumpyActors(cfg.actors, spec, cfg.hidden)  # the newest actors: what the referee judges
     for k in range(cfg.actors):
         actors.load_member(k, agent.actor_params(k))
+    # What the slots act with: the actors after iteration t-1-B (B = cfg.lag), by version.
+    acting = NumpyActors(cfg.actors, spec, cfg.hidden)
+    history: dict[int, list[dict[str, np.ndarray] | None]] = {0: [agent.actor_params(k) for k in range(cfg.actors)]}
     max_action = np.asarray(spec.max_action, np.float32)
     streams = [SlotStreams.for_slot(cfg.seed, i) for i in range(cfg.workers)]
     obs = [s.seed_env(env) for s, env in zip(streams, envs)]
     result = ReferenceResult()
-    allocation = state.allocation(cfg.workers, rng)
-    result.allocations.append({"env_steps": 0, "iterations": 0, "slots": list(allocation),
+    decisions = {0: list(state.allocation(cfg.workers, rng))}  # iteration that decided -> slot -> actor
+    result.allocations.append({"env_steps": 0, "iterations": 0, "slots": decisions[0],
                                "probabilities": state.probabilities.tolist()})
+    acting_version = -1
 
     def evaluate(it: Iteration, purpose: str) -> list[float | None]:
         seed = evaluation_seed(cfg.seed, purpose, it.round if purpose == "round" else it.curve)
@@ -93,51 +95,57 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
         return means
 
     def compete(it: Iteration) -> None:
-        """Eq. 8 from this iteration's actors (lines 15-17), or the elimination (18-20)."""
+        """Eq. 8 from the actors after the previous iteration (lines 15-17), or the elimination
+        (18-20); the allocation drawn applies from iteration it.index + 1 + B on."""
         means = evaluate(it, "elimination" if it.eliminate else "round")
         state.record_evaluation(it.units[1], competition_returns(means), rng=rng)
+        decisions[it.index] = list(state.allocation(cfg.workers, rng))[:plan.slot_width(it.index)]
         result.allocations.append({"env_steps": it.transitions[1], "iterations": it.units[1],
-                                   "slots": list(state.allocation(cfg.workers, rng)),
-                                   "probabilities": state.probabilities.tolist(), "survivor": state.survivor})
+                                   "slots": decisions[it.index], "probabilities": state.probabilities.tolist(),
+                                   "survivor": state.survivor})
         if log:
             log("allocation", result.allocations[-1])
 
+    def log_update(metrics: dict[str, float]) -> None:
+        if log and agent.updates % 1000 == 0:
+            log("learner", {"env_steps": it.transitions[1], "updates": agent.updates, **metrics})
+
     for index in range(1, plan.iterations + 1):
         it = plan.iteration(index)
-        # Lines 5-10: every slot of the iteration steps once, in slot order.
+        # Lines 5-10: every slot of the iteration steps once, in slot order, with the allocation and
+        # the actors of B iterations before (B = 0: the latest decision, the actors after i-1).
+        allocation = decisions[plan.decision_for(index)]
+        if not it.random and plan.version_for(index) != acting_version:
+            acting_version = plan.version_for(index)
+            for k, params in enumerate(history[acting_version]):
+                if params is not None:
+                    acting.load_member(k, params)
         rows = []
         for i in it.slots:
             k = allocation[i]
             action = uniform(envs[i]) if it.random else \
-                explore(actors.policy(k), obs[i], streams[i].noise, cfg.explore_noise, max_action)
+                explore(acting.policy(k), obs[i], streams[i].noise, cfg.explore_noise, max_action)
             next_obs, reward, terminated, truncated, _ = envs[i].step(action)
             next_obs = np.asarray(next_obs, np.float32)
             rows.append((obs[i], action, float(reward), next_obs, bool(terminated), k,
-                         -1 if it.random else agent.versions[k]))
+                         -1 if it.random else min(acting_version, agent.versions[k])))
             obs[i] = np.asarray(envs[i].reset()[0], np.float32) if terminated or truncated else next_obs
         add_rows(buffer, rows)
         # Lines 11-24: the updates, with the round and the elimination between critic and actor phases.
         if it.competes:
             compete(it)
-            allocation = result.allocations[-1]["slots"]
-        eliminate_at_update = plan.elimination_update() if it.eliminate else None
-        for _ in range(it.updates[0], it.updates[1]):
-            batch = buffer.sample(cfg.batch_size, agent.batch_groups)
-            metrics = agent.update_critics(batch)
-            if agent.actor_phase_due:
-                if agent.updates == eliminate_at_update:
-                    agent.eliminate(state.survivor)
-                metrics.update(agent.update_actors(batch))
-            if log and agent.updates % 1000 == 0:
-                log("learner", {"env_steps": it.transitions[1], "updates": agent.updates, **metrics})
-        if it.eliminate and eliminate_at_update is None:
-            agent.eliminate(state.survivor)
+        plan.run_updates(it, agent, lambda: buffer.sample(cfg.batch_size, agent.batch_groups),
+                         lambda: agent.eliminate(state.survivor), log_update if log else None)
         if it.eliminate:
             result.survivor = state.survivor
         if plan.weights_change(index):
+            version = plan.version_after(index)
+            history[version] = [agent.actor_params(k) if state.live[k] else None for k in range(cfg.actors)]
             for k in range(cfg.actors):
                 if state.live[k]:
                     actors.load_member(k, agent.actor_params(k))
+            for old in [v for v in history if v < plan.version_for(min(index + 1, plan.iterations))]:
+                del history[old]
         if it.curve is not None:
             evaluate(it, "curve")
         elif it.last:

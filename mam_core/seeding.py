@@ -17,12 +17,13 @@ half of why the two compute the same run (docs/DESIGN-DECISIONS.md, "Exact Algor
 | `curve` | the episodes of learning-curve evaluation j (at j·eval-every) | j |
 | `final` | the episodes of the final evaluation when T is not a curve point | 0 |
 | `elimination` | the episodes of the evaluation at C | 0 |
+| `bias` | the learner's Eq. 17 rollouts at bias point j (at j·bias-every) | j (`bias_seed`) |
 
 The replay buffer's sampling, the target-policy noise and the network initialisation take
 the run seed directly (mam_core.replay, mam_core.agent), as they always did.
 
-A restarted worker in the asynchronous mode gets the next *generation* of its slot's streams
-(the launcher counts restarts), so it does not replay its predecessor's episodes.
+A restarted worker gets the next *generation* of its slot's streams (the launcher counts
+restarts), so it does not replay its predecessor's episodes.
 """
 
 from __future__ import annotations
@@ -82,3 +83,9 @@ def final_seed(seed: int) -> int:
 
 def elimination_seed(seed: int) -> int:
     return stream_seed(seed, "elimination")
+
+
+def bias_seed(seed: int, point_index: int) -> int:
+    """The initial states of the Eq. 17 rollouts at bias point j (every variant of a seed
+    starts from the same states). Rollout r is reset with this + r."""
+    return 1_000_003 * (int(seed) + 1) + int(point_index) * 1_009

@@ -1,23 +1,24 @@
-"""Exact mode: the pieces the roles share to run Algorithm 1 in lock-step across processes.
+"""Lock-step: the pieces the roles share to run Algorithm 1 across processes.
 
 The control flow is `mam_core.algorithm1.Algorithm1`; every role builds it from the run's
-config and follows it (docs/DESIGN-DECISIONS.md, "Exact Algorithm 1"):
+config and follows it (docs/DESIGN-DECISIONS.md, "Exact Algorithm 1" and "The lag"):
 
-- A worker steps iteration i of its slot once it holds the allocation that applies to i (the
-  latest decision of an iteration < i) and, unless i is random, its actor at
-  `version_for(i)`. Weights change only every d iterations, so most iterations need no wait.
-  Its batch carries the iteration of its first row and the slot.
+- A worker steps iteration i of its slot once it holds the allocation that applies to i
+  (`decision_for(i)`) and, unless i is random, its actor at `version_for(i)` (after iteration
+  i-1-B). It keeps the few versions it may still need (`WeightsHistory`). Its batch carries the
+  iteration of its first row and the slot.
 - The learner stages what arrives per slot (`SlotStage`), inserts iteration i's rows in slot
   order, makes iteration i's updates (the elimination between the critic and actor phases,
   from the referee's decision), and publishes weights only when they changed. The versions an
-  evaluation needs also go, once, to the referee on `weights/<k>/eval` (`snapshot_versions`).
-- The referee evaluates each competition and curve point on exactly those versions
-  (`WeightsHistory`), draws the allocation with the run's `allocation` stream over the slots
-  `w0 .. w{M-1}`, and tags each decision with its iteration.
+  evaluation judges also go, once, to the referee on `weights/<k>/eval` (`snapshot_versions`).
+- The referee evaluates each event of `plan.events()` on exactly those versions, draws the
+  allocation with the run's `allocation` stream over the slots `w0 .. w{M-1}`, and tags each
+  decision with its iteration.
 
-Any restart (learner, referee or worker) ends exactness for the rest of the run: the learner
-notices (`Learner.break_exact`), says why in its stats, and every role carries on with the
-asynchronous, rate-limited collection; summary.json records `exact: false` and the reason.
+A fault does not change this order. A restarted referee continues from its saved state (its
+allocation stream included) and stays exact; a restarted worker (fresh random streams) or
+learner (from its checkpoint) continues in the same lock-step order, and the run records
+`exact: false` with the reason.
 """
 
 from __future__ import annotations
@@ -32,44 +33,60 @@ from mam_core.algorithm1 import Algorithm1
 from services.codec import TransitionBatch
 
 
-class ExactnessLost(Exception):
-    """Something a lock-step run cannot absorb (a restart, a foreign batch): go asynchronous."""
-
-
 @dataclass
 class _Staged:
     batch: TransitionBatch
     first: int  # the iteration of batch row `used`
-    used: int = 0  # rows of the batch already inserted
+    used: int = 0  # rows of the batch already inserted (or skipped: iterations the slot had already)
 
 
 class SlotStage:
-    """The learner's staging of transition batches per slot, until their iteration comes."""
+    """The learner's staging of transition batches per slot, until their iteration comes.
 
-    def __init__(self, slots: int) -> None:
+    Each slot has an owner, the (worker, incarnation) whose rows it takes. A batch of another
+    incarnation takes the slot over (a restarted or replacement worker); its predecessor's
+    late batches are dropped from then on. Rows of iterations the slot already has are
+    skipped (resends to a restarted learner, a replacement starting behind); a batch that
+    starts past the slot's next iteration fills the gap (rows were lost) and says so.
+    """
+
+    def __init__(self, slots: int, start: int = 1) -> None:
         self.queues: list[deque[_Staged]] = [deque() for _ in range(slots)]
-        self.expected = [1] * slots  # the iteration the next batch of each slot must start at
-        self.owner: list[tuple[str, str] | None] = [None] * slots  # (worker, incarnation) of each slot
+        self.end = [start] * slots  # per slot: the iteration its next new row belongs to
+        self.owner: list[tuple[str, str] | None] = [None] * slots
+        self.retired: set[tuple[str, str]] = set()
 
-    def add(self, batch: TransitionBatch) -> None:
-        """Stage a batch; ExactnessLost if it does not continue its slot's iterations."""
-        s = batch.slot
-        if batch.iteration < 0:
-            raise ExactnessLost(f"worker {batch.worker} collects asynchronously")
-        if not 0 <= s < len(self.queues):
-            raise ExactnessLost(f"worker {batch.worker} claims slot {s} of {len(self.queues)}")
-        owner = (batch.worker, batch.incarnation)
+    def add(self, batch: TransitionBatch) -> tuple[bool, str]:
+        """Stage a batch: (staged, why exactness broke or ""). A batch not staged holds nothing new."""
+        s, owner = batch.slot, (batch.worker, batch.incarnation)
+        if batch.iteration < 1 or not 0 <= s < len(self.queues):
+            return False, f"worker {batch.worker} sent iteration {batch.iteration} of slot {s} " \
+                          f"(of {len(self.queues)} slots)"
+        if owner in self.retired:
+            return False, ""  # a predecessor's late batch
+        why = ""
         if self.owner[s] is None:
             self.owner[s] = owner
         elif self.owner[s] != owner:
-            raise ExactnessLost(f"slot {s} changed hands ({self.owner[s][0]} -> {batch.worker}): a worker restarted")
-        if batch.iteration != self.expected[s]:
-            raise ExactnessLost(f"slot {s} sent iteration {batch.iteration}, expected {self.expected[s]}")
-        self.queues[s].append(_Staged(batch, batch.iteration))
-        self.expected[s] = batch.iteration + batch.rows
+            self.retired.add(self.owner[s])
+            why = f"slot {s} changed hands ({self.owner[s][0]} -> {batch.worker}): a worker restarted"
+            self.owner[s] = owner
+        skip = self.end[s] - batch.iteration
+        if skip >= batch.rows:
+            return False, why
+        if skip < 0:
+            why = why or f"slot {s} lost iterations {self.end[s]}..{batch.iteration - 1} (rows lost in flight)"
+            skip = 0  # its rows stand in for the lost iterations
+        staged = _Staged(batch, self.end[s], used=skip)
+        self.queues[s].append(staged)
+        self.end[s] += batch.rows - skip
+        return True, why
 
     def ready(self, index: int, slots: Sequence[int]) -> bool:
         return all(self.queues[s] and self.queues[s][0].first == index for s in slots)
+
+    def missing(self, index: int, slots: Sequence[int]) -> list[int]:
+        return [s for s in slots if not (self.queues[s] and self.queues[s][0].first == index)]
 
     def take(self, index: int, slots: Sequence[int]) -> tuple[dict[str, np.ndarray], list[TransitionBatch]]:
         """Iteration `index`'s rows in slot order, and the batches this used up."""
@@ -88,42 +105,50 @@ class SlotStage:
                 "actor": np.asarray(actor, np.int64), "version": np.asarray(version, np.int64)}
         return rows, done
 
-    def leftovers(self) -> list[tuple[TransitionBatch, int]]:
-        """What is staged but not inserted, (batch, first unused row), slot by slot."""
-        out = [(st.batch, st.used) for q in self.queues for st in q]
-        for q in self.queues:
-            q.clear()
-        return out
-
 
 def snapshot_versions(plan: Algorithm1, index: int) -> set[int]:
     """Versions the referee needs once iteration `index`'s updates are done (index 0: before
-    the first iteration): the competition of the next iteration (its acting version) and
-    this iteration's curve point."""
+    the first iteration): the competition of the next iteration and this iteration's curve
+    point (`Algorithm1.judged_version`)."""
     out = set()
     if index < plan.iterations and plan.iteration(index + 1).competes:
-        out.add(plan.version_for(index + 1))
+        out.add(plan.judged_version(index + 1, "round"))
     if index >= 1:
         it = plan.iteration(index)
         if it.curve is not None or it.last:
-            out.add(plan.version_after(index))
+            out.add(plan.judged_version(index, "curve"))
     return out
 
 
 class WeightsHistory:
-    """The referee's copies of each actor at the versions its evaluations need."""
+    """A role's copies of each actor at the versions it may still need (the referee's
+    evaluations, a worker's next B+1 iterations). A version is one set of parameters of one
+    learner incarnation; after a learner restart its successor's copy of a version replaces
+    the dead one's (`prefer`)."""
 
     def __init__(self, n_actors: int) -> None:
-        self.by_actor: list[dict[int, dict[str, np.ndarray]]] = [{} for _ in range(n_actors)]
+        self.by_actor: list[dict[int, tuple[str, dict[str, np.ndarray]]]] = [{} for _ in range(n_actors)]
 
-    def add(self, actor: int, version: int, params: Mapping[str, np.ndarray]) -> None:
-        self.by_actor[actor][version] = {name: np.array(a, np.float32, copy=True) for name, a in params.items()}
+    def add(self, actor: int, version: int, params: Mapping[str, np.ndarray], incarnation: str = "",
+            prefer: str = "") -> bool:
+        """Keep `params` as `actor`'s `version` unless a copy from `prefer` (the current learner
+        incarnation) is held already; True if kept."""
+        held = self.by_actor[actor].get(version)
+        if held is not None and (held[0] == incarnation or (prefer and held[0] == prefer)):
+            return False
+        self.by_actor[actor][version] = (incarnation,
+                                         {name: np.array(a, np.float32, copy=True) for name, a in params.items()})
+        return True
 
     def has(self, actor: int, version: int) -> bool:
         return version in self.by_actor[actor]
 
     def get(self, actor: int, version: int) -> dict[str, np.ndarray]:
-        return self.by_actor[actor][version]
+        return self.by_actor[actor][version][1]
+
+    def source(self, actor: int, version: int) -> str:
+        """The learner incarnation the held copy came from."""
+        return self.by_actor[actor][version][0]
 
     def forget_below(self, version: int) -> None:
         for versions in self.by_actor:

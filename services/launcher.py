@@ -324,18 +324,17 @@ class LocalCluster:
             seen = "never" if age is None else f"not for {age:.0f} s"
             return (f"{head}; learner stats: {seen} (the learner is frozen, blocked or cut off); {ref}",
                     [learner] if learner is not None and learner.proc.poll() is None else [])
-        s = Schedule.for_run(self.cfg.algo, self.cfg.steps)
-        free = min(s.budget, max(s.transitions_consumed(st.updates), s.random_until) + self.cfg.tolerance)
-        room = st.accept_until - st.env_steps
-        facts = (f"learner at {st.env_steps:,}/{s.budget:,} transitions, {st.updates:,} updates, credit accept_until "
-                 f"{st.accept_until:,} (room {room:,}), versions {list(st.versions)}, {st.workers} workers, "
-                 f"rejected {dict(st.rejected) or 'none'}, {ref}")
-        if room <= 0 and st.accept_until < free:
-            return (f"{head}; {facts}: the credit stops at a round barrier, waiting for the referee's allocation",
+        facts = (f"learner at iteration {st.iteration:,} ({st.env_steps:,} transitions, {st.updates:,} updates), "
+                 f"versions {list(st.versions)}, {st.workers} workers, rejected {dict(st.rejected) or 'none'}, {ref}")
+        if -1 in st.awaiting:
+            return (f"{head}; {facts}: waiting for the referee's elimination decision",
                     [referee] if referee is not None and referee.proc.poll() is None else [learner])
-        if room <= 0:
-            return f"{head}; {facts}: the credit is used up and the learner does not update", [learner]
-        return f"{head}; {facts}: the credit is open and no transitions arrive from the workers", workers
+        if st.awaiting:
+            slots = [a for a in st.awaiting if a >= 0]
+            stuck = [c for c in workers if c.role in {f"worker-{i}" for i in slots}]
+            return (f"{head}; {facts}: waiting for iteration {st.iteration + 1:,}'s transitions from slots {slots}",
+                    stuck or workers)
+        return f"{head}; {facts}: the learner waits for nothing and does not update", [learner]
 
     def restart_counts(self) -> dict[str, int]:
         return {c.role: len(self.restarts.get(c.role, [])) for c in self.children}

@@ -1,9 +1,10 @@
-"""`mam-learner`: replay buffer, all K actors and n·K critics, the rate limiter, checkpoints.
+"""`mam-learner`: replay buffer, all K actors and n·K critics, checkpoints.
 
-One loop: drain transitions into the replay buffer (services/intake.py), run as many updates as
-the schedule allows, publish weights every `sync_every` updates and stats (with the rate
-limiter's credit, mam_core/pacing.py) a few times a second, follow the referee's rounds and
-elimination, checkpoint (services/checkpoint.py), and end the run at `--steps`.
+One loop, Algorithm 1's iterations in lock-step (mam_core/algorithm1.py, services/exact.py):
+stage the workers' transitions per slot, insert iteration i's rows in slot order, make its
+updates (the referee's elimination where the plan places it), publish weights when they change
+and the snapshots the referee judges, stats a few times a second, checkpoint
+(services/checkpoint.py), and end the run with the plan's last iteration.
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ import os
 import socket
 import time
 import uuid
-from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -25,9 +25,9 @@ import typer
 from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
 from mam_core.algorithm1 import Algorithm1
 from mam_core.evaluation import estimation_bias
-from mam_core.pacing import CheckpointRule, Pacer
+from mam_core.pacing import CheckpointRule
 from mam_core.replay import ReplayBuffer, ReplayLog
-from mam_core.schedule import Schedule
+from mam_core.seeding import bias_seed
 from services import announce, bus, keys, options, role, rundir, runlock, tb
 from services.checkpoint import (
     EXIT_CORRUPT,
@@ -38,7 +38,7 @@ from services.checkpoint import (
     save_checkpoint,
 )
 from services.codec import Allocation, Done, LearnerStats, MessageError, TransitionSpec, Weights, decode, encode
-from services.exact import ExactnessLost, SlotStage, snapshot_versions
+from services.exact import SlotStage, snapshot_versions
 from services.intake import Intake
 from services.options import JsonlWriter, RunConfig, write_json
 
@@ -64,18 +64,13 @@ class Learner:
         if cfg.learner_threads > 0:
             torch.set_num_threads(cfg.learner_threads)
         self.agent = MultiActorAgent(self.algo, self.spec, self.device)
-        self.schedule = Schedule.for_run(self.algo, cfg.steps)  # iterations (paper) or transitions
-        self.plan = Algorithm1.for_run(self.algo, cfg.steps)  # Algorithm 1's control flow (exact mode)
-        # Exact mode: lock-step with the plan until a restart breaks it (services/exact.py).
-        self.exact = cfg.collection == "exact"
-        self.inexact = "the learner restarted from its checkpoint" if self.exact and resume is not None else ""
-        self.exact = self.exact and resume is None
-        self.iteration = 0  # exact mode: iterations whose updates are done
-        self.decided_survivor: int | None = None  # exact mode: the referee's choice at C, applied by the plan
-        capacity = min(self.algo.buffer_size, self.schedule.budget + cfg.tolerance)
-        if self.exact:  # what mam_core.reference allocates
-            capacity = min(self.algo.buffer_size, max(self.schedule.budget, self.algo.batch_size))
-        self.buffer = ReplayBuffer(capacity, self.spec.obs_dim, self.spec.act_dim, self.device, self.algo.seed)
+        self.plan = Algorithm1.for_run(self.algo, cfg.steps)  # every "when" of the run
+        self.schedule = self.plan.schedule
+        self.iteration = 0  # iterations whose updates are done
+        self.inexact = ""  # why the run is not exact ("" while it is)
+        self.decided_survivor: int | None = None  # the referee's choice at C, applied where the plan places it
+        self.buffer = ReplayBuffer(self.plan.replay_capacity(self.algo.buffer_size), self.spec.obs_dim,
+                                   self.spec.act_dim, self.device, self.algo.seed)
         spec = TransitionSpec(self.spec.obs_dim, self.spec.act_dim, self.algo.actors, max_rows=4096,
                               max_action=max(self.spec.max_action))
         max_message = spec.max_rows * (2 * self.spec.obs_dim + self.spec.act_dim + 2) * 4 + (1 << 16)
@@ -84,24 +79,24 @@ class Learner:
         self.replay_log = ReplayLog(replay_dir(run_dir)) if cfg.save_replay else None
         # Per worker: (incarnation, seq) such that all its batches up to seq are in the checkpoint
         # generation before the newest (with the replay). Workers keep the batches after it and
-        # resend them to a restarted learner (exactly once, with the intake de-duplicating). One
-        # generation late: when the newest fails to verify at a resume, the learner falls back to
-        # the previous one, and the rows after that are still with the workers.
+        # resend them to a restarted learner. One generation late: when the newest fails to
+        # verify at a resume, the learner falls back to the previous one, and the rows after that
+        # are still with the workers.
         self.acked: dict[str, tuple[str, int]] = {}
         self.acked_newest: dict[str, tuple[str, int]] = {}  # the same for the newest generation
         self.referee_seen = False
         self.other_rejects = bus.RejectLog(log, "message")  # allocation topic
         self.metrics: dict[str, float] = {}
-        self.env_steps = 0  # transitions received into the buffer (the schedule maps them to iterations)
+        self.env_steps = 0  # transitions in the replay buffer
         self.survivor: int | None = None
         self.checkpoints = CheckpointRule(cfg.checkpoint_every, cfg.checkpoint_rows, cfg.checkpoint_seconds)
         self.started = time.monotonic()
+        self.wall_before = 0.0  # wall seconds of the run before this incarnation (from the checkpoint)
         self.stop_requested = False
+        self.mid_iteration = False
+        self.awaiting: tuple[int, ...] = ()  # slots whose rows the loop waits for; -1: the referee's decision
         if resume is not None:
             self._restore(resume)
-        self.pacer = Pacer(self.schedule, cfg.tolerance, cfg.bias_every, self.env_steps)
-        if self.survivor is not None:
-            self.pacer.eliminated = True
 
     def _restore(self, state: dict[str, Any]) -> None:
         self.agent.load_state_dict(state["agent"])
@@ -115,25 +110,22 @@ class Learner:
             if self.buffer.inserted != self.env_steps:
                 raise ValueError(f"checkpoint counts {self.env_steps} transitions, its replay {self.buffer.inserted}")
         self.intake.stream_rows = {k: int(v) for k, v in json.loads(c.get("stream_rows", "{}")).items()}
-        # The run had a referee: a learner resumed at its budget waits for it (its final evaluation)
-        # though none is alive yet, e.g. while `mam run` restarts it.
+        # The run had a referee: a learner resumed at its budget waits for it (its final evaluation).
         self.referee_seen = bool(int(c.get("referee_seen", 0)))
         # Sequence numbers go on from the checkpoint: a gap then counts what died with the old
         # learner, until the workers' resends fill it.
         self.intake.tracker.restore(json.loads(c.get("per_worker", "{}")))
         if self.replay_log is not None:  # just verified: its rows need not be kept twice
             self.acked = self.acked_newest = self.intake.checkpointed_prefixes()
-        # Policy versions jump past anything the dead incarnation can have published after this
-        # checkpoint (at most checkpoint_every updates, one actor step per policy_delay of them).
-        # Otherwise workers keep its newer-numbered weights, tag their transitions with versions
-        # this learner has not reached, and those are rejected as future versions: a stall.
-        jump = self.cfg.checkpoint_every // self.algo.policy_delay + 2
-        self.agent.versions = [v + jump for v in self.agent.versions]
+        self.iteration = int(c["iteration"]) if "iteration" in c else self.plan.iteration_at(self.env_steps)
+        self.wall_before = float(c.get("wall_s", 0.0))
+        self.inexact = str(c.get("inexact", "")) or f"the learner restarted from its checkpoint at iteration " \
+                                                      f"{self.iteration}"
         live = self.agent.live_actors
         if sum(live) == 1 and self.algo.actors > 1:
-            self.survivor = live.index(True)
-        log.info("resumed at %d transitions, %d updates (replay rows: %d)", self.env_steps, self.agent.updates,
-                 len(self.buffer))
+            self.survivor = self.decided_survivor = live.index(True)
+        log.info("resumed at iteration %d: %d transitions, %d updates (replay rows: %d)", self.iteration,
+                 self.env_steps, self.agent.updates, len(self.buffer))
 
     def serve(self) -> None:
         run, s = self.cfg.run, self.session
@@ -145,14 +137,15 @@ class Learner:
         self.workers = bus.watch_alive(s, run, "worker")
         self.referees = bus.watch_alive(s, run, "referee")
         self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
+        self.referee_reports = bus.Latest(late_join=False).subscribe(s, keys.role_stats_all(run, "referee"))
         self.inbox = bus.Inbox(maxsize=8192).subscribe(s, keys.transitions_all(run))
         self.snapshot_pubs = [bus.declare_reliable_publisher(s, keys.eval_weights(run, k))
                               for k in range(self.algo.actors)]
-        self.snapshots_sent: set[int] = set()
-        # The snapshot messages of the latest evaluations, re-sent with the current weights while
-        # an iteration's rows are late (`resend_exact`): a sample lost or overwritten on its key
-        # (a Latest subscriber keeps one per key) must not leave a lock-step run waiting forever.
-        self.recent_snapshots: deque[tuple[int, bytes]] = deque(maxlen=4 * max(self.algo.actors, 1))
+        # What a late or restarted role may still need, re-sent while it is awaited: the weights of
+        # the versions workers act with in the next B+1 iterations, the referee's snapshots by version.
+        self.recent_weights: dict[int, list[bytes]] = {}
+        self.snapshots: dict[int, list[tuple[int, bytes]]] = {}
+        self.referee_events = 0  # evaluations the referee reports done
         self.board = tb.RunBoard(self.run_dir, "learner")  # RUN_DIR/tb/learner: the JSONL rows' scalars
         self.log_writer = self.board.tee(JsonlWriter(self.run_dir / rundir.LEARNER_LOG), tb.learner_scalars)
         self.bias_writer = (self.board.tee(JsonlWriter(self.run_dir / rundir.BIAS), tb.bias_scalars)
@@ -162,110 +155,138 @@ class Learner:
         try:
             self._loop()
         finally:
-            for closable in (self.inbox, self.allocation, self.workers, self.referees, self.log_writer,
-                             self.bias_writer, self.board):
+            for closable in (self.inbox, self.allocation, self.referee_reports, self.workers, self.referees,
+                             self.log_writer, self.bias_writer, self.board):
                 if closable is not None:
                     closable.close()
 
-    # -- the loop: receive, ingest, step the schedule, update, publish ----------------------------
+    # -- the loop: Algorithm 1's iterations in lock-step ------------------------------------------
     def _loop(self) -> None:
-        if self.exact:
-            if self._exact_loop():
-                return  # done, or stopped
-            log.warning("the run is no longer exact: %s; collection goes on asynchronously", self.inexact)
+        """Iterations of the plan: iteration i's rows in slot order, then its updates."""
+        plan, stage = self.plan, SlotStage(self.algo.workers, start=self.iteration + 1)
         self.publish_weights(all_actors=True)
         self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
-        if self.env_steps == 0:  # at once, and again when the random phase ends: a learner killed early resumes
-            self.checkpoint()
-        random_phase_checkpoint = self.env_steps < self.schedule.random_until
-        self._progress, self._progress_at, self._stall_logged = (-1, -1), time.monotonic(), 0.0
-        sync = role.Every(self.cfg.sync_every, start=self.agent.updates)  # counts updates
-        stats, heartbeat, log_row = role.Every(STATS_PERIOD_S), role.Every(HEARTBEAT_S), role.Every(LOG_PERIOD_S)
+        self.checkpoint()  # at once: a learner killed early resumes from here
+        self.stats_due, self.heartbeat, self.log_row = role.Every(STATS_PERIOD_S), role.Every(HEARTBEAT_S), \
+            role.Every(LOG_PERIOD_S)
         self.rates, self._rate_base = (0.0, 0.0), (self.env_steps, self.agent.updates, time.monotonic())
+        self.wait_s = 0.0  # seconds the loop waited for an iteration's rows (learner.jsonl: where time goes)
+        self.publish_snapshots(self.iteration)
         while not self.stop_requested:
-            self.ingest(self.inbox.drain(max_items=256))
-            self.follow_allocation()
-            if self.pacer.bias_due(self.env_steps, self.agent.updates):
-                self.measure_bias()  # the critic as trained on the point's transitions
-            budget_done = self.env_steps >= self.schedule.budget
-            ran = self.run_updates(deadline=time.monotonic() + 0.02)
-            if sync.due(self.agent.updates):
-                self.publish_weights()
-            now = time.monotonic()
-            if stats.due(now, STATS_PERIOD_S if ran else STATS_PERIOD_S / 4):
-                self.publish_stats()
-            if heartbeat.due(now):  # late joiners also get it from the cache
-                self.publish_config()
-            if log_row.due(now):
-                self.write_log(now)
-            if self.checkpoints.due(self.agent.updates, self.env_steps, now):
-                self.checkpoint()
-            elif random_phase_checkpoint and self.env_steps >= self.schedule.random_until:
-                random_phase_checkpoint = False
-                self.checkpoint()
-            self.watch_stall(now)
-            if not self.referee_seen and self.referees.live():
-                self.referee_seen = True
-            if budget_done and self.agent.updates >= self.updates_allowed():
+            index = self.iteration + 1
+            if index > plan.iterations:
                 self.finish()
                 return
-            if ran == 0:
-                item = self.inbox.get(timeout=0.005)  # learner ahead of collection: wait for data
-                if item is not None:
-                    self.ingest([item])
-        # Stopped by a signal: keep a usable checkpoint; the run is not done.
-        self.write_log()
-        self.checkpoint()
-
-    def watch_stall(self, now: float) -> None:
-        """The split learner's stall watchdog: no transition and no update for `stall_timeout`
-        seconds logs what it waits for (once per period); `mam run` acts on stalls itself."""
-        progress = (self.env_steps, self.agent.updates)
-        if progress != self._progress:
-            self._progress, self._progress_at = progress, now
-            return
-        limit = self.cfg.stall_timeout
-        if limit <= 0 or now - self._progress_at < limit or now - self._stall_logged < limit:
-            return
-        self._stall_logged = now
-        until, barrier, referee = self.accept_until(), self.pacer.barrier(), bool(self.referees.live())
-        if until > self.env_steps:
-            waits = f"transitions: credit open to {until}, {len(self.workers.live())} workers live"
-        elif barrier is not None and referee and until >= barrier:
-            waits = f"the referee's allocation for the round at {barrier} transitions (credit at the barrier)"
-        else:
-            waits = f"updates: credit used up at {until} (updates allowed {self.updates_allowed()})"
-        log.warning("stalled for %.0f s at %d transitions, %d updates: waiting for %s; versions %s, referee %s, "
-                    "rejected %s", now - self._progress_at, self.env_steps, self.agent.updates, waits,
-                    list(self.agent.versions), "live" if referee else "gone", self.rejected() or "none")
-
-    def ingest(self, items: list[bus.Received]) -> None:
-        self.env_steps += self.intake.ingest(items, self.agent.versions)
-
-    def updates_allowed(self) -> int:
-        """Rate limiter: utd updates per schedule step (iteration or transition) past the start."""
-        if len(self.buffer) < self.algo.batch_size:
-            return 0
-        return self.schedule.updates_allowed(self.env_steps)
-
-    def accept_until(self) -> int:
-        """The credit (mam_core/pacing.py): `tolerance` ahead of the updates, and no further than
-        the next round while a referee is live and has not published it."""
-        return self.pacer.accept_until(self.agent.updates, referee_live=bool(self.referees.live()))
-
-    def run_updates(self, deadline: float) -> int:
-        ran = 0
-        allowed = self.updates_allowed()
-        while self.agent.updates < allowed:
-            self.metrics = self.agent.update(self.buffer.sample(self.algo.batch_size, self.agent.batch_groups))
-            ran += 1
-            if time.monotonic() > deadline:
+            it = plan.iteration(index)
+            waited = time.perf_counter()
+            while not stage.ready(index, it.slots) and not self.stop_requested:  # line 9: the rows
+                self.receive(stage, timeout=0.002)
+                self.awaiting = tuple(stage.missing(index, it.slots))
+                self.idle_duties(f"iteration {index}'s rows from slots {list(self.awaiting)}", waited)
+            self.awaiting = ()
+            self.wait_s += time.perf_counter() - waited
+            if self.stop_requested:
                 break
-        return ran
+            rows, used = stage.take(index, it.slots)
+            self.buffer.add_batch(rows["obs"], rows["action"], rows["reward"], rows["next_obs"],
+                                  rows["terminated"], actor=rows["actor"], version=rows["version"])
+            self.env_steps += len(it.slots)
+            for batch in used:
+                if self.intake.admit(batch):
+                    self.intake.count(batch, self.agent.versions)
+            self.mid_iteration = True  # a stop in the elimination's wait leaves this iteration half done
+            self.metrics = plan.run_updates(it, self.agent, self.sample, self.apply_elimination) or self.metrics
+            if self.stop_requested:
+                break
+            self.mid_iteration = False
+            self.iteration = index
+            if plan.weights_change(index):
+                self.publish_weights()
+            self.publish_snapshots(index)
+            bias = plan.crossing(index, self.cfg.bias_every)
+            if bias is not None:
+                self.measure_bias(bias)
+            now = time.monotonic()
+            if self.stats_due.due(now):
+                self.publish_stats()
+            if self.log_row.due(now):
+                self.write_log(now)
+            if self.heartbeat.due(now):
+                self.publish_config()
+            if self.checkpoints.due(self.agent.updates, self.env_steps, now):
+                self.checkpoint()
+        # Stopped by a signal: keep a usable checkpoint (of the last whole iteration); the run is not done.
+        self.write_log()
+        if not self.mid_iteration:
+            self.checkpoint()
+
+    def sample(self) -> Any:
+        return self.buffer.sample(self.algo.batch_size, self.agent.batch_groups)
+
+    def idle_duties(self, awaited: str, since: float) -> None:
+        """While the loop waits: stats, config and log rows; after HEARTBEAT_S, what a role may
+        have missed once more; every `stall_timeout`, a line saying what is awaited."""
+        now = time.monotonic()
+        if self.stats_due.due(now, STATS_PERIOD_S / 4):
+            self.publish_stats()
+        if self.heartbeat.due(now):
+            self.publish_config()
+            if time.perf_counter() - since > HEARTBEAT_S:  # late: something may be lost
+                self.resend()
+        if self.log_row.due(now):
+            self.write_log(now)
+        limit, waited = self.cfg.stall_timeout, time.perf_counter() - since
+        if limit > 0 and waited > limit and now - getattr(self, "_stall_note", 0.0) > limit:
+            self._stall_note = now
+            log.warning("waiting %.0f s for %s; %d workers live, referee %s", waited, awaited,
+                        len(self.workers.live()), "live" if self.referees.live() else "gone")
+
+    def receive(self, stage: SlotStage, timeout: float) -> None:
+        """Stage what arrived; follow the referee."""
+        items = self.inbox.drain(max_items=256)
+        if not items:
+            item = self.inbox.get(timeout=timeout)
+            items = [item] if item is not None else []
+        for item in items:
+            batch = self.intake.validate(item, self.agent.versions)
+            if batch is None:
+                continue
+            staged, why = stage.add(batch)
+            if why:
+                self.break_exact(why)
+            if batch.env_faults:
+                self.break_exact(f"worker {batch.worker} (slot {batch.slot}) met {batch.env_faults} simulator "
+                                 f"faults in {self.cfg.env_id} by iteration {batch.iteration + batch.rows - 1}")
+            if not staged and not why:
+                self.intake.admit(batch)  # a resend of rows the buffer has: counted, not kept
+        self.follow_allocation()
+        if not self.referee_seen and self.referees.live():
+            self.referee_seen = True  # finish() waits for its final evaluation
+
+    def break_exact(self, why: str) -> None:
+        """The run goes on in the same order, but it is no longer the seed's run (stats, summary)."""
+        if not self.inexact:
+            self.inexact = why
+            log.warning("the run is no longer exact: %s; it goes on in lock-step", why)
+
+    def apply_elimination(self) -> None:
+        """The referee's survivor (waits for its decision at C: it evaluates the actors after
+        iteration C-1 while this iteration's rows come in)."""
+        since = time.perf_counter()
+        self.awaiting = (-1,)
+        while self.decided_survivor is None and not self.stop_requested:
+            self.follow_allocation()
+            self.idle_duties("the referee's elimination", since)
+            self.allocation.wait_fresh(timeout=0.05)
+        self.awaiting = ()
+        if self.decided_survivor is None:
+            return  # stopping: the checkpoint is of the iteration before
+        self.survivor = self.decided_survivor
+        self.agent.eliminate(self.survivor)
+        log.info("eliminated all actors but %d at iteration %d", self.survivor, self.plan.elimination)
 
     def follow_allocation(self) -> None:
-        """Lift the round barrier once the referee has published the round; train only the
-        survivor once it has eliminated the others (Sec. 3.1.1)."""
+        """The survivor, once the referee has decided it (applied where the plan places it)."""
         item = self.allocation.fresh().get(keys.allocation(self.cfg.run))
         if item is None:
             return
@@ -274,28 +295,57 @@ class Learner:
         except MessageError as e:
             self.other_rejects.reject("allocation", e)
             return
-        self.pacer.on_allocation(alloc.round, alloc.env_steps, alloc.survivor)
-        if self.exact:
-            if alloc.iteration is None:
-                self.break_exact("the referee allocates asynchronously (it restarted)")
-            elif alloc.survivor is not None:
-                self.decided_survivor = alloc.survivor  # applied where Algorithm 1 places it
-            return
-        if alloc.survivor is not None and self.survivor is None:
-            self.survivor = alloc.survivor
-            self.agent.eliminate(alloc.survivor)
-            log.info("eliminated all actors but %d at %d transitions", alloc.survivor, self.env_steps)
-            self.publish_weights(all_actors=True)
+        if alloc.survivor is not None:
+            self.decided_survivor = alloc.survivor
 
     # -- publishing -------------------------------------------------------------------------------
+    def weights_message(self, k: int) -> bytes:
+        return Weights(k, self.agent.versions[k], self.agent.actor_params(k), self.spec.obs_dim, self.spec.act_dim,
+                       max(self.spec.max_action), tuple(self.algo.hidden), self.incarnation
+                       ).to_bytes(self.id, self._next_seq())
+
     def publish_weights(self, all_actors: bool = False) -> None:
+        """The live actors' weights (all with `all_actors`), kept while a slot may act with them."""
         live = self.agent.live_actors
+        msgs = []
         for k in range(self.algo.actors):
             if live[k] or all_actors:
-                msg = Weights(k, self.agent.versions[k], self.agent.actor_params(k), self.spec.obs_dim,
-                              self.spec.act_dim, max(self.spec.max_action), tuple(self.algo.hidden),
-                              self.incarnation)
-                self.weights_pubs[k].put(msg.to_bytes(self.id, self._next_seq()))
+                msg = self.weights_message(k)
+                self.weights_pubs[k].put(msg)
+                msgs.append((k, msg))
+        version = self.plan.version_after(self.iteration)
+        self.recent_weights[version] = msgs
+        needed = self.plan.version_for(min(self.iteration + 1, self.plan.iterations))
+        for old in [v for v in self.recent_weights if v < needed]:
+            del self.recent_weights[old]
+
+    def publish_snapshots(self, index: int) -> None:
+        """The versions the referee's next evaluations judge, once each (`snapshot_versions`)."""
+        for version in sorted(snapshot_versions(self.plan, index) - set(self.snapshots)):
+            self.snapshots[version] = [(k, self.weights_message(k)) for k, alive in enumerate(self.agent.live_actors)
+                                       if alive]
+            for k, msg in self.snapshots[version]:
+                self.snapshot_pubs[k].put(msg)
+
+    def resend(self) -> None:
+        """Once more what a late role may have missed: the weights of the versions the slots act
+        with next, and the snapshots of the evaluations the referee has not reported done.
+        Versions a role holds are not loaded again, so this changes nothing for a role that had them."""
+        for version in sorted(self.recent_weights):
+            for k, msg in self.recent_weights[version]:
+                self.weights_pubs[k].put(msg)
+        for item in self.referee_reports.snapshot().values():
+            try:
+                self.referee_events = max(self.referee_events, int(decode(item.payload).get("events", 0)))
+            except (MessageError, TypeError, ValueError):
+                continue
+        events = self.plan.events()[self.referee_events:]
+        pending = {self.plan.judged_version(i, purpose) for i, purpose in events}
+        for version in sorted(pending & set(self.snapshots)):
+            for k, msg in self.snapshots[version]:
+                self.snapshot_pubs[k].put(msg)
+        for old in [v for v in self.snapshots if v < min(pending, default=0)]:
+            del self.snapshots[old]
 
     def _next_seq(self) -> int:
         self.seq += 1
@@ -306,12 +356,12 @@ class Learner:
         losses = {k.split("/", 1)[1]: v for k, v in self.metrics.items() if k.startswith("loss/")}
         q_means = [self.metrics.get(f"q/actor{k}", float("nan")) for k in range(self.algo.actors)]
         return LearnerStats(
-            env_steps=self.env_steps, updates=self.agent.updates, accept_until=self.accept_until(),
+            env_steps=self.env_steps, updates=self.agent.updates, accept_until=self.schedule.budget,
             utd=self.utd(), losses=losses, q_means=tuple(q_means), versions=tuple(self.agent.versions),
             per_worker=self.intake.counters(now, self.acked), rejected=self.rejected(), done=done,
             live=tuple(self.agent.live_actors), workers=max(len(self.workers.live()), self.intake.active(now)),
-            steps=self.schedule.budget, incarnation=self.incarnation, exact=self.exact, iteration=self.iteration,
-            inexact=self.inexact)
+            steps=self.schedule.budget, incarnation=self.incarnation, exact=not self.inexact,
+            iteration=self.iteration, inexact=self.inexact, awaiting=self.awaiting)
 
     @property
     def iterations(self) -> int:
@@ -349,231 +399,52 @@ class Learner:
                "versions": list(self.agent.versions), "live": self.agent.live_actors,
                "lost": tracker.lost, "duplicates": tracker.duplicates,
                "rejected": self.intake.rejects.total, "buffer": len(self.buffer),
-               "received": {w: t.received for w, t in self.intake.workers.items()}}
+               "received": {w: t.received for w, t in self.intake.workers.items()},
+               "exact_wait_s": round(getattr(self, "wait_s", 0.0), 3)}
         row.update(self.metrics)
-        if self.exact:
-            row["exact_wait_s"] = round(getattr(self, "exact_wait_s", 0.0), 3)
         if self.intake.episode_returns:
             row["train_return"] = float(np.mean(self.intake.episode_returns))
             self.intake.episode_returns.clear()
         self.log_writer.write(row)
 
-    def measure_bias(self) -> None:
-        """Eq. 17 for every live actor k: Q_k1(s0, π_k(s0)) of the current critic against the
-        discounted Monte-Carlo return of π_k from the same initial states (`bias_rollouts`
-        rollouts, seeded by the point so every variant of a seed starts from the same states).
-        Training pauses meanwhile; the rate limiter holds the workers."""
-        point = self.pacer.take_bias_point(self.env_steps)
+    def measure_bias(self, point_index: int) -> None:
+        """Eq. 17 for every live actor k at bias point j: Q_k1(s0, π_k(s0)) of the current critic
+        against the discounted Monte-Carlo return of π_k from the same initial states
+        (`bias_rollouts` rollouts, `seeding.bias_seed`). Training pauses meanwhile."""
         started = time.monotonic()
+        point = point_index * self.cfg.bias_every
         live = self.agent.live_actors
-        seed = 1_000_003 * (self.algo.seed + 1) + point // self.cfg.bias_every * 1_009
         for k in (k for k, alive in enumerate(live) if alive):
             try:
                 result = estimation_bias(lambda obs, k=k: self.agent.act(obs, k),
                                          lambda obs, act, k=k: self.agent.q_value(obs, act, k),
-                                         self.cfg.env_id, self.cfg.bias_rollouts, self.algo.gamma, seed,
-                                         self.cfg.env_kwargs, horizon=self.cfg.bias_horizon)
+                                         self.cfg.env_id, self.cfg.bias_rollouts, self.algo.gamma,
+                                         bias_seed(self.algo.seed, point_index), self.cfg.env_kwargs,
+                                         horizon=self.cfg.bias_horizon)
             except Exception:  # a diagnostic never stops the training
-                log.exception("bias measurement at %d transitions failed (actor %d)", point, k)
+                log.exception("bias measurement at %d failed (actor %d)", point, k)
                 continue
             self.bias_writer.write({"env_steps": self.env_steps, "iterations": self.iterations, "point": point,
-                                    "updates": self.agent.updates,
-                                    "live": list(live), "rollouts": self.cfg.bias_rollouts,
-                                    "bias": {"actor": k, **result}})
+                                    "updates": self.agent.updates, "live": list(live),
+                                    "rollouts": self.cfg.bias_rollouts, "bias": {"actor": k, **result}})
         log.info("bias at %d transitions measured in %.1f s", self.env_steps, time.monotonic() - started)
 
     def checkpoint(self) -> None:
         started = time.monotonic()
         counters = {"env_steps": self.env_steps, "per_worker": json.dumps(self.intake.tracker.per_sender()),
-                    "stream_rows": json.dumps(self.intake.stream_rows), "referee_seen": int(self.referee_seen)}
+                    "stream_rows": json.dumps(self.intake.stream_rows), "referee_seen": int(self.referee_seen),
+                    "iteration": self.iteration, "inexact": self.inexact,
+                    "wall_s": round(self.wall_before + time.monotonic() - self.started, 3)}
         path = save_checkpoint(self.run_dir, self.agent, self.buffer, counters, self.cfg, self.replay_log,
                                survivor=self.survivor)  # with policy.npz, in a verified generation
         self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
         if self.replay_log is not None:  # only now on disk: workers may drop what the previous one holds
             self.acked, self.acked_newest = self.acked_newest, self.intake.checkpointed_prefixes()
-        log.info("checkpoint %s at %d updates, %d transitions (%.2f s)", path, self.agent.updates, self.env_steps,
-                 time.monotonic() - started)
-
-    # -- exact mode: Algorithm 1 in lock-step (services/exact.py) --------------------------------
-    def _exact_loop(self) -> bool:
-        """Iterations 1..N of the plan: rows in slot order, then the iteration's updates. True
-        when the run finished (or was stopped); False when exactness broke (go asynchronous)."""
-        plan, stage = self.plan, SlotStage(self.algo.workers)
-        self.publish_weights(all_actors=True)
-        self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
-        self.checkpoint()  # at once: a learner killed early resumes (asynchronously) from here
-        stats, heartbeat, log_row = role.Every(STATS_PERIOD_S), role.Every(HEARTBEAT_S), role.Every(LOG_PERIOD_S)
-        self.rates, self._rate_base = (0.0, 0.0), (self.env_steps, self.agent.updates, time.monotonic())
-        self.workers_seen: set[str] = set()
-        self.workers_were_live: set[str] = set()
-        self.referee_id: str | None = None
-        self.exact_wait_s = 0.0  # seconds the loop waited for an iteration's rows (learner.jsonl: where time goes)
-        self.unstaged: list[bus.Received] = []  # what arrived with the batch that ended exactness
-        try:
-            while not self.stop_requested:
-                index = self.iteration + 1
-                if index > plan.iterations:
-                    self.finish()
-                    return True
-                it = plan.iteration(index)
-                waited = time.perf_counter()
-                while not stage.ready(index, it.slots):  # line 9: the iteration's transitions
-                    self.receive_exact(stage, timeout=0.002)
-                    now = time.monotonic()
-                    if stats.due(now, STATS_PERIOD_S / 4):
-                        self.publish_stats()
-                    if heartbeat.due(now):
-                        self.publish_config()
-                        if time.perf_counter() - waited > HEARTBEAT_S:  # late: something may be lost
-                            self.resend_exact()
-                    if log_row.due(now):
-                        self.write_log(now)
-                    if self.stop_requested:
-                        break
-                self.exact_wait_s += time.perf_counter() - waited
-                if self.stop_requested:
-                    break
-                if index == 1:
-                    self.publish_snapshots(0)  # the referee is subscribed: workers have its allocation
-                rows, used = stage.take(index, it.slots)
-                self.buffer.add_batch(rows["obs"], rows["action"], rows["reward"], rows["next_obs"],
-                                      rows["terminated"], actor=rows["actor"], version=rows["version"])
-                self.env_steps += len(it.slots)
-                for batch in used:
-                    self.intake.admit(batch)
-                    self.intake.count(batch, self.agent.versions)
-                self.exact_updates(it)
-                self.iteration = index
-                if plan.weights_change(index):
-                    self.publish_weights()
-                self.publish_snapshots(index)
-                if self.pacer.bias_due(self.env_steps, self.agent.updates):
-                    self.measure_bias()
-                now = time.monotonic()
-                if stats.due(now):
-                    self.publish_stats()
-                if log_row.due(now):
-                    self.write_log(now)
-                if heartbeat.due(now):
-                    self.publish_config()
-                if self.checkpoints.due(self.agent.updates, self.env_steps, now):
-                    self.checkpoint()
-        except ExactnessLost as e:
-            self.inexact = str(e)
-            self.exact = False
-            self.insert_leftovers(stage)
-            self.ingest(self.unstaged)
-            self.publish_stats()
-            return False
-        self.write_log()
-        self.checkpoint()
-        return True
-
-    def receive_exact(self, stage: SlotStage, timeout: float) -> None:
-        """Stage what arrived; watch for what ends exactness (a role gone or restarted)."""
-        items = self.inbox.drain(max_items=256)
-        if not items:
-            item = self.inbox.get(timeout=timeout)
-            items = [item] if item is not None else []
-        for n, item in enumerate(items):
-            batch = self.intake.validate(item, self.agent.versions)
-            if batch is None:
-                continue
-            try:
-                stage.add(batch)
-            except ExactnessLost:
-                self.unstaged = items[n:]  # this batch and what came after it: ingested asynchronously
-                raise
-            self.workers_seen.add(batch.worker)
-        self.follow_allocation()
-        if self.inexact:
-            raise ExactnessLost(self.inexact)
-        live = self.workers.live()
-        self.workers_were_live |= live  # a first batch can arrive before its sender's token: not "gone"
-        gone = sorted((self.workers_seen & self.workers_were_live) - set(live))
-        if gone:
-            raise ExactnessLost(f"worker {gone[0]} left before the end of the run")
-        referees = self.referees.live()
-        if self.referee_id is None and len(referees) == 1:
-            self.referee_id = next(iter(referees))
-            self.referee_seen = True  # finish() waits for its final evaluation
-        elif self.referee_id is not None and self.referee_id not in referees:
-            raise ExactnessLost(f"referee {self.referee_id} left before the end of the run")
-
-    def break_exact(self, why: str) -> None:
-        """Exactness ends here (the caller's loop raises ExactnessLost)."""
-        if self.exact and not self.inexact:
-            self.inexact = why
-
-    def insert_leftovers(self, stage: SlotStage) -> None:
-        """Going asynchronous: what was staged goes into the buffer as it is, counted once."""
-        for batch, used in stage.leftovers():
-            rest = slice(used, batch.rows)
-            self.buffer.add_batch(batch.obs[rest], batch.action[rest], batch.reward[rest], batch.next_obs[rest],
-                                  batch.terminated[rest], actor=batch.actor, version=batch.version)
-            self.env_steps += batch.rows - used
-            if self.intake.admit(batch):
-                self.intake.count(batch, self.agent.versions)
-
-    def exact_updates(self, it: Any) -> None:
-        """Iteration `it`'s updates (lines 11-24): one mini-batch per actor each; at C the
-        elimination comes right before the first actor phase (or after the updates)."""
-        at = self.plan.elimination_update() if it.eliminate else None
-        for _ in range(it.updates[0], it.updates[1]):
-            batch = self.buffer.sample(self.algo.batch_size, self.agent.batch_groups)
-            metrics = self.agent.update_critics(batch)
-            if self.agent.actor_phase_due:
-                if self.agent.updates == at:
-                    self.apply_elimination()
-                metrics.update(self.agent.update_actors(batch))
-            self.metrics = metrics
-        if it.eliminate and at is None:
-            self.apply_elimination()
-
-    def apply_elimination(self) -> None:
-        """The referee's survivor (waits for its decision at C: it evaluates the actors as they
-        acted in iteration C, while this iteration's rows come in)."""
-        heartbeat = role.Every(HEARTBEAT_S)
-        while self.decided_survivor is None:
-            self.follow_allocation()
-            if self.inexact:
-                raise ExactnessLost(self.inexact)
-            if self.stop_requested:
-                raise ExactnessLost("stopped while waiting for the elimination")
-            if heartbeat.due():
-                self.publish_stats()
-                self.publish_config()
-                self.resend_exact()  # the referee may have missed the snapshot it decides on
-            self.allocation.wait_fresh(timeout=0.05)
-        self.survivor = self.decided_survivor
-        self.agent.eliminate(self.survivor)
-        self.pacer.eliminated = True
-        log.info("eliminated all actors but %d at iteration %d", self.survivor, self.plan.elimination)
-
-    def publish_snapshots(self, index: int) -> None:
-        """The versions the referee's next evaluations need, once each (`snapshot_versions`)."""
-        for version in sorted(snapshot_versions(self.plan, index) - self.snapshots_sent):
-            self.snapshots_sent.add(version)
-            for k, alive in enumerate(self.agent.live_actors):
-                if alive:
-                    msg = Weights(k, self.agent.versions[k], self.agent.actor_params(k), self.spec.obs_dim,
-                                  self.spec.act_dim, max(self.spec.max_action), tuple(self.algo.hidden),
-                                  self.incarnation).to_bytes(self.id, self._next_seq())
-                    self.snapshot_pubs[k].put(msg)
-                    self.recent_snapshots.append((k, msg))
-
-    def resend_exact(self) -> None:
-        """The current weights and the latest snapshots once more (an iteration's rows are late:
-        a worker or the referee may have missed them). Versions equal to what a role holds are
-        not loaded again, so this changes nothing for a role that had them."""
-        self.publish_weights()
-        for k, msg in self.recent_snapshots:
-            self.snapshot_pubs[k].put(msg)
+        log.info("checkpoint %s at iteration %d, %d updates, %d transitions (%.2f s)", path, self.iteration,
+                 self.agent.updates, self.env_steps, time.monotonic() - started)
 
     def finish(self) -> None:
         """Budget reached: final weights, checkpoint, then tell everyone until they have left."""
-        if self.pacer.bias_reached(self.env_steps):
-            self.measure_bias()  # a point at the budget itself: the loop leaves before checking it
         self.publish_weights(all_actors=True)
         self.write_log()
         self.checkpoint()
@@ -586,11 +457,10 @@ class Learner:
             self.publish_stats(done=True)
             if not self.workers.live() or time.monotonic() > deadline:
                 break
-            self.ingest(self.inbox.drain())  # what was sent before Done is counted, not left queued
+            self.count_late(self.inbox.drain())
             time.sleep(0.1)
         self.inbox.close()
-        self.ingest(self.inbox.drain())
-        self.checkpoint()  # with the rows that came in after done: the replay holds every counted row
+        self.count_late(self.inbox.drain())
         self.wait_for_referee(msg)
         tracker = self.intake.tracker
         write_json(self.run_dir / rundir.TRANSPORT, {
@@ -598,48 +468,52 @@ class Learner:
             "lost": tracker.lost, "duplicates": tracker.duplicates, "rejected": self.rejected(),
             "recovered": tracker.recovered, "redundant": tracker.redundant,
             "replay_rows": self.buffer.inserted if self.replay_log is not None else None,
+            "wall_s": round(self.wall_before + time.monotonic() - self.started, 3),
             **self.intake.transport(),
             "inbox_dropped": self.inbox.dropped})  # shed before decoding when the inbox overflowed
         log.info("done: %d transitions, %d updates, lost %d, duplicates %d, rejected %d", self.env_steps,
                  self.agent.updates, tracker.lost, tracker.duplicates, self.intake.rejects.total)
 
+    def count_late(self, items: list[bus.Received]) -> None:
+        """Batches that arrive after the last iteration (a resend): counted, never inserted."""
+        for item in items:
+            batch = self.intake.validate(item, self.agent.versions)
+            if batch is not None:
+                self.intake.admit(batch)
+
     def wait_for_referee(self, msg: Done) -> None:
         """Stay up (repeating done) until the referee has written its final evaluation.
 
         A referee that dies now is restarted (`mam run`) and needs this learner's config,
-        done notice and final weights. Waits while a referee was seen during the run and has
-        not reported `final`: up to REFEREE_GRACE_S without any referee alive, and at most
+        done notice and snapshots. Waits while a referee was seen during the run and has not
+        reported `final`: up to REFEREE_GRACE_S without any referee alive, and at most
         REFEREE_WAIT_S in all.
         """
         if not self.referee_seen:
             return
-        sub = bus.Latest(late_join=False).subscribe(self.session, keys.role_stats_all(self.cfg.run, "referee"))
         deadline = time.monotonic() + REFEREE_WAIT_S
         gone_since: float | None = None
         last_put = 0.0
-        try:
-            while time.monotonic() < deadline and not self.stop_requested:
-                if any(self._is_final(item) for item in sub.snapshot().values()):
-                    return
-                now = time.monotonic()
-                if self.referees.live():
-                    gone_since = None
-                elif gone_since is None:
-                    gone_since = now
-                elif now - gone_since > REFEREE_GRACE_S:
-                    log.warning("no referee for %.0f s after done: not waiting for its final evaluation",
-                                REFEREE_GRACE_S)
-                    return
-                if now - last_put >= 1.0:  # a restarted referee needs these (the caches serve them too)
-                    self.done_pub.put(msg.to_bytes(self.id, self._next_seq()))
-                    self.publish_stats(done=True)
-                    self.publish_config()
-                    self.publish_weights(all_actors=True)
-                    last_put = now
-                time.sleep(0.1)
-            log.warning("the referee did not report its final evaluation within %.0f s", REFEREE_WAIT_S)
-        finally:
-            sub.close()
+        while time.monotonic() < deadline and not self.stop_requested:
+            if any(self._is_final(item) for item in self.referee_reports.snapshot().values()):
+                return
+            now = time.monotonic()
+            if self.referees.live():
+                gone_since = None
+            elif gone_since is None:
+                gone_since = now
+            elif now - gone_since > REFEREE_GRACE_S:
+                log.warning("no referee for %.0f s after done: not waiting for its final evaluation",
+                            REFEREE_GRACE_S)
+                return
+            if now - last_put >= 1.0:  # a restarted referee needs these (the caches serve them too)
+                self.done_pub.put(msg.to_bytes(self.id, self._next_seq()))
+                self.publish_stats(done=True)
+                self.publish_config()
+                self.resend()
+                last_put = now
+            time.sleep(0.1)
+        log.warning("the referee did not report its final evaluation within %.0f s", REFEREE_WAIT_S)
 
     @staticmethod
     def _is_final(item: bus.Received) -> bool:

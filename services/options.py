@@ -31,7 +31,9 @@ from services import keys
 # -- the run options: one table -----------------------------------------------------------------
 ALGO, RUN = "algo", "run"  # where a run option lands: an AlgoConfig field or a RunConfig field
 BIAS_HORIZONS = ("critic", "episode")
-COLLECTIONS = ("exact", "async")  # services/exact.py
+# Keys of config.json files written by earlier versions, read and ignored: the asynchronous
+# collection and its knobs (the weights period and the rate limiter's band) are gone.
+RETIRED_KEYS = frozenset({"collection", "sync_every", "band"})
 # `--help` panels (typer's rich_help_panel): a RunOption's `panel`, else PANELS by name, else RUN_PANEL
 ALGORITHM_PANEL, SCHEDULE_PANEL, RUN_PANEL = "Algorithm (the paper's symbols)", "Schedule", "Run"
 SUPERVISION_PANEL, DISTRIBUTION_PANEL = "Checkpoints and supervision", "Distribution"
@@ -127,13 +129,11 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
     _opt("bias_rollouts", int, "Monte-Carlo rollouts per bias measurement (the paper: 20)", target=RUN),
     _opt("bias_horizon", str, "Eq. 17's Monte-Carlo Q*: critic (adds the bootstrap tail γ^T·Q(s_T, π(s_T)) "
          "at a time limit, the critic's own horizon) or episode (cut at the time limit)", target=RUN),
-    _opt("collection", str, "exact (default): iteration t steps every live slot with the actors after iteration "
-         "t-1's updates, so the run equals the one-process Algorithm 1 (mam_core.reference) bit for bit and reruns "
-         "from --seed; async: workers collect ahead, rate-limited (more throughput, not reproducible)",
-         target=RUN),
+    _opt("lag", int, "iteration t acts with the actors after iteration t-1-B's updates and an allocation applies "
+         "B iterations after it is drawn: workers step up to B iterations ahead of the learner (0: Algorithm 1 as "
+         "printed). Every B is one deterministic run of its seed, equal to mam_core.reference with the same B",
+         symbol="B"),
     _opt("run", str, "run name: the key-expression namespace mam/<run>/...", target=RUN),
-    _opt("sync_every", int, "publish actor weights every N updates (async collection; exact mode publishes them "
-         "whenever they change, every d iterations)", target=RUN),
     _opt("save_replay", bool, "persist the replay buffer beside the checkpoint as append-only chunks",
          target=RUN, flags=("--save-replay/--no-save-replay",)),
     _opt("checkpoint_every", int, "checkpoint every N updates ...", target=RUN),
@@ -143,7 +143,6 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
          "`mam run` logs what each side waits for and restarts the stuck child (0: no watchdog)", target=RUN),
     # TOML only: knobs of the algorithm and the services that no command line needs
     _opt("send_batch", int, "transitions per message from a worker", target=RUN, cli=False),
-    _opt("band", int, "rate limiter tolerance in transitions (0: automatic)", target=RUN, cli=False),
     _opt("learner_threads", int, "torch threads of the learner (0: torch's default)", target=RUN, cli=False),
     _opt("critics_per_actor", int, "critics per actor", symbol="n", cli=False),
     _opt("lr", float, "actor and critic learning rate (Adam)", cli=False),
@@ -168,7 +167,7 @@ PANELS = {
                      "bias_every", "bias_rollouts", "bias_horizon"), SCHEDULE_PANEL),
     **dict.fromkeys(("save_replay", "checkpoint_every", "checkpoint_rows", "checkpoint_seconds", "stall_timeout",
                      "max_restarts", "restart_window"), SUPERVISION_PANEL),
-    **dict.fromkeys(("sync_every", "collection", "send_batch", "band"), DISTRIBUTION_PANEL),
+    **dict.fromkeys(("lag", "send_batch"), DISTRIBUTION_PANEL),
 }
 
 
@@ -298,13 +297,11 @@ class RunConfig:
     env_id: str
     steps: int
     algo: AlgoConfig
-    sync_every: int = 100  # publish actor weights every N updates
     checkpoint_every: int = 50_000  # updates between checkpoints (and on exit) ...
     checkpoint_rows: int = 20_000  # ... or transitions received (bounds what workers keep for a resend) ...
     checkpoint_seconds: float = 60.0  # ... or seconds, whichever comes first
     stall_timeout: float = 300.0  # no transition and no update for this long: stalled (0: no watchdog)
     send_batch: int = 32  # transitions per message from a worker
-    band: int = 0  # rate limiter tolerance in transitions (0: automatic)
     save_replay: bool = True  # the replay buffer as append-only chunks beside the checkpoint
     learner_threads: int = 1  # torch threads of the learner (0: torch's default); 1 avoids
     # OpenMP spin contention with the workers on a small box
@@ -313,23 +310,16 @@ class RunConfig:
     bias_rollouts: int = 20  # Monte-Carlo rollouts per bias point (the paper: 20)
     bias_horizon: str = "critic"  # critic: MC return + bootstrap tail at a time limit; episode: cut there
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # gym.make(env_id, **env_kwargs) everywhere
-    collection: str = "exact"  # exact: lock-step Algorithm 1 (services/exact.py); async: rate-limited, ahead
-
-    @property
-    def tolerance(self) -> int:
-        """Rate limiter band: how far collection may run ahead of utd (transitions)."""
-        if self.band > 0:
-            return self.band
-        return max(4 * self.algo.workers * self.send_batch, 256)
 
     @property
     def resend_rows(self) -> int:
         """Most rows a worker keeps for a resend to a restarted learner: what it sent since the
         generation before the learner's newest checkpoint (acknowledgements are one generation
         late, so a fallback to it loses nothing) is at most 2 · `checkpoint_rows` plus one drain of
-        the inbox and the time the acknowledgement takes to come back; one interval more and the
-        credit band leave room."""
-        return 3 * self.checkpoint_rows + 4 * self.tolerance
+        the inbox and the time the acknowledgement takes to come back; one interval more and what a
+        slot may have staged ahead (the lag) leave room."""
+        return 3 * self.checkpoint_rows + 4 * max(4 * self.algo.workers * self.send_batch, 256) + \
+            self.algo.workers * (self.algo.lag + 1)
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -338,7 +328,7 @@ class RunConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "RunConfig":
-        d = dict(d)
+        d = {k: v for k, v in d.items() if k not in RETIRED_KEYS}
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = set(d) - known
         if unknown:
@@ -351,8 +341,6 @@ class RunConfig:
             raise ValueError("steps must be >= 1")
         if cfg.bias_every < 0 or cfg.bias_rollouts < 1:
             raise ValueError("bias_every must be >= 0 and bias_rollouts >= 1")
-        if cfg.collection not in COLLECTIONS:
-            raise ValueError(f"collection must be one of {', '.join(COLLECTIONS)}, not {cfg.collection!r}")
         if cfg.bias_horizon not in BIAS_HORIZONS:
             raise ValueError(f"bias_horizon must be one of {', '.join(BIAS_HORIZONS)}")
         if cfg.checkpoint_every < 1 or cfg.checkpoint_rows < 1 or not cfg.checkpoint_seconds > 0:

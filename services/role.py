@@ -13,7 +13,6 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from mam_core.policy import NumpyActors
 from services import bus, keys
 from services.codec import LearnerStats, MessageError, Weights, decode, encode
 from services.options import RunConfig
@@ -155,66 +154,18 @@ def plausible_version(w: Weights, stats: LearnerStats | None) -> bool:
     return w.version <= stats.versions[w.actor] + MAX_VERSION_LEAD
 
 
-class WeightsFollower:
-    """A role's CPU copy of every actor, kept up to date from the learner's weights topic
-    (the worker acts with it, the referee evaluates it); like Acme's variable client.
+def weights_screen(shapes: Mapping[str, tuple[int, ...]], n_actors: int,
+                   rejects: bus.RejectLog) -> Callable[[bus.Received], bool]:
+    """A weights subscription's screen (`bus.Inbox(screen=...)`), run in the callback: a message
+    that does not decode as weights of the run's shapes is rejected and counted there, so a
+    flood of junk on a weights key never takes a queue slot or a valid message's place."""
 
-    Rule: a message is loaded only if its version is strictly newer than the copy's, or if
-    it comes from the learner incarnation the stats name and the copy is from another one. A
-    version names one set of parameters of one learner incarnation: the learner re-publishes
-    the current weights (heartbeats, after an elimination, at the end) and the publishers'
-    caches replay them to late joiners, so an equal version carries the same parameters and
-    loading it again is wasted work; an older one is a reordered or cached stale message. A
-    new learner incarnation (a restart, with or without a checkpoint) counts its own versions:
-    its weights replace a dead incarnation's even when their counter is lower, and once the
-    stats name the new incarnation nothing of the old one is loaded again. Malformed messages
-    and versions implausibly far ahead of the learner's stats are rejected and counted.
-    """
-
-    def __init__(self, n_actors: int, spec: Any, hidden: tuple[int, ...], rejects: bus.RejectLog) -> None:
-        self.actors = NumpyActors(n_actors, spec, hidden)
-        self.shapes = self.actors.shapes
-        self.n_actors = n_actors
-        self.versions = [-1] * n_actors  # -1: no weights yet
-        self.incarnations = [""] * n_actors  # the learner incarnation each copy came from
-        self.rejects = rejects
-
-    def admits(self, item: bus.Received) -> bool:
-        """The subscription's screen (`bus.Latest(screen=...)`): a message that does not decode
-        as weights of this run's shapes is rejected here, in the callback, so a flood of junk on a
-        weights key never takes the place of the learner's last valid message before it is read."""
+    def admits(item: bus.Received) -> bool:
         try:
-            Weights.from_bytes(item.payload, self.shapes, self.n_actors)
+            Weights.from_bytes(item.payload, shapes, n_actors)
         except MessageError as e:
-            self.rejects.reject(keys.parse_last(item.key), e)
+            rejects.reject(keys.parse_last(item.key), e)
             return False
         return True
 
-    def update(self, items: Mapping[str, bus.Received], stats: LearnerStats | None) -> list[int]:
-        """Load the newer weights among `items` (key -> sample); the actors that changed."""
-        loaded = []
-        for key, item in items.items():
-            sender = keys.parse_last(key)
-            try:
-                w = Weights.from_bytes(item.payload, self.shapes, self.n_actors)
-            except MessageError as e:
-                self.rejects.reject(sender, e)
-                continue
-            current = stats.incarnation if stats is not None and stats.incarnation else ""
-            if current and w.incarnation and w.incarnation != current:
-                continue  # a dead learner's weights (cached or late): never loaded once its successor is known
-            newer_learner = bool(w.incarnation) and w.incarnation != self.incarnations[w.actor] and \
-                (not current or w.incarnation == current)
-            if not newer_learner and not plausible_version(w, stats):
-                self.rejects.reject(sender, MessageError("future_version", f"v{w.version}"))
-                continue
-            if w.version > self.versions[w.actor] or newer_learner:
-                self.actors.load_member(w.actor, w.params)
-                self.versions[w.actor] = w.version
-                self.incarnations[w.actor] = w.incarnation
-                loaded.append(w.actor)
-        return loaded
-
-    def follow(self, sub: bus.Latest, stats: LearnerStats | None) -> list[int]:
-        """`update` with what arrived on the weights subscription since the last call."""
-        return self.update(sub.fresh(), stats)
+    return admits

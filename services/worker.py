@@ -1,10 +1,11 @@
-"""`mam-worker`: one environment slot. Runs the actor the allocation gives it, publishes transitions.
+"""`mam-worker`: one environment slot. Steps its slot's iterations of Algorithm 1, publishes transitions.
 
-The worker needs only `--run` and `--connect`: the env, K and the noise come from the learner's
-config topic. It keeps a CPU copy of every actor (refreshed from the weights topic), explores
-with Gaussian noise (uniform random actions during the run's first `start_steps`), sends
-transitions in small batches tagged with worker id, incarnation, actor and policy version,
-pauses when the learner's credit is used up, and exits when the run is done.
+The worker needs only `--run`, `--connect` and `--slot`: the env, K and the noise come from the
+learner's config topic. It steps iteration i once it holds the allocation and the actor version
+that apply to i (mam_core/algorithm1.py: with a lag B, up to B iterations ahead of the
+learner), explores with Gaussian noise (uniform random actions in the start phase), sends
+transitions in small batches tagged with worker id, incarnation, slot, iteration, actor and
+policy version, and exits when the run is done.
 """
 
 from __future__ import annotations
@@ -25,11 +26,13 @@ import typer
 
 from mam_core.algorithm1 import Algorithm1
 from mam_core.envs import make_env  # registers AppleCollect-v0; imports `module:EnvId` modules
-from mam_core.policy import EnvSpec
-from mam_core.schedule import Schedule
+from mam_core.obsolescence import obsolescence_for
+from mam_core.policy import EnvSpec, NumpyActors
+from mam_core.seeding import stream
 from mam_core.slot import SlotStreams, explore, uniform
 from services import bus, keys, options, role, rundir
-from services.codec import Allocation, LearnerStats, MessageError, TransitionBatch
+from services.codec import Allocation, LearnerStats, MessageError, TransitionBatch, Weights
+from services.exact import WeightsHistory
 from services.options import RunConfig, write_json
 
 log = logging.getLogger("mam.worker")
@@ -62,15 +65,13 @@ class Worker:
         self.env = make_env(cfg.env_id, cfg.env_kwargs)
         self.spec = EnvSpec.from_env(self.env)
         self.max_action = np.asarray(self.spec.max_action, np.float32)
+        self.plan = Algorithm1.for_run(self.algo, cfg.steps)
         # The slot's streams (mam_core.seeding): from --seed, the slot and the restart generation only.
         self.slot = slot_index
         self.streams = SlotStreams.for_slot(self.algo.seed, slot_index, generation)
         self.rng = self.streams.noise
-        self.exact = cfg.collection == "exact" and generation == 0
-        # Simulator faults: the episode is dropped, the env reset, the fault counted (by kind).
+        # Simulator faults: the step is retried on a reset env, the fault counted (by kind).
         self.faults = {kind: 0 for kind in FAULTS}
-        self.dropped_rows = 0  # unsent rows of faulty episodes
-        self.dropped_episodes = 0
         self.env_remade = 0
         self.env.action_space.seed(self.streams.action_seed)
         self.obs = self.reset_env(seed=self.streams.reset_seed)
@@ -82,26 +83,22 @@ class Worker:
         self.unacked_dropped_rows = 0  # over the bound: not kept (if then lost, a counted gap)
         self.resent_rows = 0
         self.resends = 0
-        self.put_rows = 0  # rows put on the wire, resends included (in-flight accounting)
         self.batch_log = None
         # numpy forwards, no torch in a worker: a one-row torch forward costs ~100 µs of dispatch
         # between env steps, this ~14 µs, and importing torch ~3 s and ~180 MB (docs/PERFORMANCE.md)
-        self.follower = role.WeightsFollower(self.algo.actors, self.spec, self.algo.hidden, self.rejects)
-        self.actors = self.follower.actors
+        self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden)
+        self.shapes = self.actors.shapes
         self.policies = [self.actors.policy(k) for k in range(self.algo.actors)]
-        self.versions = self.follower.versions  # -1: no weights yet
-        self.actor = slot_index % self.algo.actors  # until the first allocation arrives
-        self.idle = False  # after the elimination with one environment slot, and this is not it
-        self.random_until = Schedule.for_run(self.algo, cfg.steps).random_until  # transitions
+        self.history = WeightsHistory(self.algo.actors)  # the versions the next B+1 iterations act with
+        self.loaded: list[tuple[int, str] | None] = [None] * self.algo.actors  # (version, incarnation) in `actors`
+        self.actor = slot_index % self.algo.actors
         self.stats: LearnerStats | None = None
         self.batch_seq = 0
         self.sent_rows = 0
-        self.sent_base = 0  # sent_rows when the current learner incarnation appeared
         self.learner_incarnation: str | None = None
         self.episode_return = 0.0
         self.finished_returns: list[float] = []
         self.stop_requested = False
-        self.last_note = 0.0
         self._reset_pending()
 
     def _reset_pending(self) -> None:
@@ -112,10 +109,9 @@ class Worker:
         self.p_next = np.empty((n, o), np.float32)
         self.p_term = np.empty(n, np.bool_)
         self.p_n = 0
-        self.p_episode = 0  # pending rows before this index belong to finished episodes
         self.p_actor = -1
         self.p_version = -1
-        self.p_iteration = -1  # exact mode: the iteration of the first pending row
+        self.p_iteration = -1  # the iteration of the first pending row
         self.p_from = ""  # the learner incarnation of the pending rows' weights
         self.p_started = time.monotonic()
 
@@ -124,7 +120,9 @@ class Worker:
         run, s = self.cfg.run, self.session
         self.pub = bus.declare_reliable_publisher(s, keys.transitions(run, self.id))
         self.report = role.RoleReport(s, run, "worker", self.id)
-        self.weights = bus.Latest.subscribe(s, keys.weights_all(run), screen=self.follower.admits)
+        # Every version, in order (a slot acts with one of the last B+1): a queue, not the latest sample.
+        self.weights = bus.Inbox.subscribe(s, keys.weights_all(run), maxsize=1024,
+                                            screen=role.weights_screen(self.shapes, self.algo.actors, self.rejects))
         self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
         self.stats_sub = bus.Latest.subscribe(s, keys.learner_stats(run))
         self.done = bus.Latest.subscribe(s, keys.done(run))
@@ -133,7 +131,8 @@ class Worker:
             path = self.run_dir / rundir.WORKERS / f"{self.id}-{self.incarnation}.batches"
             path.parent.mkdir(parents=True, exist_ok=True)
             self.batch_log = open(path, "a", buffering=1)
-        log.info("worker %s (incarnation %s) on %s, run %s", self.id, self.incarnation, self.cfg.env_id, run)
+        log.info("worker %s (incarnation %s), slot %d, on %s, run %s", self.id, self.incarnation, self.slot,
+                 self.cfg.env_id, run)
         try:
             self._loop()
         finally:
@@ -147,111 +146,73 @@ class Worker:
                 sub.close()
 
     def _loop(self) -> None:
-        if self.exact:
-            if self._exact_loop():
-                return
-            self.exact = False
-            self.flush()
-            log.info("the run is no longer exact: collecting asynchronously")
-        idle_since: float | None = None
-        last_status = stall_note = time.monotonic()
-        while not self.stop_requested:
-            if time.monotonic() - last_status > STATUS_EVERY_S:
-                st = self.stats
-                link = "" if role.connected(self.session) is not False else \
-                    "; no link to any router or peer: the router or the learner's host is gone"
-                log.info("sent %d rows, actor %d, weights %s, learner at %s/%s%s", self.sent_rows, self.actor,
-                         self.versions, st.env_steps if st else "?", st.accept_until if st else "?", link)
-                last_status = time.monotonic()
-            self.publish_report()
-            if bus.run_is_done(self.done, self.cfg.run, self.rejects):
-                log.info("run is done after %d transitions from this worker", self.sent_rows)
-                return
-            self.refresh()
-            if self.idle or not self.may_send():
-                self.flush()
-                idle_since = idle_since or time.monotonic()
-                limit, now = self.cfg.stall_timeout, time.monotonic()
-                if 0 < limit < now - idle_since and now - stall_note > limit:  # the split role's stall note
-                    stall_note, st = now, self.stats
-                    log.warning("paused for %.0f s: %s", now - idle_since, "no learner stats" if st is None else
-                                "idle after the elimination" if self.idle else
-                                f"credit used up (learner at {st.env_steps}, accept_until {st.accept_until}, "
-                                f"{self.in_flight()} rows of mine not yet counted)")
-                self.stats_sub.wait_fresh(timeout=0.05)  # pause (rate limiter or no learner): no spinning
-                continue
-            idle_since = None
-            random_phase = self.in_random_phase()
-            if not random_phase and self.versions[self.actor] < 0:
-                if time.monotonic() - self.last_note > 5.0:
-                    log.info("waiting for the weights of actor %d", self.actor)
-                    self.last_note = time.monotonic()
-                self.weights.wait_fresh(timeout=0.05)  # weights for our actor not here yet
-                continue
-            self.step(random_phase)
-
-    # -- exact mode: iteration by iteration (services/exact.py) ---------------------------------
-    def _exact_loop(self) -> bool:
-        """Step this slot's iterations of the plan as soon as the allocation and the weights
-        they need are here. True when the run is done (or stopped), False when it is no
-        longer exact (the caller collects asynchronously from here)."""
-        plan = Algorithm1.for_run(self.algo, self.cfg.steps)
-        name = keys.slot_name(self.slot)
-        decisions: dict[int, dict[str, int]] = {}  # iteration of a competition -> its slots
-        index, need = 1, 0  # the next iteration to step; the decision that applies to it
+        """The slot's iterations of the plan, each once it holds the allocation and the actor
+        version that apply to it (mam_core/algorithm1.py), until the learner says done. The
+        first is the one after the learner's last: 1 in a fresh run, later for a replacement."""
+        plan, name = self.plan, keys.slot_name(self.slot)
+        # Iteration of a competition -> its slots. The initial allocation is the allocation stream's first
+        # draw (the referee's too): computed here, so collection starts before the referee is up.
+        first = obsolescence_for(self.algo, self.cfg.steps).allocation(self.algo.workers,
+                                                                       stream(self.algo.seed, "allocation"))
+        decisions = {0: {keys.slot_name(i): int(k) for i, k in enumerate(first)}}
+        index: int | None = None  # the next iteration to step
         waiting_since = time.monotonic()
         while not self.stop_requested:
             self.publish_report()
             if bus.run_is_done(self.done, self.cfg.run, self.rejects):
                 log.info("run is done after %d transitions from this worker", self.sent_rows)
-                return True
-            if not self.refresh_exact(decisions):
-                return False
+                return
+            self.refresh(decisions, index)
+            if index is None:  # where the run stands: the learner's stats
+                if self.stats is None:
+                    self.stats_sub.wait_fresh(timeout=0.1)
+                    continue
+                index = self.stats.iteration + 1
+                if index > 1:
+                    log.info("taking slot %d over at iteration %d", self.slot, index)
             it = plan.iteration(index) if index <= plan.iterations else None
             if it is None or self.slot not in it.slots:
                 self.flush()  # this slot's part of the run is over (the survivor runs slot 0 after C)
                 self.done.wait_fresh(timeout=0.1)
                 continue
-            slots = decisions.get(need)
+            slots = decisions.get(plan.decision_for(index))
             actor = None if slots is None else slots.get(name)
             version = -1 if it.random else plan.version_for(index)
-            if actor is None or (version >= 0 and self.versions[actor] < version):
+            if actor is None or (version >= 0 and not self.history.has(actor, version)):
                 self.flush()
                 if time.monotonic() - waiting_since > STATUS_EVERY_S:
-                    log.info("iteration %d waits for %s", index, "the allocation of iteration %d" % need
-                             if actor is None else f"actor {actor} at version {version} (have {self.versions[actor]})")
+                    log.info("iteration %d waits for %s", index,
+                             f"the allocation of iteration {plan.decision_for(index)}" if actor is None
+                             else f"actor {actor} at version {version}")
                     waiting_since = time.monotonic()
-                (self.allocation if actor is None else self.weights).wait_fresh(timeout=0.05)
+                if actor is None:
+                    self.allocation.wait_fresh(timeout=0.05)
+                else:
+                    self.take_weights(self.weights.get(timeout=0.05), index)
                 continue
             waiting_since = time.monotonic()
-            self.actor = actor
-            if self.p_n and (actor != self.p_actor or version != self.p_version):
-                self.flush()
-            if self.p_n == 0:
-                self.p_iteration = index
-            self.step(it.random)
-            if it.competes:  # the allocation it draws applies from the next iteration on
-                need = index
-                decisions = {i: s for i, s in decisions.items() if i >= need}
+            self.step(index, it.random, actor, version)
             index += 1
-        return True
+            for old in [i for i in decisions if i < plan.decision_for(index)]:
+                del decisions[old]
 
-    def refresh_exact(self, decisions: dict[int, dict[str, int]]) -> bool:
-        """Weights, the referee's decisions (with the one before: none is missed), the learner's
-        stats. False when the run stopped being exact (a restarted role)."""
-        self.follower.follow(self.weights, self.stats)
-        item = self.allocation.fresh().get(keys.allocation(self.cfg.run))
-        if item is not None:
+    def take_weights(self, item: bus.Received | None, index: int | None) -> None:
+        """Keep the versions this slot may still act with (none below iteration `index`'s)."""
+        items = ([item] if item is not None else []) + self.weights.drain()
+        oldest = self.plan.version_for(index) if index is not None and index <= self.plan.iterations else 0
+        current = self.stats.incarnation if self.stats is not None else ""
+        for item in items:
             try:
-                alloc = Allocation.from_bytes(item.payload, self.algo.actors)
+                w = Weights.from_bytes(item.payload, self.shapes, self.algo.actors)
             except MessageError as e:
-                self.rejects.reject("referee", e)
-            else:
-                if alloc.iteration is None:
-                    return False  # a restarted referee allocates asynchronously
-                decisions[alloc.iteration] = dict(alloc.slots)
-                if alloc.previous is not None:
-                    decisions.setdefault(alloc.previous[0], dict(alloc.previous[1]))
+                self.rejects.reject(keys.parse_last(item.key), e)
+                continue
+            if w.version >= oldest and role.plausible_version(w, self.stats):
+                self.history.add(w.actor, w.version, w.params, w.incarnation, prefer=current)
+        self.history.forget_below(oldest)
+
+    def refresh(self, decisions: dict[int, dict[str, int]], index: int | None) -> None:
+        """Weights, the referee's decisions (with the one before: none is missed), the learner's stats."""
         item = self.stats_sub.fresh().get(keys.learner_stats(self.cfg.run))
         if item is not None:
             try:
@@ -259,18 +220,26 @@ class Worker:
             except MessageError as e:
                 self.rejects.reject("learner", e)
             else:
-                restarted = self.learner_incarnation is not None and st.incarnation != self.learner_incarnation
                 self.stats = st
                 self.on_stats(st)
-                if restarted or not st.exact:
-                    return False
-        return True
+        self.take_weights(None, index)
+        item = self.allocation.fresh().get(keys.allocation(self.cfg.run))
+        if item is not None:
+            try:
+                alloc = Allocation.from_bytes(item.payload, self.algo.actors)
+            except MessageError as e:
+                self.rejects.reject("referee", e)
+            else:
+                if alloc.iteration is not None:
+                    decisions[alloc.iteration] = dict(alloc.slots)
+                    if alloc.previous is not None:
+                        decisions.setdefault(alloc.previous[0], dict(alloc.previous[1]))
 
     def publish_report(self, force: bool = False) -> None:
         """This worker's counters on mam/<run>/stats/worker-<id> (rejections are visible there)."""
         self.report.publish({"incarnation": self.incarnation, "sent_rows": self.sent_rows, "batches": self.batch_seq,
-                             "actor": self.actor, "rejected": self.rejects.counts(), **self.fault_counters()},
-                            seq=self.batch_seq, force=force)
+                             "actor": self.actor, "slot": self.slot, "rejected": self.rejects.counts(),
+                             **self.fault_counters()}, seq=self.batch_seq, force=force)
 
     def write_report(self) -> None:
         """What this incarnation sent (compared with the learner's transport.json in tests)."""
@@ -282,33 +251,9 @@ class Worker:
 
     def fault_counters(self) -> dict[str, Any]:
         """Simulator faults and resends (role_stats topic and workers/*.json)."""
-        return {"env_faults": dict(self.faults), "dropped_rows": self.dropped_rows,
-                "dropped_episodes": self.dropped_episodes, "env_remade": self.env_remade,
-                "resent_rows": self.resent_rows, "resends": self.resends, "unacked_rows": self.unacked_rows,
+        return {"env_faults": dict(self.faults), "env_remade": self.env_remade, "resent_rows": self.resent_rows,
+                "resends": self.resends, "unacked_rows": self.unacked_rows,
                 "unacked_dropped_rows": self.unacked_dropped_rows}
-
-    def refresh(self) -> None:
-        self.follower.follow(self.weights, self.stats)
-        item = self.allocation.fresh().get(keys.allocation(self.cfg.run))
-        if item is not None:
-            try:
-                alloc = Allocation.from_bytes(item.payload, self.algo.actors)
-                if self.id in alloc.slots:
-                    self.actor = alloc.slots[self.id]
-                elif alloc.survivor is not None:
-                    self.actor = alloc.survivor
-                # The survivor runs one environment (I_e = 1): the other slots wait.
-                self.idle = alloc.survivor is not None and self.algo.single_env and self.id not in alloc.slots
-            except MessageError as e:
-                self.rejects.reject("referee", e)
-        item = self.stats_sub.fresh().get(keys.learner_stats(self.cfg.run))
-        if item is not None:
-            try:
-                self.stats = LearnerStats.from_bytes(item.payload)
-            except MessageError as e:
-                self.rejects.reject("learner", e)
-            else:
-                self.on_stats(self.stats)
 
     def on_stats(self, st: LearnerStats) -> None:
         """Drop what the learner has checkpointed; on a new learner incarnation resend the rest."""
@@ -316,10 +261,9 @@ class Worker:
         if st.incarnation != self.learner_incarnation:
             first = self.learner_incarnation is None
             self.learner_incarnation = st.incarnation
-            self.sent_base = self.put_rows  # a new learner: the in-flight count starts again
             if self.unacked and not first:
                 self.resend()
-            log.info("learner %s is up: sending again", self.learner_incarnation or "?")
+            log.info("learner %s is up", self.learner_incarnation or "?")
 
     def trim_acked(self, st: LearnerStats) -> None:
         mine = st.per_worker.get(self.id)
@@ -330,77 +274,52 @@ class Worker:
             self.unacked_rows -= self.unacked.popleft().rows
 
     def resend(self) -> None:
-        """Every kept batch again, in order, flagged: the learner keeps those it has not got."""
+        """Every kept batch again, in order, flagged: the learner keeps the rows it has not got."""
         n = 0
         for batch in self.unacked:
             self.pub.put(dataclasses.replace(batch, resend=True).to_bytes())
             n += batch.rows
         self.resent_rows += n
         self.resends += 1
-        self.put_rows += n
         log.info("resent %d rows in %d batches (seq %d..%d) to the new learner", n, len(self.unacked),
                  self.unacked[0].batch_seq, self.unacked[-1].batch_seq)
 
-    def in_flight(self) -> int:
-        """Rows put for the current learner incarnation that it has not reported yet.
-
-        A restarted learner (new incarnation) starts the count again: what was sent to the old
-        one was received by it, is resent (kept batches), or died with it.
-        """
-        if self.stats is None:
-            return self.put_rows - self.sent_base
-        mine = self.stats.per_worker.get(self.id)
-        seen = 0
-        if mine and mine.incarnation == self.incarnation:
-            seen = (mine.incarnation_rows or 0) + (mine.redundant_rows or 0) + (mine.rejected_rows or 0)
-        return max(self.put_rows - self.sent_base - seen, 0)
-
-    def may_send(self) -> bool:
-        """Rate limiter: keep this worker's unreported rows within its share of the learner's credit."""
-        st = self.stats
-        if st is None or st.done:
-            return False
-        room = st.accept_until - st.env_steps
-        share = max(room // max(st.workers, 1), 1) if room > 0 else 0
-        mine = st.per_worker.get(self.id)
-        if not mine or mine.incarnation != self.incarnation:
-            # Not yet counted among the learner's workers: one batch in flight until it is.
-            share = min(share, self.cfg.send_batch)
-        return self.in_flight() + self.p_n < share
-
-    def in_random_phase(self) -> bool:
-        st = self.stats
-        return st is None or st.env_steps + self.in_flight() < self.random_until
-
-    def step(self, random_phase: bool) -> None:
-        if random_phase:
-            action, actor, version = uniform(self.env), self.actor, -1
-        else:
-            actor, version = self.actor, self.versions[self.actor]
-            action = explore(self.policies[actor], self.obs, self.rng, self.algo.explore_noise, self.max_action)
-        policy_from = self.follower.incarnations[actor] if version >= 0 else ""
+    def step(self, index: int, random_phase: bool, actor: int, version: int) -> None:
+        """Iteration `index` of this slot: one transition (a simulator fault: counted, the env
+        reset, the step retried; the run is then not the seed's, and the learner says so)."""
+        self.actor = actor
+        policy_from = ""
+        if version >= 0:
+            policy_from = self.history.source(actor, version)
+            if self.loaded[actor] != (version, policy_from):
+                self.actors.load_member(actor, self.history.get(actor, version))
+                self.loaded[actor] = (version, policy_from)
         if self.p_n and (actor != self.p_actor or version != self.p_version or policy_from != self.p_from):
             self.flush()  # a batch carries one actor and one policy version (of one learner incarnation)
-        try:
-            next_obs, reward, terminated, truncated = self.env_step(action)
-        except EnvFault as fault:
-            self.env_fault(fault)
-            return
+        while True:
+            action = uniform(self.env) if random_phase else \
+                explore(self.policies[actor], self.obs, self.rng, self.algo.explore_noise, self.max_action)
+            try:
+                next_obs, reward, terminated, truncated = self.env_step(action)
+                break
+            except EnvFault as fault:
+                self.count_fault(fault)
+                self.episode_return = 0.0
+                self.obs = self.reset_env()
         i = self.p_n
+        if i == 0:
+            self.p_iteration, self.p_started = index, time.monotonic()
         self.p_obs[i] = self.obs
         self.p_action[i] = action
         self.p_reward[i] = reward
         self.p_next[i] = next_obs
         self.p_term[i] = terminated  # truncation is not terminal: the target still bootstraps
         self.p_actor, self.p_version, self.p_from = actor, version, policy_from
-        if self.p_n == 0:
-            self.p_started = time.monotonic()
         self.p_n += 1
         self.episode_return += reward
         if terminated or truncated:
             self.finished_returns.append(self.episode_return)
             self.episode_return = 0.0
-            self.p_episode = self.p_n
             self.obs = self.reset_env()
         else:
             self.obs = next_obs
@@ -451,15 +370,6 @@ class Worker:
         if self.faults[fault.kind] <= 3 or self.faults[fault.kind] % 100 == 0:
             log.warning("env fault %s (%d so far): %s", fault.kind, self.faults[fault.kind], fault.detail[:300])
 
-    def env_fault(self, fault: EnvFault) -> None:
-        """Drop the episode's rows that are not sent yet, reset, go on."""
-        self.count_fault(fault)
-        self.dropped_rows += self.p_n - self.p_episode
-        self.dropped_episodes += 1
-        self.p_n = self.p_episode
-        self.episode_return = 0.0
-        self.obs = self.reset_env()
-
     def flush(self) -> None:
         if self.p_n == 0:
             return
@@ -468,9 +378,8 @@ class Worker:
         if self.retain:  # kept for a resend: the pending arrays are reused
             rows = tuple(a.copy() for a in rows)
         batch = TransitionBatch(self.id, self.incarnation, self.batch_seq, self.p_actor, self.p_version,
-                                *rows, tuple(self.finished_returns) or None,
-                                iteration=self.p_iteration if self.exact else -1, slot=self.slot if self.exact else -1,
-                                policy_from=self.p_from)
+                                *rows, tuple(self.finished_returns) or None, iteration=self.p_iteration,
+                                slot=self.slot, policy_from=self.p_from, env_faults=sum(self.faults.values()))
         if self.batch_log is not None:
             self.batch_log.write(f"{self.batch_seq} {n}\n")
         self.pub.put(batch.to_bytes())
@@ -483,10 +392,8 @@ class Worker:
                 self.unacked_dropped_rows += dropped.rows
         self.batch_seq += 1
         self.sent_rows += n
-        self.put_rows += n
         self.finished_returns = []
         self.p_n = 0
-        self.p_episode = 0
 
 
 def main(run: str, conf: Any, worker_id: str, slot_index: int = 0, run_dir: Path | None = None,
@@ -506,10 +413,10 @@ def worker_command(
     run: options.Run = None, connect: options.Connect = None, listen: options.Listen = None,
     zenoh_config: options.ZenohConfig = None,
     id: str = typer.Option(None, "--id", help="worker id (slot name); default HOST-PID"),  # noqa: A002
-    slot: int = typer.Option(0, help="slot index (0..M-1): the slot's random streams (from --seed) and, in exact "
-                             "mode, its place in each iteration"),
+    slot: int = typer.Option(0, help="slot index (0..M-1): the slot's random streams (from --seed) and its "
+                             "place in each iteration"),
     generation: int = typer.Option(0, help="restarts of this slot so far (the launcher counts them): a restarted "
-                                   "worker draws fresh streams and collects asynchronously"),
+                                   "worker draws fresh streams (the run is then not exact)"),
     run_dir: Optional[Path] = typer.Option(None, "--run-dir", help="the run directory for this worker's batch log "
                                            "(workers/ID-INCARNATION.batches) and report; default: none, neither is "
                                            "kept", rich_help_panel=options.RUN_PANEL),

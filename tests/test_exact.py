@@ -104,20 +104,29 @@ def _same_params(a: list[dict[str, np.ndarray]], b: list[dict[str, np.ndarray]])
                                     for x, y in zip(a, b))
 
 
-def test_mam_run_equals_the_reference_and_reruns_from_its_seed(tmp_path: Path) -> None:
+def _equals_reference(record: dict, ref) -> None:
+    assert record["evals"] == [(e["iterations"], e["purpose"], e["returns"]) for e in ref.evaluations]
+    assert record["slots"] == [{f"w{i}": k for i, k in enumerate(a["slots"])} for a in ref.allocations]
+    assert record["slots"][-1] == {"w0": ref.survivor}  # after C the survivor runs slot 0 alone
+    assert record["summary"]["survivor"] == ref.survivor
+    assert _same_params(record["params"], ref.policy)  # np.array_equal, every actor, every layer
+
+
+def test_mam_run_equals_the_reference_at_lag_0_and_2(tmp_path: Path) -> None:
+    """Lag 0 is Algorithm 1 as printed; lag 2 another deterministic run of the same seed. Each
+    distributed run equals the one-process reference with its lag, bit for bit (the reference
+    is deterministic, so each reruns from its seed), and the two lags differ."""
     torch.set_num_threads(1)  # the learner's default (learner_threads = 1): the same float sums
     first = _record(_mam_run(tmp_path, "exact-a", seed=3))
     ref = run_reference("AppleCollect-v1", resolve("ma-ddpg", seed=3, **APPLE), APPLE_STEPS)
-    assert first["summary"]["exact"] is True and first["summary"]["collection"] == "exact"
-    assert first["evals"] == [(e["iterations"], e["purpose"], e["returns"]) for e in ref.evaluations]
-    assert first["slots"][:-1] == [{f"w{i}": k for i, k in enumerate(a["slots"])} for a in ref.allocations[:-1]]
-    assert first["slots"][-1] == {"w0": ref.survivor}  # after C the survivor runs slot 0 alone
-    assert first["summary"]["survivor"] == ref.survivor
-    assert _same_params(first["params"], ref.policy)  # np.array_equal, every actor, every layer
+    assert first["summary"]["exact"] is True and first["summary"]["lag"] == 0
+    _equals_reference(first, ref)
 
-    again = _record(_mam_run(tmp_path, "exact-b", seed=3))
-    assert again["evals"] == first["evals"] and again["slots"] == first["slots"]
-    assert _same_params(again["params"], first["params"])
+    lagged = _record(_mam_run(tmp_path, "exact-lag2", 3, "--lag", "2"))
+    ref2 = run_reference("AppleCollect-v1", resolve("ma-ddpg", seed=3, lag=2, **APPLE), APPLE_STEPS)
+    assert lagged["summary"]["exact"] is True and lagged["summary"]["lag"] == 2
+    _equals_reference(lagged, ref2)
+    assert not _same_params(lagged["params"], first["params"])
 
     other = run_reference("AppleCollect-v1", resolve("ma-ddpg", seed=4, **APPLE), APPLE_STEPS)
     assert not _same_params(other.policy, first["params"])

@@ -65,6 +65,7 @@ class TransitionBatch:
     iteration: int = -1  # exact mode: Algorithm 1's iteration of the first row (one row per iteration)
     slot: int = -1  # exact mode: the environment slot that collected the rows
     policy_from: str = ""  # the learner incarnation whose weights `version` counts (empty: unknown)
+    env_faults: int = 0  # simulator faults this worker incarnation has met so far (its run is then not the seed's)
 
     @property
     def rows(self) -> int:
@@ -93,6 +94,8 @@ class TransitionBatch:
             body["slot"] = self.slot
         if self.policy_from:
             body["policy_from"] = self.policy_from
+        if self.env_faults:
+            body["env_faults"] = self.env_faults
         return encode(
             self.KIND,
             body,
@@ -141,8 +144,10 @@ class TransitionBatch:
         iteration = _int(msg, "iteration", lo=1) if "iteration" in msg else -1
         slot = _int(msg, "slot", lo=0, hi=1 << 20) if iteration >= 0 else -1
         policy_from = _id(msg, "policy_from") if "policy_from" in msg else ""
+        env_faults = _int(msg, "env_faults", lo=0) if "env_faults" in msg else 0
         return cls(worker, incarnation, batch_seq, actor, version, obs, action, reward,
-                   next_obs, term, episode_return, resend, iteration, slot, policy_from)
+                   next_obs, term, episode_return, resend, iteration, slot, policy_from,
+                   env_faults)
 
     @classmethod
     def from_bytes(cls, payload: bytes, spec: TransitionSpec, *,

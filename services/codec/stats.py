@@ -116,6 +116,7 @@ class LearnerStats:
     exact: bool = False  # collection in lock-step with Algorithm 1 (services/exact.py); false once broken
     iteration: int = 0  # exact mode: the last iteration whose updates are done
     inexact: str = ""  # why the run stopped being exact (empty while exact, or never asked for)
+    awaiting: tuple[int, ...] = ()  # what the learner's loop waits for now: slots, and -1 for the referee
 
     def to_bytes(self, sender: str, seq: int) -> bytes:
         body = {
@@ -136,6 +137,7 @@ class LearnerStats:
             "exact": bool(self.exact),
             "iteration": int(self.iteration),
             "inexact": self.inexact,
+            "awaiting": [int(a) for a in self.awaiting],
         }
         return encode(self.KIND, body, sender=sender, seq=seq)
 
@@ -162,8 +164,10 @@ class LearnerStats:
         exact = _bool(msg, "exact") if "exact" in msg else False
         iteration = _int(msg, "iteration", lo=0) if "iteration" in msg else 0
         inexact = _text(msg, "inexact") if "inexact" in msg else ""
+        awaiting = _ints(msg, "awaiting", lo=-1) if "awaiting" in msg else ()
         return cls(env_steps, updates, accept_until, utd, losses, q_means, versions,
-                   per_worker, rejected, done, live, workers, steps, incarnation, exact, iteration, inexact)
+                   per_worker, rejected, done, live, workers, steps, incarnation, exact, iteration, inexact,
+                   tuple(awaiting))
 
     @classmethod
     def from_bytes(cls, payload: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> "LearnerStats":
