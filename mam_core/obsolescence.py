@@ -50,6 +50,9 @@ def allocation_probabilities(returns: Sequence[float] | np.ndarray) -> np.ndarra
       The paper's fix: sort and reverse. The computed probabilities are handed out in reverse
       rank: the actor with the highest return gets the largest of them, the lowest the smallest.
       E.g. R = [-1, -3]: Eq. 8 gives [0.25, 0.75]; reversed, actor 0 (better) gets 0.75.
+      Tied returns share their ranks' probabilities equally: R = [-2, -2, -4] gives Eq. 8's
+      [0.25, 0.25, 0.5], reversed [0.5, 0.25, 0.25], and the tied pair gets (0.5 + 0.25) / 2
+      each: [0.375, 0.375, 0.25].
     - mixed signs, or any R_k == 0 (the paper is silent): shift
       R' = R - min(R) + SHIFT_FRACTION * (max(R) - min(R)) + SHIFT_FLOOR * max|R|,
       then Eq. 8. The worst actor keeps a small chance and equal returns give uniform P.
@@ -71,6 +74,9 @@ def allocation_probabilities(returns: Sequence[float] | np.ndarray) -> np.ndarra
         best_first = np.argsort(-r, kind="stable")
         reversed_rank = np.empty(k)
         reversed_rank[best_first] = np.sort(p)[::-1]  # best actor gets the largest P
+        for value in np.unique(r):  # ties: equal returns, equal P (the mean of their ranks' P)
+            tied = r == value
+            reversed_rank[tied] = reversed_rank[tied].mean()
         return reversed_rank
     spread = float(r.max() - r.min())
     shifted = r - r.min() + SHIFT_FRACTION * spread + SHIFT_FLOOR

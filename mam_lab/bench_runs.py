@@ -172,23 +172,19 @@ def bench_e2e(sizes: BenchSizes, device: str = "cpu", threads: int = 1, log: Cal
 
 
 def collection_rate(workers: int, sizes: BenchSizes, work_dir: Path, seed: int = 0) -> float:
-    """Env steps/s of `workers` real worker processes feeding a real learner that never pauses them."""
+    """Env steps/s of `workers` real worker processes feeding a real learner in lock-step (one row
+    per slot per iteration) that rarely updates, so weights rarely change and never hold them."""
     from services import bus
 
     run = f"bench-col-{uuid.uuid4().hex[:8]}"
     run_dir = work_dir / run
     run_dir.mkdir(parents=True, exist_ok=True)
     endpoint = bus.loopback_endpoint(bus.free_tcp_port())
-    # The rate limiter's band above the budget: credit never runs out, the learner only ingests
-    # (and trains ~1 update per 1000 transitions).
-    toml = run_dir / "bench.toml"
-    toml.write_text("band = 1000000000\n")
     learner = [sys.executable, "-m", "services.learner", "--env", sizes.collection_env, "--algo", "td3",
                "--steps", "1000000000", "--utd", "0.001", "--start-steps", str(sizes.collection_start_steps),
                "--workers", str(workers), "--batch-size", str(sizes.batch_size),
                "--hidden", ",".join(map(str, sizes.hidden)), "--seed", str(seed), "--device", "cpu",
-               "--config", str(toml), "--run", run, "--listen", endpoint, "--run-dir", str(run_dir),
-               "--collection", "async"]  # no referee: lock-step collection would wait for its allocation
+               "--run", run, "--listen", endpoint, "--run-dir", str(run_dir)]  # no referee: K = 1 needs no decision
     procs: list[subprocess.Popen] = []
     logs = []
     try:
@@ -220,7 +216,7 @@ def collection_rate(workers: int, sizes: BenchSizes, work_dir: Path, seed: int =
 def bench_collection(sizes: BenchSizes, log: Callable[[str], None] = print,
                      work_dir: Path | None = None) -> dict[str, Any]:
     out: dict[str, Any] = {"collection_env": sizes.collection_env,
-                           "collection_setup": "real mam-learner (--utd 0.001, band above budget) + M mam-worker"}
+                           "collection_setup": "real mam-learner (lock-step, --utd 0.001) + M mam-worker"}
     with tempfile.TemporaryDirectory(prefix="mam-bench-") as tmp:
         for m in sizes.collection_workers:
             log(f"collection: {m} worker process(es) on {sizes.collection_env}, "

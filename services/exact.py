@@ -38,6 +38,7 @@ class _Staged:
     batch: TransitionBatch
     first: int  # the iteration of batch row `used`
     used: int = 0  # rows of the batch already inserted (or skipped: iterations the slot had already)
+    skipped: int = 0  # rows skipped (the first ones)
 
 
 class SlotStage:
@@ -77,7 +78,7 @@ class SlotStage:
         if skip < 0:
             why = why or f"slot {s} lost iterations {self.end[s]}..{batch.iteration - 1} (rows lost in flight)"
             skip = 0  # its rows stand in for the lost iterations
-        staged = _Staged(batch, self.end[s], used=skip)
+        staged = _Staged(batch, self.end[s], used=skip, skipped=skip)
         self.queues[s].append(staged)
         self.end[s] += batch.rows - skip
         return True, why
@@ -88,8 +89,9 @@ class SlotStage:
     def missing(self, index: int, slots: Sequence[int]) -> list[int]:
         return [s for s in slots if not (self.queues[s] and self.queues[s][0].first == index)]
 
-    def take(self, index: int, slots: Sequence[int]) -> tuple[dict[str, np.ndarray], list[TransitionBatch]]:
-        """Iteration `index`'s rows in slot order, and the batches this used up."""
+    def take(self, index: int, slots: Sequence[int]) -> tuple[dict[str, np.ndarray], list[tuple[TransitionBatch, int]]]:
+        """Iteration `index`'s rows in slot order, and the batches this used up (with the rows
+        each skipped)."""
         parts, done = [], []
         for s in slots:
             st = self.queues[s][0]
@@ -98,7 +100,7 @@ class SlotStage:
             st.used += 1
             st.first += 1
             if st.used == b.rows:
-                done.append(self.queues[s].popleft().batch)
+                done.append((b, self.queues[s].popleft().skipped))
         obs, action, reward, next_obs, term, actor, version = zip(*parts)
         rows = {"obs": np.stack(obs), "action": np.stack(action), "reward": np.asarray(reward, np.float32),
                 "next_obs": np.stack(next_obs), "terminated": np.asarray(term, np.bool_),

@@ -114,13 +114,16 @@ class Intake:
             return False
         return True
 
-    def count(self, batch: TransitionBatch, versions: Sequence[int]) -> None:
-        """The per-worker counters of an admitted batch whose rows are in the buffer."""
+    def count(self, batch: TransitionBatch, versions: Sequence[int], skipped: int = 0) -> None:
+        """The per-worker counters of an admitted batch whose rows are in the buffer, but for the
+        first `skipped` (iterations its slot had from elsewhere: counted as redundant)."""
         w = self._tally(batch)
+        rows = batch.rows - skipped
         stream = f"{batch.worker}/{batch.incarnation}"
-        self.stream_rows[stream] = self.stream_rows.get(stream, 0) + batch.rows
-        w.received += batch.rows
-        w.incarnation_rows += batch.rows
+        self.stream_rows[stream] = self.stream_rows.get(stream, 0) + rows
+        w.received += rows
+        w.incarnation_rows += rows
+        w.redundant_rows += skipped
         w.last_seq = max(w.last_seq, batch.batch_seq)
         w.actor = batch.actor
         w.lag = versions[batch.actor] - batch.version if batch.version >= 0 else 0

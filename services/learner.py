@@ -191,9 +191,9 @@ class Learner:
             self.buffer.add_batch(rows["obs"], rows["action"], rows["reward"], rows["next_obs"],
                                   rows["terminated"], actor=rows["actor"], version=rows["version"])
             self.env_steps += len(it.slots)
-            for batch in used:
+            for batch, skipped in used:
                 if self.intake.admit(batch):
-                    self.intake.count(batch, self.agent.versions)
+                    self.intake.count(batch, self.agent.versions, skipped)
             self.mid_iteration = True  # a stop in the elimination's wait leaves this iteration half done
             self.metrics = plan.run_updates(it, self.agent, self.sample, self.apply_elimination) or self.metrics
             if self.stop_requested:

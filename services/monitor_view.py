@@ -279,7 +279,8 @@ def _header(state: MonitorState) -> Panel:
     second = [
         f"critic loss {_fmt(_float(losses.get('critic')), '.4g')}",
         f"actor loss {_fmt(_float(losses.get('actor')), '.4g')}",
-        f"accept until {_fmt(_float(stats.get('accept_until')), ',.0f')}",
+        f"iteration {_fmt(_float(stats.get('iteration')), ',.0f')}"
+        + ("" if stats.get("exact", True) else f" (not exact: {stats.get('inexact')})"),
         f"last stats {_fmt(state.seconds_ago(state.stats_seen), '.1f')}s ago",
     ]
     rejected = stats.get("rejected") or {}

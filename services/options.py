@@ -427,6 +427,9 @@ def default_run_name(env_id: str, algo: str) -> str:
 def _canonical(key: str, where: str) -> str:
     """The table name of an option key (`-` read as `_`, aliases resolved); unknown: BadParameter."""
     name = _KEYS.get(key.replace("-", "_"))
+    if name is None and key.replace("-", "_") in RETIRED_KEYS:
+        raise typer.BadParameter(f"{where}: {key!r} was removed with the asynchronous collection: every run is "
+                                 "lock-step Algorithm 1; `--lag B` lets workers run B iterations ahead")
     if name is None:
         dashed = {k.replace("_", "-"): k for k in _KEYS}
         close = difflib.get_close_matches(key.replace("_", "-"), list(dashed), n=1, cutoff=0.6)

@@ -96,6 +96,7 @@ class Worker:
         self.batch_seq = 0
         self.sent_rows = 0
         self.learner_incarnation: str | None = None
+        self.learner_restarted = False  # a new learner incarnation: the slot steps on from its iteration
         self.episode_return = 0.0
         self.finished_returns: list[float] = []
         self.stop_requested = False
@@ -163,6 +164,9 @@ class Worker:
                 log.info("run is done after %d transitions from this worker", self.sent_rows)
                 return
             self.refresh(decisions, index)
+            if self.learner_restarted:  # its checkpoint is behind this slot: go on from where it stands
+                self.learner_restarted, index = False, None
+                self.flush()
             if index is None:  # where the run stands: the learner's stats
                 if self.stats is None:
                     self.stats_sub.wait_fresh(timeout=0.1)
@@ -261,9 +265,11 @@ class Worker:
         if st.incarnation != self.learner_incarnation:
             first = self.learner_incarnation is None
             self.learner_incarnation = st.incarnation
-            if self.unacked and not first:
-                self.resend()
-            log.info("learner %s is up", self.learner_incarnation or "?")
+            if not first:
+                self.learner_restarted = True
+                if self.unacked:
+                    self.resend()
+            log.info("learner %s is up at iteration %d", self.learner_incarnation or "?", st.iteration)
 
     def trim_acked(self, st: LearnerStats) -> None:
         mine = st.per_worker.get(self.id)

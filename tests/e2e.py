@@ -77,14 +77,3 @@ def assert_exactly_once(run: dict[str, Any]) -> None:
     sent = {f"{w['worker']}/{w['incarnation']}": w["sent_rows"] for w in run["workers"]}
     assert sent == t["rows_per_stream"]
     assert sum(sent.values()) == t["env_steps"]
-
-
-def credit_overrun(band: int, workers: int, send_batch: int) -> int:
-    """How far past its credit (budget, round barrier, rate-limiter band) collection can get.
-
-    Each worker keeps its unreported rows under (accept_until − env_steps) / M of the learner
-    stats it last saw. Workers see those stats at different moments, so the shares they act on can
-    add up to more than the room at any one moment: by at most (M − 1)/M of the band, plus the
-    last, possibly partial, batch of each worker (docs/DESIGN-DECISIONS.md, "Budget and utd").
-    """
-    return (workers - 1) * band // workers + workers * send_batch

@@ -29,6 +29,18 @@ def test_all_negative_gives_reversed_rank():
     np.testing.assert_allclose(allocation_probabilities([-2.0, -5.0, -3.0]), [0.5, 0.2, 0.3])
 
 
+def test_tied_returns_get_equal_probabilities_in_every_branch():
+    # Negative: Eq. 8 on [-2, -2, -4] = [0.25, 0.25, 0.5]; reversed [0.5, 0.25, 0.25]; the tied
+    # pair shares its ranks' 0.5 + 0.25: 0.375 each.
+    np.testing.assert_allclose(allocation_probabilities([-2.0, -2.0, -4.0]), [0.375, 0.375, 0.25])
+    np.testing.assert_allclose(allocation_probabilities([-4.0, -2.0, -2.0]), [0.25, 0.375, 0.375])
+    np.testing.assert_allclose(allocation_probabilities([-3.0, -3.0]), [0.5, 0.5])
+    # Positive (Eq. 8 as printed) and mixed (shifted) give ties equal P already.
+    np.testing.assert_allclose(allocation_probabilities([2.0, 2.0, 4.0]), [0.25, 0.25, 0.5])
+    p = allocation_probabilities([-1.0, 3.0, 3.0])
+    assert p[1] == p[2] and p[0] < p[1]
+
+
 def test_mixed_signs_shift_then_eq8():
     # R=[-1, 1]: spread 2, R' = R + 1 + 0.2 = [0.2, 2.2] -> [1/12, 11/12].
     np.testing.assert_allclose(allocation_probabilities([-1.0, 1.0]), [1 / 12, 11 / 12], rtol=1e-9)

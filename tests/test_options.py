@@ -99,10 +99,13 @@ def test_the_table_knows_every_algorithm_field():
 def test_toml_reads_table_options_and_refuses_unknown_keys(tmp_path: Path):
     f = tmp_path / "run.toml"
     f.write_text('env_id = "AppleCollect-v0"\nsteps = 500\ngamma = 0.9\nsend-batch = 16\n'
-                 '[service]\nsync-every = 7\n[env_kwargs]\napple_radius = 0.3\n')
+                 '[service]\ncheckpoint-rows = 7000\n[algorithm]\nlag = 2\n[env_kwargs]\napple_radius = 0.3\n')
     cfg = build_run_config({}, f)
     assert cfg.env_id == "AppleCollect-v0" and cfg.algo.gamma == 0.9 and cfg.send_batch == 16
-    assert cfg.sync_every == 7 and cfg.env_kwargs == {"apple_radius": 0.3}
+    assert cfg.checkpoint_rows == 7000 and cfg.algo.lag == 2 and cfg.env_kwargs == {"apple_radius": 0.3}
+    f.write_text('env = "AppleCollect-v0"\nsteps = 500\n[service]\nsync-every = 7\n')
+    with pytest.raises(typer.BadParameter, match="'sync-every' was removed with the asynchronous collection"):
+        build_run_config({}, f)
     f.write_text('env = "AppleCollect-v0"\nsteps = 500\n[obsolescence]\ncompete-evry = 10\n')
     with pytest.raises(typer.BadParameter, match="unknown option 'compete-evry'"):
         build_run_config({}, f)

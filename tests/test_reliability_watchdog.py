@@ -13,7 +13,6 @@ import pytest
 from rich.console import Console
 
 from mam_core.config import resolve
-from mam_core.schedule import Schedule
 from services.codec import LearnerStats
 from services.launcher import STARTUP_GRACE_S, Child, LocalCluster, RunStalled
 from services.options import RunConfig
@@ -38,9 +37,9 @@ def cluster(tmp_path: Path):
         child.proc.wait()
 
 
-def stats(env_steps: int, updates: int, accept_until: int) -> LearnerStats:
-    return LearnerStats(env_steps=env_steps, updates=updates, accept_until=accept_until, utd=1.0, versions=(3, 3),
-                        workers=2, rejected={"future_version": 7})
+def stats(env_steps: int, updates: int, iteration: int = 0, awaiting: tuple[int, ...] = ()) -> LearnerStats:
+    return LearnerStats(env_steps=env_steps, updates=updates, accept_until=2000, utd=1.0, versions=(3, 3),
+                        workers=2, rejected={"future_version": 7}, iteration=iteration, awaiting=awaiting)
 
 
 def killed(c: LocalCluster) -> list[str]:
@@ -60,40 +59,45 @@ def test_a_learner_without_stats_gets_the_startup_grace_then_is_killed(cluster: 
 
 
 def test_frozen_stats_blame_the_learner(cluster: LocalCluster) -> None:
-    cluster.observe(stats(800, 400, 900))
+    cluster.observe(stats(800, 400, 400))
     now = cluster.progress_at + 6
     cluster.check_stall(now)
     assert killed(cluster) == ["learner"]
     assert "learner stats: not for 6 s" in cluster.out.getvalue()
 
 
-def test_a_credit_held_at_a_round_barrier_blames_the_referee(cluster: LocalCluster) -> None:
-    s = Schedule.for_run(cluster.cfg.algo, cluster.cfg.steps)
-    updates = 600
-    free = min(s.budget, max(s.transitions_consumed(updates), s.random_until) + cluster.cfg.tolerance)
-    at = free - 64  # the credit stops short of what the updates allow: a barrier
-    cluster.observe(stats(at, updates, at))
+def test_a_learner_waiting_for_the_elimination_blames_the_referee(cluster: LocalCluster) -> None:
+    cluster.observe(stats(1200, 600, 600, awaiting=(-1,)))
     cluster.last_stats_at = cluster.progress_at + 5.5  # stats still come, nothing moves
     cluster.check_stall(cluster.progress_at + 6)
     assert killed(cluster) == ["referee"]
     text = " ".join(cluster.out.getvalue().split())
-    assert "round barrier, waiting for the referee's allocation" in text and f"accept_until {at:,} (room 0)" in text
+    assert "waiting for the referee's elimination decision" in text and "learner at iteration 600" in text
 
 
-def test_open_credit_and_no_rows_blames_the_workers_then_stops_the_run(cluster: LocalCluster) -> None:
-    cluster.observe(stats(1000, 900, 1200))
+def test_rows_missing_from_a_slot_blame_its_worker_then_stop_the_run(cluster: LocalCluster) -> None:
+    cluster.observe(stats(1000, 900, 500, awaiting=(1,)))
     for _ in range(2):  # two watchdog restarts without progress ...
         now = cluster.progress_at + 6
         cluster.last_stats_at = now - 0.5
         cluster.check_stall(now)
-    assert killed(cluster) == ["worker-0", "worker-1"]
+    assert killed(cluster) == ["worker-1"]
     text = " ".join(cluster.out.getvalue().split())
-    assert "the credit is open and no transitions arrive from the workers" in text
+    assert "waiting for iteration 501's transitions from slots [1]" in text
     assert "rejected {'future_version': 7}" in text and "versions [3, 3]" in text
     now = cluster.progress_at + 6
     cluster.last_stats_at = now - 0.5
     with pytest.raises(RunStalled, match="the run is stalled: .*2 watchdog restarts did not help"):
         cluster.check_stall(now)  # ... and the third stall stops the run
+
+
+def test_a_learner_that_waits_for_nothing_and_does_not_move_is_restarted(cluster: LocalCluster) -> None:
+    cluster.observe(stats(1000, 900, 500))
+    now = cluster.progress_at + 6
+    cluster.last_stats_at = now - 0.5
+    cluster.check_stall(now)
+    assert killed(cluster) == ["learner"]
+    assert "the learner waits for nothing and does not update" in cluster.out.getvalue()
 
 
 def test_progress_resets_the_watchdog(cluster: LocalCluster) -> None:

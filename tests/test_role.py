@@ -1,4 +1,4 @@
-"""The role skeleton: weights following, the periodic timer, and what each role module imports."""
+"""The role skeleton: the weights history and screen, the periodic timer, and what each role module imports."""
 
 from __future__ import annotations
 
@@ -14,7 +14,8 @@ import pytest
 from mam_core.policy import EnvSpec, member_shapes
 from services import bus, keys
 from services.codec import LearnerStats, Weights
-from services.role import MAX_VERSION_LEAD, Every, WeightsFollower
+from services.exact import WeightsHistory
+from services.role import MAX_VERSION_LEAD, Every, plausible_version, weights_screen
 
 ROOT = Path(__file__).resolve().parents[1]
 ROLE_MODULES = ("learner", "worker", "referee", "monitor", "router")
@@ -29,35 +30,41 @@ def weights_item(k: int, version: int, fill: float) -> tuple[str, bus.Received]:
     return key, bus.Received(key, payload, None, 0.0)
 
 
-def follower() -> WeightsFollower:
-    return WeightsFollower(2, SPEC, HIDDEN, bus.RejectLog(None, "message"))
+def test_weights_history_keeps_one_copy_per_version_and_prefers_the_current_learner():
+    """A version names one set of parameters of one learner incarnation: a repeat (a resend, a
+    cache replay) is not copied again; after a learner restart the successor's copy of a
+    version replaces the dead one's, and never the other way round."""
+    h = WeightsHistory(2)
+    params = dict(_params(1.0))
+    assert h.add(0, 5, params, "old") and h.source(0, 5) == "old"
+    assert not h.add(0, 5, dict(_params(2.0)), "old")  # the same version of the same learner
+    assert np.all(h.get(0, 5)["w0"] == 1.0)
+    assert h.add(0, 5, dict(_params(3.0)), "new", prefer="new") and h.source(0, 5) == "new"
+    assert not h.add(0, 5, dict(_params(4.0)), "old", prefer="new")  # a late copy of the dead one's
+    assert np.all(h.get(0, 5)["w0"] == 3.0)
+    params["w0"][:] = 9.0  # the history holds copies
+    assert np.all(h.get(0, 5)["w0"] == 3.0)
+    h.add(1, 7, dict(_params(1.0)))
+    h.forget_below(6)
+    assert not h.has(0, 5) and h.has(1, 7)
 
 
-def test_follower_loads_only_strictly_newer_versions():
-    f = follower()
-    assert f.versions == [-1, -1]
-    assert f.update(dict([weights_item(0, 5, 1.0)]), None) == [0]
-    assert f.versions == [5, -1] and np.all(f.actors.params[0]["w0"] == 1.0)
-    # The same version again (a heartbeat or a cache replay) is the same parameters: not reloaded,
-    # even if its bytes differed; an older one (reordered, stale cache) is ignored too.
-    assert f.update(dict([weights_item(0, 5, 2.0)]), None) == []
-    assert f.update(dict([weights_item(0, 4, 3.0)]), None) == []
-    assert np.all(f.actors.params[0]["w0"] == 1.0) and f.versions == [5, -1]
-    assert f.update(dict([weights_item(0, 6, 4.0), weights_item(1, 0, 5.0)]), None) == [0, 1]
-    assert f.versions == [6, 0] and np.all(f.actors.params[0]["w0"] == 4.0)
-    assert np.all(f.actors.params[1]["b0"] == 5.0)
-    assert f.rejects.total == 0
-
-
-def test_follower_rejects_malformed_and_forged_versions():
-    f = follower()
+def test_weights_screen_rejects_malformed_messages_in_the_callback():
+    rejects = bus.RejectLog(None, "message")
+    screen = weights_screen(member_shapes(3, HIDDEN, 2), 2, rejects)
+    key, item = weights_item(1, 3, 1.0)
+    assert screen(item)
+    assert not screen(bus.Received(key, b"\x93garbage", None, 0.0))
+    other = Weights(0, 1, dict(_params(1.0, hidden=(5,))), 3, 2, 1.0, (5,)).to_bytes("learner", 1)
+    assert not screen(bus.Received(key, other, None, 0.0))  # another run's shapes
+    assert rejects.total == 2
+    assert plausible_version(Weights(0, MAX_VERSION_LEAD, dict(_params(1.0)), 3, 2, 1.0, HIDDEN), None)
     stats = LearnerStats(env_steps=0, updates=0, accept_until=0, utd=0.0, versions=(10, 10))
-    key, item = weights_item(1, 10 + MAX_VERSION_LEAD + 1, 1.0)
-    assert f.update({key: item}, stats) == []
-    assert f.update({key: bus.Received(key, b"\x93garbage", None, 0.0)}, stats) == []
-    key, item = weights_item(1, 10 + MAX_VERSION_LEAD, 1.0)  # a lead up to the bound is plausible
-    assert f.update({key: item}, stats) == [1]
-    assert f.rejects.total == 2 and set(f.rejects.counts()) >= {"future_version"}
+    assert not plausible_version(Weights(1, 11 + MAX_VERSION_LEAD, dict(_params(1.0)), 3, 2, 1.0, HIDDEN), stats)
+
+
+def _params(fill: float, hidden: tuple[int, ...] = HIDDEN):
+    return {name: np.full(shape, fill, np.float32) for name, shape in member_shapes(3, hidden, 2).items()}.items()
 
 
 def test_every_is_due_once_per_period():

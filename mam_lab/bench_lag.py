@@ -1,0 +1,108 @@
+"""`mam bench --only lag`: `mam run` at lag 0 and at lag 2 against the one-process reference.
+
+HalfCheetah-v5 MA-TD3 (K = 2, M = 3, paper schedule) for the same number of iterations, three
+ways per round, interleaved (the order rotates every round) so a shared machine slows all of
+them alike: `run_reference` in a process of its own, `mam run --lag 0` and `mam run --lag 2`.
+The figure of each lag is a *speed*: the reference's wall time ÷ `mam run`'s wall time (above 1:
+the distributed run is faster than one process computing the same run), the median over rounds.
+The learner's wait share (the time its loop waited for an iteration's rows, learner.jsonl's
+`exact_wait_s`, over its training part) says where the time goes.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from pathlib import Path
+from typing import Any, Callable
+
+from mam_lab.bench_sizes import ROOT, BenchSizes, _child_env, _stop
+
+LAGS = (0, 2)
+
+
+def run_args(sizes: BenchSizes, iterations: int, seed: int) -> list[str]:
+    """The run's options (shared by `mam run` and the reference)."""
+    start, c = iterations // 4, iterations // 2
+    return ["--env", "HalfCheetah-v5", "--algo", "ma-td3", "--workers", "3", "--steps", str(iterations),
+            "--start-steps", str(start), "--compete-every", str(c // 2), "--eliminate-at", str(c),
+            "--eval-episodes", "1", "--eval-every", str(10 * iterations), "--hidden", ",".join(map(str, sizes.hidden)),
+            "--batch-size", str(sizes.batch_size), "--seed", str(seed)]
+
+
+REFERENCE = """
+import sys, time, torch
+from mam_core.config import resolve
+from mam_core.reference import run_reference
+torch.set_num_threads(1)
+a = dict(zip(sys.argv[1::2], sys.argv[2::2]))
+cfg = resolve("ma-td3", workers=3, start_steps=int(a["--start-steps"]), compete_every=int(a["--compete-every"]),
+              eliminate_at=int(a["--eliminate-at"]), eval_episodes=1, eval_every=int(a["--eval-every"]),
+              hidden=tuple(int(h) for h in a["--hidden"].split(",")), batch_size=int(a["--batch-size"]),
+              seed=int(a["--seed"]))
+run_reference(a["--env"], cfg, int(a["--steps"]))
+"""
+
+
+def wait_share(rows: list[dict[str, Any]]) -> float:
+    """The share of its training time (from the first learner.jsonl row with updates to the last)
+    the learner's loop waited for rows."""
+    train = [r for r in rows if r.get("updates", 0) > 0 and "t" in r]
+    if len(train) < 2 or "exact_wait_s" not in train[0]:
+        return float("nan")
+    a, b = train[0], train[-1]
+    return (b["exact_wait_s"] - a["exact_wait_s"]) / max(b["t"] - a["t"], 1e-9)
+
+
+def timed(cmd: list[str], out: Path, timeout: float) -> float:
+    t0 = time.monotonic()
+    with open(out, "wb") as f:
+        proc = subprocess.Popen(cmd, cwd=ROOT, env=_child_env(), stdout=f, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL, start_new_session=True)
+    try:
+        proc.wait(timeout=timeout)
+    finally:
+        _stop([proc])
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd[:4])} exited {proc.returncode}: {out.read_text()[-2000:]}")
+    return time.monotonic() - t0
+
+
+def bench_lag(sizes: BenchSizes, log: Callable[[str], None] = print, rounds: int = 2,
+              iterations: int | None = None) -> dict[str, Any]:
+    iterations = iterations or (400 if sizes.hidden[0] <= 32 else 3000)
+    log(f"lag: HalfCheetah-v5 ma-td3, K=2, M=3, paper schedule, {iterations} iterations: the one-process reference, "
+        f"mam run --lag {LAGS[0]} and --lag {LAGS[1]}, {rounds} interleaved rounds")
+    sides = ["reference", *(f"lag{b}" for b in LAGS)]
+    walls: dict[str, list[float]] = {side: [] for side in sides}
+    waits: dict[str, list[float]] = {side: [] for side in sides[1:]}
+    with tempfile.TemporaryDirectory(prefix="mam-bench-lag-") as tmp:
+        work = Path(tmp)
+        for r in range(rounds):
+            args = run_args(sizes, iterations, seed=r)
+            for side in sides[r % len(sides):] + sides[:r % len(sides)]:
+                if side == "reference":
+                    cmd = [sys.executable, "-c", REFERENCE, *args]
+                    walls[side].append(timed(cmd, work / f"ref-{r}.out", sizes.timeout_s * 4))
+                    continue
+                run = f"bench-{side}-{uuid.uuid4().hex[:6]}"
+                cmd = [sys.executable, "-m", "services.cli", "run", *args, "--lag", side[3:], "--run", run,
+                       "--run-dir", str(work / run), "--no-plot"]
+                walls[side].append(timed(cmd, work / f"{run}.out", sizes.timeout_s * 4))
+                rows = [json.loads(line) for line in (work / run / "learner.jsonl").read_text().splitlines() if line]
+                waits[side].append(wait_share(rows))
+            log(f"round {r + 1}: " + ", ".join(f"{side} {walls[side][-1]:.1f} s" for side in sides))
+    med = statistics.median
+    out: dict[str, Any] = {"lag_iterations": iterations, "lag_rounds": rounds,
+                           "lag_reference_wall_s": med(walls["reference"])}
+    for b in LAGS:
+        side = f"lag{b}"
+        out[f"lag{b}_speed_vs_reference"] = med(ref / w for ref, w in zip(walls["reference"], walls[side]))
+        out[f"lag{b}_wall_s"] = med(walls[side])
+        out[f"lag{b}_learner_wait_share"] = med(waits[side])
+    return out
