@@ -19,7 +19,10 @@ def worker_for(env_id: str, session, run: str) -> Worker:
     return Worker(cfg, session, "w0", 0, run_dir=None)
 
 
-def test_each_simulator_fault_drops_the_episode_resets_and_is_counted() -> None:
+def test_each_simulator_fault_is_counted_the_env_reset_and_the_step_retried() -> None:
+    """Lock-step: every iteration of a slot has one transition, so a fault does not drop rows:
+    the env is reset, the step retried, and every batch from then on carries the fault count
+    (the learner records that the run is no longer the seed's)."""
     run = f"faults-{uuid.uuid4().hex[:8]}"
     with bus.session_scope(bus.make_config()) as session:  # an isolated session: loopback to itself
         inbox = bus.Inbox.subscribe(session, keys.transitions_all(run), maxsize=100_000)
@@ -27,8 +30,8 @@ def test_each_simulator_fault_drops_the_episode_resets_and_is_counted() -> None:
         worker.pub = bus.declare_reliable_publisher(session, keys.transitions(run, "w0"))
         env = worker.env.env.env  # OrderEnforcing(PassiveEnvChecker(FaultInjector(...)))
         assert type(env).__name__ == "FaultInjector"
-        for _ in range(3000):
-            worker.step(random_phase=True)
+        for index in range(1, 3001):
+            worker.step(index, random_phase=True, actor=0, version=-1)
         worker.flush()
         deadline = time.monotonic() + 10
         batches = []
@@ -42,17 +45,16 @@ def test_each_simulator_fault_drops_the_episode_resets_and_is_counted() -> None:
     assert set(FAULTS) == set(KINDS)
     assert all(env.injected[k] >= 5 for k in KINDS), env.injected
     assert worker.faults == env.injected
-    # Step faults dropped their episode's unsent rows; a reset fault drops no episode.
-    step_faults = sum(env.injected[k] for k in KINDS if k != "reset_exception")
-    assert worker.dropped_episodes == step_faults and worker.dropped_rows > 0
-    # Every good step is either sent or dropped with its episode; nothing non-finite was sent.
-    assert worker.sent_rows + worker.dropped_rows == env.steps_ok
-    assert sum(b.rows for b in batches) == worker.sent_rows
-    for b in batches:
+    # One row per iteration, in order: every good step is sent, nothing non-finite.
+    assert worker.sent_rows == 3000 == env.steps_ok == sum(b.rows for b in batches)
+    first = 1
+    for b in sorted(batches, key=lambda b: b.batch_seq):
+        assert b.iteration == first and b.slot == 0
+        first += b.rows
         for a in (b.obs, b.action, b.reward, b.next_obs):
             assert np.isfinite(a).all()
-    report = worker.fault_counters()
-    assert report["env_faults"] == env.injected and report["dropped_rows"] == worker.dropped_rows
+    assert batches[-1].env_faults == sum(env.injected.values()) > 0
+    assert worker.fault_counters()["env_faults"] == env.injected
     assert env.episode > 50
 
 
