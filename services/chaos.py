@@ -83,6 +83,7 @@ def verify(run_dir: Path, returncode: int) -> dict[str, Any]:
                    restarts=summary.get("restarts"), restarts_total=summary.get("restarts_total"),
                    restarts_cancelled=sum((summary.get("restarts_cancelled") or {}).values()),
                    sent_rows=audit.get("sent_rows"), replay_rows=audit.get("replay_rows"),
+                   skipped_rows=audit.get("skipped_rows", 0),
                    lost_rows=audit.get("lost_rows"), duplicated_rows=audit.get("duplicated_rows"),
                    worker_incarnations=audit.get("streams"), lost_batches=transport.get("lost"),
                    duplicate_batches=transport.get("duplicates"), recovered_batches=transport.get("recovered"),
@@ -97,8 +98,8 @@ def verify(run_dir: Path, returncode: int) -> dict[str, Any]:
             problems.append(f"{audit['lost_rows']} rows lost, {audit['duplicated_rows']} duplicated")
         if audit["streams_without_log"]:
             problems.append(f"streams without a worker log: {audit['streams_without_log']}")
-        if not audit["sent_rows"] == audit["replay_rows"] == transport.get("env_steps"):
-            problems.append("rows sent, rows in the replay and env_steps differ")
+        if not audit["sent_rows"] - audit.get("skipped_rows", 0) == audit["replay_rows"] == transport.get("env_steps"):
+            problems.append("rows sent (less those skipped), rows in the replay and env_steps differ")
     try:
         import torch
 

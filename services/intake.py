@@ -57,6 +57,9 @@ class Intake:
         self.rejects = bus.RejectLog(log, "transitions")
         self.workers: dict[str, WorkerTally] = {}
         self.stream_rows: dict[str, int] = {}  # rows per worker/incarnation (proof of exactly-once)
+        # Rows per worker/incarnation received but not inserted: iterations their slot already had
+        # (a replacement worker starting behind, a predecessor's late batch). Sent = rows + skipped + lost.
+        self.stream_skipped: dict[str, int] = {}
         self.episode_returns: list[float] = []
         self.incarnation = ""  # the learner's (rows acted with another incarnation's weights are accepted)
 
@@ -123,7 +126,8 @@ class Intake:
         self.stream_rows[stream] = self.stream_rows.get(stream, 0) + rows
         w.received += rows
         w.incarnation_rows += rows
-        w.redundant_rows += skipped
+        if skipped and not batch.resend:  # a resend's first rows are in the replay already
+            self.skip(batch, skipped)
         w.last_seq = max(w.last_seq, batch.batch_seq)
         w.actor = batch.actor
         w.lag = versions[batch.actor] - batch.version if batch.version >= 0 else 0
@@ -131,6 +135,12 @@ class Intake:
         w.rows_since += batch.rows
         if batch.episode_return:
             self.episode_returns.extend(batch.episode_return)
+
+    def skip(self, batch: TransitionBatch, rows: int) -> None:
+        """`rows` of `batch` that its slot had from elsewhere: received, not inserted."""
+        stream = f"{batch.worker}/{batch.incarnation}"
+        self.stream_skipped[stream] = self.stream_skipped.get(stream, 0) + rows
+        self._tally(batch).redundant_rows += rows
 
     def _tally(self, batch: TransitionBatch) -> WorkerTally:
         w = self.workers.setdefault(batch.worker, WorkerTally(actor=batch.actor))
@@ -165,4 +175,5 @@ class Intake:
         """Per worker and per stream, for transport.json."""
         return {"per_worker": {wid: {"received": w.received, "incarnation": w.incarnation, "last_seq": w.last_seq}
                                for wid, w in self.workers.items()},
-                "rows_per_stream": dict(self.stream_rows), "streams": self.tracker.per_sender()}
+                "rows_per_stream": dict(self.stream_rows), "skipped_per_stream": dict(self.stream_skipped),
+                "streams": self.tracker.per_sender()}

@@ -110,6 +110,7 @@ class Learner:
             if self.buffer.inserted != self.env_steps:
                 raise ValueError(f"checkpoint counts {self.env_steps} transitions, its replay {self.buffer.inserted}")
         self.intake.stream_rows = {k: int(v) for k, v in json.loads(c.get("stream_rows", "{}")).items()}
+        self.intake.stream_skipped = {k: int(v) for k, v in json.loads(c.get("stream_skipped", "{}")).items()}
         # The run had a referee: a learner resumed at its budget waits for it (its final evaluation).
         self.referee_seen = bool(int(c.get("referee_seen", 0)))
         # Sequence numbers go on from the checkpoint: a gap then counts what died with the old
@@ -257,8 +258,8 @@ class Learner:
             if batch.env_faults:
                 self.break_exact(f"worker {batch.worker} (slot {batch.slot}) met {batch.env_faults} simulator "
                                  f"faults in {self.cfg.env_id} by iteration {batch.iteration + batch.rows - 1}")
-            if not staged and not why:
-                self.intake.admit(batch)  # a resend of rows the buffer has: counted, not kept
+            if not staged and self.intake.admit(batch) and not batch.resend:
+                self.intake.skip(batch, batch.rows)  # iterations its slot has from elsewhere
         self.follow_allocation()
         if not self.referee_seen and self.referees.live():
             self.referee_seen = True  # finish() waits for its final evaluation
@@ -432,7 +433,8 @@ class Learner:
     def checkpoint(self) -> None:
         started = time.monotonic()
         counters = {"env_steps": self.env_steps, "per_worker": json.dumps(self.intake.tracker.per_sender()),
-                    "stream_rows": json.dumps(self.intake.stream_rows), "referee_seen": int(self.referee_seen),
+                    "stream_rows": json.dumps(self.intake.stream_rows),
+                    "stream_skipped": json.dumps(self.intake.stream_skipped), "referee_seen": int(self.referee_seen),
                     "iteration": self.iteration, "inexact": self.inexact,
                     "wall_s": round(self.wall_before + time.monotonic() - self.started, 3)}
         path = save_checkpoint(self.run_dir, self.agent, self.buffer, counters, self.cfg, self.replay_log,

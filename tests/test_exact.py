@@ -52,6 +52,34 @@ def test_plan_of_the_paper_schedule_hand_computed():
     assert plan.events() == [(3, "round"), (5, "curve"), (6, "elimination"), (10, "curve")]
 
 
+def test_plan_with_a_lag_hand_computed():
+    """The paper schedule above with B = 2: iteration t acts with the actors after t-3
+    (version_after: 0 0 0 0 1 1 2 2 3 3 4 for t-3 = 0..10), a decision of iteration j applies
+    from j+3 (the round at 3 from 6, the elimination at 6 from 9), evaluations judge the same
+    versions as at B = 0, and the iterations, widths and updates do not move."""
+    s = Schedule("paper", slots=3, steps=10, start=2, compete_every=3, eliminate_at=6)
+    lagged = Algorithm1(s, batch_size=4, policy_delay=2, eval_every=5, lag=2)
+    plain = Algorithm1(s, batch_size=4, policy_delay=2, eval_every=5)
+    assert [lagged.version_for(t) for t in range(1, 11)] == [0, 0, 0, 0, 0, 0, 1, 1, 2, 2]
+    assert [plain.version_for(t) for t in range(1, 11)] == [0, 0, 0, 0, 1, 1, 2, 2, 3, 3]
+    assert [lagged.decision_for(t) for t in range(1, 11)] == [0, 0, 0, 0, 0, 3, 3, 3, 6, 6]
+    assert [plain.decision_for(t) for t in range(1, 11)] == [0, 0, 0, 3, 3, 3, 6, 6, 6, 6]
+    for i, purpose in plain.events():
+        assert lagged.judged_version(i, purpose) == plain.judged_version(i, purpose)
+    assert lagged.judged_version(6, "elimination") == plain.version_for(6) == 1  # the actors that acted at B = 0
+    assert lagged.judged_version(5, "curve") == plain.version_after(5) == 1
+    assert [lagged.iteration(i) for i in range(1, 11)] == [plain.iteration(i) for i in range(1, 11)]
+    assert lagged.events() == plain.events() and lagged.competitions() == [3, 6]
+    assert lagged.slot_width(3) == 3 and lagged.slot_width(6) == 1  # the elimination's decision: slot 0 only
+    # An eliminated actor acts at most until C + B, never past its last version (after C-1).
+    assert all(lagged.version_for(t) <= plain.version_after(5) for t in range(7, 9))
+    with pytest.raises(ValueError, match="lag"):
+        resolve("ma-td3", compete_every=3, lag=3)  # a decision would apply after the next one is drawn
+    with pytest.raises(ValueError, match="lag"):
+        resolve("td3", lag=-1)
+    assert resolve("td3", lag=50).lag == 50  # one actor: no competitions to outrun
+
+
 def test_plan_of_equal_data_counts_transitions():
     """M = 4, 30 transitions, C = 10: sweeps of 4; the elimination in the sweep that reaches
     10 (the third); every slot keeps running the survivor (no single slot)."""
@@ -121,6 +149,8 @@ def test_mam_run_equals_the_reference_at_lag_0_and_2(tmp_path: Path) -> None:
     ref = run_reference("AppleCollect-v1", resolve("ma-ddpg", seed=3, **APPLE), APPLE_STEPS)
     assert first["summary"]["exact"] is True and first["summary"]["lag"] == 0
     _equals_reference(first, ref)
+    plan = Algorithm1.for_run(resolve("ma-ddpg", seed=3, **APPLE), APPLE_STEPS)  # the referee's events are the plan's
+    assert [(i, p) for i, p, _ in first["evals"]] == [(plan.iteration(i).units[1], p) for i, p in plan.events()]
 
     lagged = _record(_mam_run(tmp_path, "exact-lag2", 3, "--lag", "2"))
     ref2 = run_reference("AppleCollect-v1", resolve("ma-ddpg", seed=3, lag=2, **APPLE), APPLE_STEPS)
