@@ -29,10 +29,18 @@ def run(
     from services.launcher import RestartPolicy, run_local
 
     logging.basicConfig(level=logging.WARNING)
+    from services import preflight
+
     cfg = options.build_run_config(run_opts, config)
     options.check_precision(cfg)
+    run_dir = run_dir or Path("runs") / cfg.run
+    try:  # a configuration error stops here, before any process starts (services/preflight.py)
+        preflight.check_device(cfg.algo.device)
+        preflight.check_run_dir(run_dir)
+    except preflight.ConfigError as e:
+        raise typer.BadParameter(str(e)) from None
     outcome: dict[str, Any] = {}
-    summary = run_local(cfg, run_dir or Path("runs") / cfg.run, plot=not no_plot, outcome=outcome,
+    summary = run_local(cfg, run_dir, plot=not no_plot, outcome=outcome,
                         policy=RestartPolicy(max_restarts=max_restarts, window_s=restart_window))
     if not summary:  # 130 / 143 when SIGINT / SIGTERM stopped it (128 + the signal), else 1
         raise typer.Exit(128 + int(outcome["signal"]) if outcome.get("signal") else 1)

@@ -30,13 +30,14 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from mam_core.schedule import Schedule
-from services import bus, keys, registry, rundir, runlock
+from services import bus, keys, preflight, registry, rundir, runlock
 from services.codec import Allocation, Eval, LearnerStats, MessageError
 from services.options import RunConfig, budget_warnings, write_json
 
 STOP_GRACE_S = 15.0
 EXIT_WRITE_ERROR = 75  # the learner could not write its checkpoint (services/checkpoint.py, same value)
 EXIT_CORRUPT = 65  # no checkpoint generation verifies (services/checkpoint.py, same value)
+EXIT_CONFIG = preflight.EXIT_CONFIG  # 78: a configuration error (a device torch does not see); never restarted
 LOW_DISK_BYTES = 1 << 20  # a child that dies with less than this free in the run directory: the disk is full
 MAX_STALL_ACTIONS = 2  # watchdog restarts in a row without progress; one more stall stops the run
 STARTUP_GRACE_S = 60.0  # the watchdog's limit until a (re)started learner's first stats arrive, if longer
@@ -271,8 +272,13 @@ class LocalCluster:
 
     def fatal_exit(self, c: Child) -> None:
         """RunStopped for an exit that a restart cannot mend: the learner cannot write its
-        checkpoint (EXIT_WRITE_ERROR), a child refused the run directory, the disk is full."""
+        checkpoint (EXIT_WRITE_ERROR), a child refused the run directory, the disk is full, a
+        configuration error (EXIT_CONFIG: its one-line reason is the message)."""
         rc = c.proc.returncode
+        if rc == EXIT_CONFIG:
+            line = last_line(c.log, preflight.CONFIG_ERROR)
+            reason = line[line.index(preflight.CONFIG_ERROR):] if line else "configuration error"
+            raise RunStopped(f"{c.role} stopped on a {reason} (not restarted; see {c.log})")
         if rc == EXIT_WRITE_ERROR or (rc != 0 and free_bytes(self.run_dir) < LOW_DISK_BYTES):
             line = last_line(c.log, "stopping:")
             raise RunStopped(f"{c.role} cannot write to {self.run_dir} ({disk_free(self.run_dir)} free there)"
@@ -422,7 +428,7 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
                 cluster.wait(60.0, supervise=True)  # referee (final evaluation) and workers exit on their own
         except RunStopped as e:
             gave_up = e
-            console.print(f"[red]stopping the run: {e}[/]")
+            Console(stderr=True).print(f"[red]stopping the run: {e}[/]", highlight=False, soft_wrap=True)
         except (Interrupted, KeyboardInterrupt) as e:
             interrupted = True
             if outcome is not None:
