@@ -91,6 +91,8 @@ def test_state_tracks_allocation_eval_and_rates():
 
 def test_elimination_marks_survivor_and_keeps_last_returns():
     state = MonitorState(now=FakeClock())
+    for w in ("w0", "w1", "w2"):
+        state.on_alive("worker", w, True)
     state.on_allocation(_allocation(1, 1_000, [0.2, 0.3, 0.5], [1, 1, 3], {"w0": 0, "w1": 1, "w2": 2}))
     state.on_eval({"t": 3.0, "round": 2, "env_steps": 24_000, "returns": [[1.0], [2.0], [9.0]],
                    "mean": [1.0, 2.0, 9.0], "versions": [1, 1, 1], "bias": None})
@@ -159,3 +161,26 @@ def test_plain_lines_one_per_update():
                                     "125.0 env steps/s   25.0 updates/s"]
     state.on_done({"survivor": 0, "wall_time_s": 171.2, "final_returns": [49.94, None, None]})
     assert lines.after("done") == ["done in 171 s: final returns [49.94 — —], survivor 0"]
+
+
+def test_split_role_workers_under_their_ids_and_the_returns_the_elimination_was_decided_on():
+    """Workers b0 and b1 (split roles), an exact-mode allocation whose slots are named w0 and w1,
+    and an elimination decided on R = [49.94 49.94 49.94] after a curve evaluation that gave
+    actor 1 -1.00: no w0/w1 rows, and every actor shows 49.94 (what eval.jsonl holds)."""
+    state = MonitorState(now=FakeClock())
+    for w in ("b0", "b1"):
+        state.on_alive("worker", w, True)
+    state.on_allocation(_allocation(0, 0, [1 / 3] * 3, [1, 1, 0], {"w0": 0, "w1": 1}, reason="initial"))
+    state.on_eval({"env_steps": 2_000, "mean": [49.94, -1.0, 9.96]})
+    state.on_stats(_stats(3_000, 1_000, {"b0": 1_500, "b1": 1_500}))
+    state.on_allocation({**_allocation(1, 3_000, [0.0, 0.0, 1.0], [0, 0, 2], {"w0": 2, "w1": 2}, survivor=2,
+                                       reason="elimination"), "returns": [49.94, 49.94, 49.94]})
+    state.on_eval({"env_steps": 3_200, "mean": [None, None, 49.94]})  # only the survivor from now on
+    assert sorted(state.workers) == ["b0", "b1"]
+    assert [state.shown_return(k) for k in range(3)] == [49.94, 49.94, 49.94]
+    text = _text(state)
+    rows = [line.split() for line in text.splitlines()]
+    assert not [r for r in rows if r and r[0].strip("│┃ ") in ("w0", "w1")], text
+    assert any("b0" in r[0] or (len(r) > 1 and r[1] == "b0") for r in rows if r), text
+    assert "-1.00" not in text, text
+    assert text.count("49.94") == 3, text
