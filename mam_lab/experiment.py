@@ -29,7 +29,7 @@ from rich.console import Console
 
 from mam_core.config import ALGOS
 from mam_lab.grid import GRID_DIMENSIONS, GridError, load_grid_file, make_grid, plan, seeds_text, variants
-from mam_lab.ledger import check_resume, default_ledger, wall_estimates, write_manifest
+from mam_lab.ledger import check_resume, wall_estimates, write_manifest
 from mam_lab.provenance import ROOT, code_version, commit_label
 from mam_lab.scheduler import GridResult, core_slots, default_parallel, parse_stop_by, run_grid
 from mam_lab.view import describe_plan, hms
@@ -42,7 +42,8 @@ from services import options
 def experiment_command(
     run_opts: dict[str, Any],
     config: Annotated[Optional[Path], typer.Option(
-        "--config", help="grid TOML file (see deploy/experiments/); flags given here win over it")] = None,
+        "--config", help="grid TOML file (its format: deploy/experiments/README.md); flags given here win over "
+                   "it")] = None,
     exp_dir: Annotated[Optional[Path], typer.Option(
         "--exp-dir", help="experiment directory (default: the grid file's exp-dir, else runs/experiments/<name>); "
                           "run again with the same directory to resume")] = None,
@@ -70,8 +71,9 @@ def experiment_command(
     pin: Annotated[bool, typer.Option(
         "--pin/--no-pin", help="CPU affinity of each run's learner (cores ÷ P each)")] = True,
     ledger: Annotated[Optional[Path], typer.Option(
-        "--ledger", help="directory of the compact records of finished runs (default docs/results/<name>/runs, "
-                         "relative to the current directory); a run recorded there is finished")] = None,
+        "--ledger", help="directory of the compact records of finished runs, to commit (default: the grid file's "
+                         "ledger, else none: the experiment directory alone holds the runs); relative to the "
+                         "current directory; a run recorded there is finished")] = None,
     no_ledger: Annotated[bool, typer.Option("--no-ledger", help="keep no ledger")] = False,
     variants_opt: Annotated[Optional[str], typer.Option(
         "--variants", help="run only these variants of the grid (comma-separated names)")] = None,
@@ -94,6 +96,7 @@ def experiment_command(
 
     logging.basicConfig(level=logging.WARNING)
     console = Console()
+    console.soft_wrap = not console.is_terminal  # piped into a file: long lines stay whole
     try:
         file = load_grid_file(config) if config is not None else {}
         flags = run_opts  # every run option of the table but the grid's own dimensions
@@ -113,8 +116,8 @@ def experiment_command(
                 raise GridError("--exp-dir is required without a grid file or --name")
         if no_ledger:
             ledger = None
-        elif ledger is None:
-            ledger = default_ledger(grid.name)
+        elif ledger is None and file.get("ledger"):  # the project's evidence grids: docs/results/<name>/runs
+            ledger = Path(str(file["ledger"]))
         if parallel is not None and parallel < 1:
             raise GridError("--parallel must be >= 1")
         if cores_per_run < 1:
