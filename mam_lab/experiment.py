@@ -5,6 +5,11 @@ budget in schedule steps), `mam_lab.scheduler` (P runs at once, each its own pro
 resuming), `mam_lab.ledger` (the compact records of finished runs, which a fresh clone resumes
 from) and `mam_lab.view` (the progress view); their docstrings say how each works.
 
+EXP_DIR is runs/experiments/<name> unless `--exp-dir` or the grid file's `exp-dir` says otherwise
+(runs/ is ignored by git: a user's grid writes nothing into the source tree); a ledger is kept only
+where `--ledger` or the grid file's `ledger` names one (the project's evidence grids:
+docs/results/<name>/runs). The grid file's format: deploy/experiments/README.md.
+
     EXP_DIR/experiment.json             the grid, the planned runs, versions, the ledger
     EXP_DIR/<env>/<variant>/seed<k>/    a run directory (config.json, eval.jsonl, summary.json, ...)
     EXP_DIR/<env>/<variant>/seed<k>/launcher.log   what `mam run` would have printed

@@ -47,8 +47,8 @@ GRID_DIMENSIONS = frozenset({"env", "env_kwargs", "algo", "steps", "seed", "run"
 # Flags of the multi-actor algorithms only: TD3 and DDPG keep K=1, M=1 unless their own sections say otherwise.
 MULTI_ACTOR_FLAGS = frozenset({o.name for o in options.RUN_OPTIONS if o.multi_actor} | {"actors", "workers"})
 FLAG_NAMES = frozenset(o.name for o in options.RUN_OPTIONS) - GRID_DIMENSIONS  # the option table, less the dimensions
-GRID_KEYS = {"name", "exp_dir", "ledger", "envs", "algos", "seeds", "steps", "ablations", "etas", "common", "algo", "variant",
-             "env_seeds", "order"}
+GRID_KEYS = {"name", "exp_dir", "ledger", "envs", "algos", "seeds", "steps", "ablations", "etas", "common", "algo",
+             "variant", "env_seeds", "order"}
 ORDERS = ("seed", "env")
 _VARIANT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,63}")
 

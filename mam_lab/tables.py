@@ -28,7 +28,8 @@ def _ci(i: Interval, digits: int | None = None) -> str:
 
 TABLE_HEADER = ("variant", "setting", "runs", "deployed final return ± std", "deployed AUC ± std",
                 "best-of-K last-10 mean ± std", "95% CI", "best-of-K IQM [95% CI]",
-                "best-of-K max avg return ± std (@ step)", "updates", "transitions", "wall s (run)", "wall s (launcher)")
+                "best-of-K max avg return ± std (@ step)", "updates", "transitions", "wall s (run)",
+                "wall s (launcher)")
 
 
 def env_rows(vs: Sequence[VariantStats]) -> tuple[list[str], list[list[str]]]:

@@ -6,9 +6,9 @@ import os
 import re
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
-import tomllib
 from rich.console import Console
 
 from mam_lab.grid import load_grid_file, make_grid, plan
