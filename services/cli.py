@@ -74,6 +74,9 @@ def plot(run_dir: Path = typer.Argument(..., help="a run directory written by `m
 
     if not run_dir.is_dir():
         raise typer.BadParameter(f"{run_dir} is not a directory")
+    if not any((run_dir / name).is_file() for name in ("config.json", "eval.jsonl", "learner.jsonl")):
+        raise typer.BadParameter(f"{run_dir} is not a run directory (no config.json, eval.jsonl or learner.jsonl; "
+                                 "`mam run` writes them into runs/NAME)")
     if x not in X_AXES:
         raise typer.BadParameter(f"--x must be one of {', '.join(X_AXES)}")
     plot_command(run_dir, x)

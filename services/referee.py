@@ -241,8 +241,8 @@ class Referee:
                               "probabilities": [float(p) for p in self.schedule.probabilities], "counts": i_k,
                               "slots": dict(self.slots), "eliminated": [bool(e) for e in self.schedule.eliminated],
                               "survivor": self.schedule.survivor, "reason": reason})
-        log.info("allocation (%s) at iteration %d: P=%s I=%s", reason, index,
-                 np.round(self.schedule.probabilities, 3).tolist(), i_k)
+        log.info("allocation (%s) at %s: P=%s I=%s", reason, role.at_text(self.clock.paper, it.units[1] if it else 0,
+                 it.transitions[1] if it else 0), np.round(self.schedule.probabilities, 3).tolist(), i_k)
 
     def refresh(self) -> None:
         self.follower.follow(self.weights, self.stats)
@@ -284,7 +284,8 @@ class Referee:
                "bias": None}
         self.eval_log.write(row)
         self.last_eval = row
-        log.info("%s eval at %d steps: %s", purpose, steps, [None if m is None else round(m, 2) for m in means])
+        log.info("%s eval at %s: %s", purpose, role.at_text(self.clock.paper, row["iterations"], steps),
+                 [None if m is None else round(m, 2) for m in means])
         return means
 
     def compete(self, steps: int) -> None:
