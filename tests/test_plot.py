@@ -280,3 +280,26 @@ def test_mam_plot_on_a_path_that_is_not_a_run_exits_2(tmp_path):
         assert proc.returncode == 2, (proc.stdout, proc.stderr)
         assert ("not a run directory" if path.exists() else "not a directory") in proc.stderr, proc.stderr
     assert not (tmp_path / "notes" / "plots").exists()
+
+
+def test_the_report_curves_draw_the_deployed_actor_they_promise(tmp_path, monkeypatch):
+    """The report's curves said "dashed: deployed actor" on the transitions axis, where no dashed
+    line was drawn (the deployed actor is analysed in iterations). The committed evidence-c records:
+    a dashed, labelled deployed-actor line for the multi-actor variant on both axes, on top."""
+    from mam_lab import figures
+    from mam_lab.report import build_report
+    from tests.e2e import ROOT
+
+    report = build_report(ROOT / "docs" / "results" / "evidence-c", n_boot=50, verdict_boot=10_000,
+                          stability_seeds=2, axis="transitions")
+    drawn = []
+    real_save = figures._save
+    monkeypatch.setattr(figures, "_save", lambda fig, path: (drawn.append(fig), real_save(fig, path))[1])
+    for axis in ("transitions", "iterations"):
+        for env, vs in report.envs.items():
+            assert figures.plot_env_curves(env, vs, tmp_path / f"curves_{axis}.png", n_boot=50, axis=axis)
+            ax = drawn[-1].axes[0]
+            dashed = [ln for ln in ax.get_lines() if ln.get_label().endswith(": deployed actor")]
+            assert [ln.get_label() for ln in dashed] == ["ma-ddpg: deployed actor"], axis
+            assert dashed[0].get_linestyle() != "-" and dashed[0].get_zorder() > 2
+            assert "dashed: deployed actor" in ax.get_title()
