@@ -184,3 +184,43 @@ def test_split_role_workers_under_their_ids_and_the_returns_the_elimination_was_
     assert any("b0" in r[0] or (len(r) > 1 and r[1] == "b0") for r in rows if r), text
     assert "-1.00" not in text, text
     assert text.count("49.94") == 3, text
+
+
+@pytest.mark.slow
+def test_watch_a_split_role_run_with_workers_b0_b1_through_its_elimination(tmp_path):
+    """Real processes on loopback: a learner, a referee and workers `b0`/`b1` (slots 0 and 1, whose
+    allocation names the slots w0/w1), watched by `watch` to the end: only b0 and b1 are listed, and
+    every actor shows the return eval.jsonl and the elimination hold."""
+    import json
+
+    from services import bus
+    from services.monitor import watch
+    from services.rundir import read_jsonl
+    from tests.e2e import processes_of, spawn, stop, unique_run
+
+    run = unique_run("watch-split")
+    endpoint = bus.loopback_endpoint(bus.free_tcp_port())
+    common = ["--run", run, "--connect", endpoint, "--run-dir", str(tmp_path)]
+    procs = [spawn("learner", "--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--actors", "2", "--workers", "2",
+                   "--steps", "400", "--start-steps", "100", "--compete-every", "100", "--eliminate-at", "300",
+                   "--hidden", "16,16", "--batch-size", "16", "--eval-episodes", "2", "--eval-every", "100",
+                   "--run", run, "--listen", endpoint, "--run-dir", str(tmp_path), log=tmp_path / "learner.log"),
+             spawn("referee", *common, log=tmp_path / "referee.log")]
+    procs += [spawn("worker", *common, "--id", f"b{i}", "--slot", str(i), log=tmp_path / f"b{i}.log")
+              for i in range(2)]
+    try:
+        console = Console(record=True, width=160, force_terminal=False)
+        state = watch(run, bus.make_config(connect=[endpoint]), console=console, timeout=120, plain=True)
+    finally:
+        stop(*procs)
+    assert processes_of(run) == []
+    assert state.done and sorted(state.workers) == ["b0", "b1"], sorted(state.workers)
+    elimination = next(r for r in read_jsonl(tmp_path / "allocation.jsonl") if r["reason"] == "elimination")
+    decided = next(r for r in read_jsonl(tmp_path / "eval.jsonl") if r.get("purpose") == "elimination")
+    assert elimination["returns"] == decided["mean"]
+    survivor = elimination["survivor"]
+    for k in range(2):
+        if k != survivor:
+            assert state.shown_return(k) == pytest.approx(decided["mean"][k]), (k, json.dumps(decided))
+    text = _text(state)
+    assert "w0" not in text and "w1" not in text, text
