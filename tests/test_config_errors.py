@@ -90,3 +90,11 @@ def test_the_launcher_does_not_restart_a_child_that_exits_with_a_configuration_e
     assert "restart" not in proc.stdout.replace("not restarted", ""), proc.stdout
     assert "--- mam run:" not in (run_dir / "logs" / "learner.log").read_text()  # no restart banner
     assert took < 60, took
+
+
+@no_cuda
+def test_mam_experiment_checks_the_device_once_before_any_run(tmp_path: Path):
+    proc, took = _mam("experiment", "--exp-dir", str(tmp_path / "exp"), "--envs", "AppleCollect-v1", "--algos",
+                      "ddpg", "--steps", "100", "--device", "cuda", "--no-ledger")
+    assert proc.returncode == 2 and "torch on this host sees no CUDA device" in proc.stderr, proc.stderr
+    assert not (tmp_path / "exp").exists()
