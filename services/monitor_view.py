@@ -443,5 +443,7 @@ class PlainLines:
                 text += ": final returns " + _list(_floats(d["final_returns"]), ".2f")
             if s.survivor is not None:
                 text += f", survivor {s.survivor}"
+            elif s.n_actors > 1:
+                text += ", no elimination in this budget"
             return [text]
         return []

@@ -224,3 +224,10 @@ def test_watch_a_split_role_run_with_workers_b0_b1_through_its_elimination(tmp_p
             assert state.shown_return(k) == pytest.approx(decided["mean"][k]), (k, json.dumps(decided))
     text = _text(state)
     assert "w0" not in text and "w1" not in text, text
+
+
+def test_plain_done_line_without_an_elimination_says_so():
+    state = MonitorState(now=FakeClock())
+    state.on_allocation(_allocation(1, 1_000, [0.5, 0.5], [1, 1], {"w0": 0, "w1": 1}))
+    state.on_done({"survivor": None, "wall_time_s": 12.0, "final_returns": [1.0, 2.0]})
+    assert PlainLines(state).after("done") == ["done in 12 s: final returns [1.00 2.00], no elimination in this budget"]
