@@ -729,7 +729,7 @@ def outcome_text(cfg: RunConfig, summary: dict[str, Any]) -> str:
     r = float(returns[k])
     if cfg.env_id in RANDOM_POLICY_RETURNS and not cfg.env_kwargs:
         mean, std = RANDOM_POLICY_RETURNS[cfg.env_id]
-        return (f"{who}'s mean return {r:,.1f}; a uniform random policy scores {mean:,.1f} ± {std:,.1f} on "
+        return (f"{who}: mean return {r:,.1f}; a uniform random policy scores {mean:,.1f} ± {std:,.1f} on "
                 f"{cfg.env_id} (docs/RESULTS.md, \"Reference returns\")")
     best = best_apple_return(cfg.env_id, cfg.env_kwargs)
     if best is None:

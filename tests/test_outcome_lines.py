@@ -33,7 +33,7 @@ def test_a_mujoco_outcome_names_the_random_policy_return():
     cfg = build_run_config({"env": "Hopper-v5", "algo": "ma-td3", "steps": 1000}, None)
     text = outcome_text(cfg, {"final_returns": [None, 1234.56], "survivor": 1})
     mean, std = RANDOM_POLICY_RETURNS["Hopper-v5"]
-    assert text == (f"survivor 1's mean return 1,234.6; a uniform random policy scores {mean:,.1f} ± {std:,.1f} "
+    assert text == (f"survivor 1: mean return 1,234.6; a uniform random policy scores {mean:,.1f} ± {std:,.1f} "
                     "on Hopper-v5 (docs/RESULTS.md, \"Reference returns\")")
     assert "Reference returns" in (ROOT / "docs" / "RESULTS.md").read_text()
     for env in RANDOM_POLICY_RETURNS:  # every reference is recorded in the docs with its figure
