@@ -37,7 +37,7 @@ def _save(fig: Any, path: Path) -> Path:
 
 def _label_steps_axes(ax: Any, ylabel: str, title: str, axis: str = "transitions") -> None:
     """Labels, grid and legend of a plot over env steps (or iterations)."""
-    ax.set_xlabel("env steps (transitions received by the learner)" if axis == "transitions"
+    ax.set_xlabel("transitions (env steps received by the learner)" if axis == "transitions"
                   else "iterations (env transitions where a run does not record them)")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
@@ -159,7 +159,7 @@ def plot_env_allocation(env: str, vs: Sequence[VariantStats], path: Path) -> Pat
             if col == 0:
                 ax.set_ylabel(label)
         axes[0, col].set_title(f"{v.variant} ({v.setting()}, n={v.n})", fontsize="medium")
-        axes[1, col].set_xlabel("env steps")
+        axes[1, col].set_xlabel("transitions")
     axes[0, 0].legend(loc="lower right", fontsize="small")
     fig.suptitle(f"{env}: allocation to the eventual survivor (thin: seeds)")
     return _save(fig, path)

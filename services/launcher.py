@@ -647,12 +647,12 @@ def at_text(cfg: RunConfig, transitions: int) -> str:
 
 
 def progress_text(cfg: RunConfig, transitions: int, updates: int, rates: tuple[float, float] | None) -> str:
-    """The progress bar's text: iterations (paper), updates, env steps/s and updates/s."""
+    """The progress bar's text: iterations (paper), updates, transitions/s and updates/s."""
     clock = Schedule.for_run(cfg.algo, cfg.steps)
     text = f"it {clock.units_at(transitions):,}/{cfg.steps:,} " if clock.paper else ""
     text += f"upd {updates:,}"
     if rates is not None:
-        text += f" {rates[0]:,.0f} steps/s {rates[1]:,.0f} upd/s"
+        text += f" {rates[0]:,.0f} transitions/s {rates[1]:,.0f} upd/s"
     return text
 
 

@@ -291,7 +291,7 @@ def _header(state: MonitorState) -> Panel:
     lines = [
         *state.progress(steps),
         f"updates [bold]{_int(stats.get('updates')) or 0:,}[/bold]",
-        f"env steps/s {_fmt(state.steps_per_s, '.1f')}",
+        f"transitions/s {_fmt(state.steps_per_s, '.1f')}",
         f"updates/s {_fmt(state.updates_per_s, '.1f')}",
         f"utd {_fmt(_float(stats.get('utd')), '.3f')}",
     ]
@@ -344,7 +344,7 @@ def _actors_table(state: MonitorState) -> Table:
 
 def _workers_table(state: MonitorState) -> Table:
     table = Table(title="workers", title_justify="left")
-    for col in ("worker", "state", "actor", "transitions", "steps/s", "policy lag", "last seen"):
+    for col in ("worker", "state", "actor", "transitions", "transitions/s", "policy lag", "last seen"):
         table.add_column(col, justify="left" if col in ("worker", "state") else "right")
     if not state.workers:
         table.add_row("—", "no workers yet", "", "", "", "", "")
@@ -433,7 +433,7 @@ class PlainLines:
             text = "   ".join(s.progress(_int(s.stats.get("env_steps"))))
             text += f"   updates {_int(s.stats.get('updates')) or 0:,}"
             if s.steps_per_s is not None:
-                text += f"   {s.steps_per_s:,.1f} env steps/s   {_fmt(s.updates_per_s, ',.1f')} updates/s"
+                text += f"   {s.steps_per_s:,.1f} transitions/s   {_fmt(s.updates_per_s, ',.1f')} updates/s"
             return [text]
         if kind == "done" and s.summary is not None:
             d = s.summary

@@ -130,7 +130,7 @@ def _n_actors(*lists: Sequence[Any]) -> int:
 # --- plots ----------------------------------------------------------------------------------
 
 
-X_AXES = {"transitions": "env steps (transitions received by the learner)",
+X_AXES = {"transitions": "transitions (env steps received by the learner)",
           "iterations": "iterations (Algorithm 1: M transitions before C, one after)"}
 TRANSITIONS = X_AXES["transitions"]
 

@@ -158,7 +158,7 @@ def test_plain_lines_one_per_update():
     clock.t = 106.0
     state.on_stats(_stats(4_000, 400, {"w0": 4_000}))
     assert lines.after("stats") == ["iteration 800 / 4,000   transitions 4,000 / 16,000   updates 400   "
-                                    "125.0 env steps/s   25.0 updates/s"]
+                                    "125.0 transitions/s   25.0 updates/s"]
     state.on_done({"survivor": 0, "wall_time_s": 171.2, "final_returns": [49.94, None, None]})
     assert lines.after("done") == ["done in 171 s: final returns [49.94 — —], survivor 0"]
 

@@ -53,7 +53,7 @@ def test_the_last_progress_line_agrees_with_the_done_line_and_the_referee_logs_o
     done = next(line for line in out.splitlines() if line.startswith("done in "))
     reached = re.search(r"budget reached at (\d+:\d\d:\d\d)", done)
     assert reached and reached.group(1) in bar, (bar, done)
-    assert "steps/s" not in bar and "upd/s" not in bar and bar.rstrip().endswith("done"), bar
+    assert "transitions/s" not in bar and "upd/s" not in bar and bar.rstrip().endswith("done"), bar
     assert re.search(r"survivor \d", done) and "None" not in done, done
     log = (run_dir / "logs" / "referee.log").read_text()
     points = re.findall(r"(?:eval|allocation \(\w+\)) at ([^:]+):", log)
