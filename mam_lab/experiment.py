@@ -50,8 +50,9 @@ def experiment_command(
         "--config", help="grid TOML file (its format: deploy/experiments/README.md); flags given here win over "
                    "it")] = None,
     exp_dir: Annotated[Optional[Path], typer.Option(
-        "--exp-dir", help="experiment directory (default: the grid file's exp-dir, else runs/experiments/<name>); "
-                          "run again with the same directory to resume")] = None,
+        "--exp-dir", help="experiment directory (default: the grid file's exp-dir, else runs/experiments/<name>, "
+                          "<name> being --name, the grid file's name, or 'experiment'); run again with the same "
+                          "directory to resume")] = None,
     envs: Annotated[Optional[str], typer.Option("--envs", help="comma-separated env ids, e.g. "
                                                                 "HalfCheetah-v5,Hopper-v5")] = None,
     algos: Annotated[Optional[str], typer.Option("--algos", help=f"comma-separated, of {', '.join(ALGOS)}")] = None,
@@ -117,13 +118,8 @@ def experiment_command(
             except preflight.ConfigError as e:
                 raise GridError(str(e)) from None
         _, aliases = variants(grid)
-        if exp_dir is None:
-            if file.get("exp_dir"):
-                exp_dir = Path(str(file["exp_dir"]))
-            elif config is not None or name:
-                exp_dir = Path("runs") / "experiments" / grid.name
-            else:
-                raise GridError("--exp-dir is required without a grid file or --name")
+        if exp_dir is None:  # runs/ is ignored by git: nothing lands in the source tree
+            exp_dir = Path(str(file["exp_dir"])) if file.get("exp_dir") else Path("runs") / "experiments" / grid.name
         if no_ledger:
             ledger = None
         elif ledger is None and file.get("ledger"):  # the project's evidence grids: docs/results/<name>/runs
