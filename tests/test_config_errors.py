@@ -98,3 +98,11 @@ def test_mam_experiment_checks_the_device_once_before_any_run(tmp_path: Path):
                       "ddpg", "--steps", "100", "--device", "cuda", "--no-ledger")
     assert proc.returncode == 2 and "torch on this host sees no CUDA device" in proc.stderr, proc.stderr
     assert not (tmp_path / "exp").exists()
+
+
+def test_an_unknown_env_id_or_env_kwargs_stop_mam_run_before_any_process(tmp_path: Path):
+    for args, reason in ((["--env", "NoSuch-v9"], "doesn't exist"),
+                         (["--env", "AppleCollect-v1", "--env-kwargs", '{"nope": 1}'], "unexpected keyword argument")):
+        proc, took = _mam("run", *args, "--steps", "100", "--run-dir", str(tmp_path / "run"))
+        assert proc.returncode == 2 and reason in proc.stderr and took < 30, (took, proc.stderr)
+        assert not (tmp_path / "run").exists()
