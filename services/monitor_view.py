@@ -297,7 +297,7 @@ def _header(state: MonitorState) -> Panel:
     ]
     second = [
         f"critic loss {_fmt(_float(losses.get('critic')), '.4g')}",
-        f"actor loss {_fmt(_float(losses.get('actor')), '.4g')}",
+        f"actor loss (sum) {_fmt(_float(losses.get('actor')), '.4g')}",
         f"accept until {_fmt(_float(stats.get('accept_until')), ',.0f')}",
         f"last stats {_fmt(state.seconds_ago(state.stats_seen), '.1f')}s ago",
     ]
@@ -317,14 +317,15 @@ def _header(state: MonitorState) -> Panel:
 def _actors_table(state: MonitorState) -> Table:
     title = "actors" + (f" (round {state.round})" if state.round is not None else "")
     table = Table(title=title, title_justify="left")
-    for col in ("actor", "P_k", "I_k", "mean return", "status", "policy version", "mean Q"):
+    for col in ("actor", "P_k", "I_k", "mean return", "status", "policy version", "mean Q", "actor loss"):
         table.add_column(col, justify="left" if col in ("actor", "status") else "right")
     stats = state.stats or {}
+    losses = stats.get("losses") if isinstance(stats.get("losses"), Mapping) else {}  # actor{k}: Eq. 7 per actor
     if any(state.eliminated) and state.elimination_returns:
         table.caption = "an eliminated actor's mean return: the one its elimination was decided on"
         table.caption_justify = "left"
     if state.n_actors == 0:
-        table.add_row("—", "", "", "", "no allocation yet", "", "")
+        table.add_row("—", "", "", "", "no allocation yet", "", "", "")
     for k in range(state.n_actors):
         status = state.actor_status(k)
         style = {"survivor": "bold green", "eliminated": "dim"}.get(status, "")
@@ -337,6 +338,7 @@ def _actors_table(state: MonitorState) -> Table:
             shown,
             _fmt(_int(_at(stats.get("versions"), k)), "d"),
             _fmt(_float(_at(stats.get("q_means"), k)), ".3g"),
+            _fmt(None if status == "eliminated" else _float(losses.get(f"actor{k}")), ".4g"),
             style=style,
         )
     return table
