@@ -231,3 +231,12 @@ def test_plain_done_line_without_an_elimination_says_so():
     state.on_allocation(_allocation(1, 1_000, [0.5, 0.5], [1, 1], {"w0": 0, "w1": 1}))
     state.on_done({"survivor": None, "wall_time_s": 12.0, "final_returns": [1.0, 2.0]})
     assert PlainLines(state).after("done") == ["done in 12 s: final returns [1.00 2.00], no elimination in this budget"]
+
+
+def test_each_actor_shows_its_own_actor_loss():
+    state = MonitorState(now=FakeClock())
+    state.on_allocation(_allocation(1, 1_000, [0.5, 0.5], [1, 1], {"w0": 0, "w1": 1}))
+    state.on_stats({**_stats(2_000, 1_000, {"w0": 1_000}),
+                    "losses": {"critic": 0.5, "actor": -7.0, "actor0": -2.25, "actor1": -4.75}})
+    text = _text(state)
+    assert "actor loss (sum) -7" in text and "-2.25" in text and "-4.75" in text, text
