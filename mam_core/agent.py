@@ -96,8 +96,8 @@ def adam_step(opt: torch.optim.Optimizer, loss: torch.Tensor, params: list[torch
 def pick_device(device: str) -> torch.device:
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError("--device cuda asked for, but torch sees no CUDA device")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise RuntimeError(f"--device {device} asked for, but torch sees no CUDA device")
     return torch.device(device)
 
 
@@ -231,7 +231,8 @@ class MultiActorAgent:
                 self.versions[j] += 1
         soft_update(self.actor_target, self.actor, self._tau_actor)
         soft_update(self.critic_target, self.critic, self._tau_critic)
-        return {"loss/actor": float(loss_pi.detach())}
+        per_actor = torch.cat([loss_pi.detach().reshape(1), -q1.detach().mean(dim=-1) * self.live]).tolist()
+        return {"loss/actor": per_actor[0], **{f"loss/actor{j}": v for j, v in enumerate(per_actor[1:])}}
 
     def _smoothed(self, action: torch.Tensor) -> torch.Tensor:
         """Target policy smoothing: ã = clip(π'(s') + clip(N(0, σ̃), ±c), ±max_action)."""

@@ -8,6 +8,7 @@ user flags on top and checks them.
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass
 from typing import Any
 
@@ -147,8 +148,8 @@ def validate(cfg: AlgoConfig) -> AlgoConfig:
         problems.append("start_steps >= 0, eval_episodes >= 1 and eval_every >= 1 required")
     if not cfg.hidden or any(h < 1 for h in cfg.hidden):
         problems.append("hidden sizes must be positive")
-    if cfg.device not in ("auto", "cpu", "cuda"):
-        problems.append("device must be auto, cpu or cuda")
+    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", cfg.device):
+        problems.append("device must be auto, cpu, cuda or cuda:N")
     if cfg.schedule not in SCHEDULES:
         problems.append(f"schedule must be one of {', '.join(SCHEDULES)}")
     if cfg.after_elimination not in AFTER_ELIMINATION:

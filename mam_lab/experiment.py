@@ -5,6 +5,11 @@ budget in schedule steps), `mam_lab.scheduler` (P runs at once, each its own pro
 resuming), `mam_lab.ledger` (the compact records of finished runs, which a fresh clone resumes
 from) and `mam_lab.view` (the progress view); their docstrings say how each works.
 
+EXP_DIR is runs/experiments/<name> unless `--exp-dir` or the grid file's `exp-dir` says otherwise
+(runs/ is ignored by git: a user's grid writes nothing into the source tree); a ledger is kept only
+where `--ledger` or the grid file's `ledger` names one (the project's evidence grids:
+docs/results/<name>/runs). The grid file's format: deploy/experiments/README.md.
+
     EXP_DIR/experiment.json             the grid, the planned runs, versions, the ledger
     EXP_DIR/<env>/<variant>/seed<k>/    a run directory (config.json, eval.jsonl, summary.json, ...)
     EXP_DIR/<env>/<variant>/seed<k>/launcher.log   what `mam run` would have printed
@@ -29,11 +34,11 @@ from rich.console import Console
 
 from mam_core.config import ALGOS
 from mam_lab.grid import GRID_DIMENSIONS, GridError, load_grid_file, make_grid, plan, seeds_text, variants
-from mam_lab.ledger import check_resume, default_ledger, wall_estimates, write_manifest
+from mam_lab.ledger import check_resume, wall_estimates, write_manifest
 from mam_lab.provenance import ROOT, code_version, commit_label
 from mam_lab.scheduler import GridResult, core_slots, default_parallel, parse_stop_by, run_grid
 from mam_lab.view import describe_plan, hms
-from services import options
+from services import options, preflight
 
 # --- command ---------------------------------------------------------------------------------
 
@@ -42,10 +47,12 @@ from services import options
 def experiment_command(
     run_opts: dict[str, Any],
     config: Annotated[Optional[Path], typer.Option(
-        "--config", help="grid TOML file (see deploy/experiments/); flags given here win over it")] = None,
+        "--config", help="grid TOML file (its format: deploy/experiments/README.md); flags given here win over "
+                   "it")] = None,
     exp_dir: Annotated[Optional[Path], typer.Option(
-        "--exp-dir", help="experiment directory (default: the grid file's exp-dir, else runs/experiments/<name>); "
-                          "run again with the same directory to resume")] = None,
+        "--exp-dir", help="experiment directory (default: the grid file's exp-dir, else runs/experiments/<name>, "
+                          "<name> being --name, the grid file's name, or 'experiment'); run again with the same "
+                          "directory to resume")] = None,
     envs: Annotated[Optional[str], typer.Option("--envs", help="comma-separated env ids, e.g. "
                                                                 "HalfCheetah-v5,Hopper-v5")] = None,
     algos: Annotated[Optional[str], typer.Option("--algos", help=f"comma-separated, of {', '.join(ALGOS)}")] = None,
@@ -70,8 +77,9 @@ def experiment_command(
     pin: Annotated[bool, typer.Option(
         "--pin/--no-pin", help="CPU affinity of each run's learner (cores ÷ P each)")] = True,
     ledger: Annotated[Optional[Path], typer.Option(
-        "--ledger", help="directory of the compact records of finished runs (default docs/results/<name>/runs, "
-                         "relative to the current directory); a run recorded there is finished")] = None,
+        "--ledger", help="directory of the compact records of finished runs, to commit (default: the grid file's "
+                         "ledger, else none: the experiment directory alone holds the runs); relative to the "
+                         "current directory; a run recorded there is finished")] = None,
     no_ledger: Annotated[bool, typer.Option("--no-ledger", help="keep no ledger")] = False,
     variants_opt: Annotated[Optional[str], typer.Option(
         "--variants", help="run only these variants of the grid (comma-separated names)")] = None,
@@ -94,6 +102,7 @@ def experiment_command(
 
     logging.basicConfig(level=logging.WARNING)
     console = Console()
+    console.soft_wrap = not console.is_terminal  # piped into a file: long lines stay whole
     try:
         file = load_grid_file(config) if config is not None else {}
         flags = run_opts  # every run option of the table but the grid's own dimensions
@@ -103,18 +112,18 @@ def experiment_command(
         for spec in specs:  # before anything starts: bf16 where it would only be slower
             if dict(spec.flags).get("precision") == "bf16":
                 options.check_precision(spec.run_config("check"))
+        for device in sorted({str(dict(s.flags).get("device") or "auto") for s in specs}):
+            try:  # a device torch does not see fails every run: say so once, before the first
+                preflight.check_device(device)
+            except preflight.ConfigError as e:
+                raise GridError(str(e)) from None
         _, aliases = variants(grid)
-        if exp_dir is None:
-            if file.get("exp_dir"):
-                exp_dir = Path(str(file["exp_dir"]))
-            elif config is not None or name:
-                exp_dir = Path("runs") / "experiments" / grid.name
-            else:
-                raise GridError("--exp-dir is required without a grid file or --name")
+        if exp_dir is None:  # runs/ is ignored by git: nothing lands in the source tree
+            exp_dir = Path(str(file["exp_dir"])) if file.get("exp_dir") else Path("runs") / "experiments" / grid.name
         if no_ledger:
             ledger = None
-        elif ledger is None:
-            ledger = default_ledger(grid.name)
+        elif ledger is None and file.get("ledger"):  # the project's evidence grids: docs/results/<name>/runs
+            ledger = Path(str(file["ledger"]))
         if parallel is not None and parallel < 1:
             raise GridError("--parallel must be >= 1")
         if cores_per_run < 1:

@@ -14,7 +14,7 @@ import numpy as np
 
 from mam_lab.analysis import SUCCESS_RETURN, Report, VariantStats, is_apple_collect
 from mam_lab.runs import BiasStats, RunRecord
-from mam_lab.scores import _finite
+from mam_lab.scores import _finite, aligned_curves
 from mam_lab.stats import curve_band
 
 DPI = 120
@@ -37,12 +37,28 @@ def _save(fig: Any, path: Path) -> Path:
 
 def _label_steps_axes(ax: Any, ylabel: str, title: str, axis: str = "transitions") -> None:
     """Labels, grid and legend of a plot over env steps (or iterations)."""
-    ax.set_xlabel("env steps (transitions received by the learner)" if axis == "transitions"
+    ax.set_xlabel("transitions (env steps received by the learner)" if axis == "transitions"
                   else "iterations (env transitions where a run does not record them)")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize="small")
+
+
+def deployed_curve(v: VariantStats, axis: str, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The deployed actor's returns (runs × grid) on `axis`: as analysed (schedule steps), or moved
+    to the transitions axis through each run's evaluation rows (iteration -> env steps)."""
+    if v.deployed_curves is None or not v.deployed_curves[0].size:
+        return None
+    if v.deployed_axis == axis:
+        return v.deployed_curves
+    if axis != "transitions" or grid.size < 2:
+        return None
+    runs = []
+    for run in v.runs:
+        steps_at = {it: step for step, it, _ in run.evals if it is not None}
+        runs.append([(steps_at[d.x], d.score) for d in run.deployed if d.x in steps_at])
+    return aligned_curves(runs, float(np.median(np.diff(grid))))
 
 
 def plot_env_curves(env: str, vs: Sequence[VariantStats], path: Path, n_boot: int = 1000, seed: int = 0,
@@ -55,6 +71,7 @@ def plot_env_curves(env: str, vs: Sequence[VariantStats], path: Path, n_boot: in
         return None
     fig = _figure(figsize=(8.5, 5))
     ax = fig.add_subplot()
+    dashed = False
     for i, (v, grid, matrix) in enumerate(curves):
         if not grid.size:
             continue
@@ -66,11 +83,16 @@ def plot_env_curves(env: str, vs: Sequence[VariantStats], path: Path, n_boot: in
                 label=f"{v.variant} (n={v.n}{wall_text})")
         ax.fill_between(grid, lo, hi, color=color, alpha=0.18, linewidth=0)
         multi = (v.runs[0].algo_config.get("actors") or 1) > 1
-        if multi and v.deployed_curves is not None and v.deployed_axis == axis and v.deployed_curves[0].size:
-            d_grid, d_matrix = v.deployed_curves
+        deployed = deployed_curve(v, axis, grid) if multi else None
+        if deployed is not None and deployed[0].size:
+            d_grid, d_matrix = deployed
             seen = np.isfinite(d_matrix).sum(axis=0)
             d_mean = np.where(seen > 0, np.nansum(d_matrix, axis=0) / np.maximum(seen, 1), np.nan)
-            ax.plot(d_grid, d_mean, color=color, linewidth=1.4, linestyle="--", label=f"{v.variant}: deployed actor")
+            # above the solid line (after C the two coincide), dark-edged so it shows on it
+            ax.plot(d_grid, d_mean, color="0.1", linewidth=2.6, linestyle=(0, (3, 2)), zorder=4)
+            ax.plot(d_grid, d_mean, color=color, linewidth=1.6, linestyle=(0, (3, 2)), zorder=5,
+                    label=f"{v.variant}: deployed actor")
+            dashed = True
         algo = v.runs[0].algo_config
         c = algo.get("eliminate_at")  # in schedule steps: iterations (paper) or transitions (equal-data)
         k = algo.get("actors") or 1
@@ -80,8 +102,9 @@ def plot_env_curves(env: str, vs: Sequence[VariantStats], path: Path, n_boot: in
             ax.axvline(c, color=color, linestyle=":", linewidth=1.0)
     if is_apple_collect(env):
         ax.axhline(SUCCESS_RETURN, color="0.5", linestyle="--", linewidth=0.8, label=f"return {SUCCESS_RETURN:.2f}")
-    _label_steps_axes(ax, "evaluation return", f"{env}: mean over seeds, 95% bootstrap CI\n(solid: best live actor, "
-                      "best-of-K; dashed: deployed actor; dotted: elimination C)", axis)
+    styles = "solid: best live actor, best-of-K" + ("; dashed: deployed actor" if dashed else "") + \
+        "; dotted: elimination C"
+    _label_steps_axes(ax, "evaluation return", f"{env}: mean over seeds, 95% bootstrap CI\n({styles})", axis)
     return _save(fig, path)
 
 
@@ -136,7 +159,7 @@ def plot_env_allocation(env: str, vs: Sequence[VariantStats], path: Path) -> Pat
             if col == 0:
                 ax.set_ylabel(label)
         axes[0, col].set_title(f"{v.variant} ({v.setting()}, n={v.n})", fontsize="medium")
-        axes[1, col].set_xlabel("env steps")
+        axes[1, col].set_xlabel("transitions")
     axes[0, 0].legend(loc="lower right", fontsize="small")
     fig.suptitle(f"{env}: allocation to the eventual survivor (thin: seeds)")
     return _save(fig, path)

@@ -24,6 +24,7 @@ multi-actor algorithms only: TD3 and DDPG keep K=1, M=1 unless their own `[algo.
 
 from __future__ import annotations
 
+import functools
 import json
 import re
 import tomllib
@@ -34,7 +35,8 @@ from typing import Any
 
 import typer
 
-from mam_core.config import ALGOS
+from mam_core.config import ALGOS, resolve
+from mam_core.schedule import Schedule
 from services import options
 from services.options import RunConfig
 from services.rundir import env_dirname
@@ -45,8 +47,8 @@ GRID_DIMENSIONS = frozenset({"env", "env_kwargs", "algo", "steps", "seed", "run"
 # Flags of the multi-actor algorithms only: TD3 and DDPG keep K=1, M=1 unless their own sections say otherwise.
 MULTI_ACTOR_FLAGS = frozenset({o.name for o in options.RUN_OPTIONS if o.multi_actor} | {"actors", "workers"})
 FLAG_NAMES = frozenset(o.name for o in options.RUN_OPTIONS) - GRID_DIMENSIONS  # the option table, less the dimensions
-GRID_KEYS = {"name", "exp_dir", "envs", "algos", "seeds", "steps", "ablations", "etas", "common", "algo", "variant",
-             "env_seeds", "order"}
+GRID_KEYS = {"name", "exp_dir", "ledger", "envs", "algos", "seeds", "steps", "ablations", "etas", "common", "algo",
+             "variant", "env_seeds", "order"}
 ORDERS = ("seed", "env")
 _VARIANT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,63}")
 
@@ -132,9 +134,30 @@ class RunSpec:
     def run_config(self, run_name: str) -> RunConfig:
         return options.build_run_config({**self.options(), "run": run_name}, None)
 
+    @property
+    def transitions(self) -> int:
+        """The run's budget in transitions, what its learner counts: T itself under equal-data,
+        more under the paper schedule (M per iteration before C)."""
+        return run_schedule(self.algo, self.steps, self.flags).budget
+
+    @property
+    def paper(self) -> bool:
+        """T counts iterations (the paper schedule), not transitions (equal-data)."""
+        return run_schedule(self.algo, self.steps, self.flags).paper
+
     def to_dict(self) -> dict[str, Any]:
         return {"path": str(self.path), "env": self.env, "variant": self.variant, "algo": self.algo,
                 "seed": self.seed, "steps": self.steps, "flags": _jsonable(dict(self.flags))}
+
+
+@functools.lru_cache(maxsize=1024)
+def run_schedule(algo: str, steps: int, flags: tuple[tuple[str, Any], ...]) -> Schedule:
+    """The schedule of a run of `algo` with `flags` and budget T = `steps` (its unit, its budget in
+    transitions); no env is made."""
+    algo_flags = {k: v for k, v in flags if options.OPTION[k].target != options.RUN}
+    if isinstance(algo_flags.get("hidden"), str):
+        algo_flags["hidden"] = tuple(int(h) for h in algo_flags["hidden"].split(",") if h.strip())
+    return Schedule.for_run(resolve(algo, **algo_flags), steps)
 
 
 def _norm_key(key: str) -> str:
@@ -266,7 +289,8 @@ def make_grid(file: Mapping[str, Any] | None = None, **cli: Any) -> Grid:
         raise GridError(f"order: {order!r}; choose from {', '.join(ORDERS)}")
     steps = get("steps")
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-        raise GridError(f"steps: need a positive number of env transitions, got {steps!r}")
+        raise GridError(f"steps: need a positive T (iterations under the paper schedule, transitions under "
+                        f"equal-data), got {steps!r}")
     ablations = _list(get("ablations"), "ablations")
     bad = [a for a in ablations if a not in ABLATIONS]
     if bad:

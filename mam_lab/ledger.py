@@ -1,8 +1,9 @@
 """The ledger of `mam experiment`: compact records of finished runs, to be committed, and what
 a rerun resumes from.
 
-The ledger (`--ledger DIR`, default docs/results/<name>/runs relative to the current directory;
-`--no-ledger`: none) keeps a compact record of each finished run, to be committed:
+The ledger (`--ledger DIR` or a grid file's `ledger = "DIR"`, relative to the current directory;
+none by default, and `--no-ledger` drops the file's) keeps a compact record of each finished run, to be
+committed (the project's evidence grids name docs/results/<name>/runs):
 DIR/<env>/<variant>/seed<k>/ with config.json, summary.json, eval.jsonl, allocation.jsonl,
 bias.jsonl (where present), learner.jsonl thinned to LEARNER_ROWS rows and record.json (the commit
 the run ran at, with a dirty flag, versions, wall time, the spec, the exit status); no checkpoints,
@@ -44,11 +45,6 @@ LEDGER_FILES = (rundir.CONFIG, rundir.SUMMARY, rundir.EVAL, rundir.ALLOCATION, r
 
 LEARNER_ROWS = 200  # learner.jsonl is thinned to at most this many rows in the ledger
 RECORD_FORMAT = 1
-
-
-def default_ledger(name: str) -> Path:
-    """docs/results/<exp name>/runs, relative to the current directory."""
-    return Path("docs") / "results" / name / "runs"
 
 
 def thin_indices(n: int, max_rows: int) -> list[int]:

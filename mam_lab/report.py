@@ -134,6 +134,7 @@ def report_command(
     from rich.console import Console
 
     console = Console()
+    console.soft_wrap = not console.is_terminal  # piped: tables are Markdown, lines stay whole
     if not Path(exp_dir).is_dir() and config is None:
         raise typer.BadParameter(f"{exp_dir} is not a directory")
     if n_boot < 100:

@@ -280,7 +280,7 @@ def run_grid(specs: Sequence[RunSpec], exp_dir: Path, console: Console, *, plot_
             best = max((f for f in finals if isinstance(f, (int, float))), default=None)
             score = "–" if best is None else f"{best:.2f}"
             view.end_run(a.spec, True, f"[green]✓[/] {a.spec.label}  final {score}  survivor "
-                                       f"{summary.get('survivor')}  {summary.get('env_steps', 0):,} steps  "
+                                       f"{summary.get('survivor')}  {summary.get('env_steps', 0):,} transitions  "
                                        f"{hms(took)}{where}", slot=a.slot)
             result.finished.append(a.spec)
             result.run_wall_s[a.spec.label] = took

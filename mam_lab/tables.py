@@ -28,7 +28,8 @@ def _ci(i: Interval, digits: int | None = None) -> str:
 
 TABLE_HEADER = ("variant", "setting", "runs", "deployed final return ± std", "deployed AUC ± std",
                 "best-of-K last-10 mean ± std", "95% CI", "best-of-K IQM [95% CI]",
-                "best-of-K max avg return ± std (@ step)", "updates", "env steps", "wall s (run)", "wall s (launcher)")
+                "best-of-K max avg return ± std (@ step)", "updates", "transitions", "wall s (run)",
+                "wall s (launcher)")
 
 
 def env_rows(vs: Sequence[VariantStats]) -> tuple[list[str], list[list[str]]]:
@@ -223,9 +224,9 @@ def render_markdown(report: Report, figures: dict[str, list[Path]], out: Path) -
     grid = report.meta.get("grid") or {}
     if grid:
         lines.append(f"Grid: envs {grid.get('envs')}, algos {grid.get('algos')}, seeds {grid.get('seeds')}, "
-                     f"budget T = {_fmt(grid.get('steps') or math.nan, 0)} schedule steps per run: iterations "
+                     f"budget T = {_fmt(grid.get('steps') or math.nan, 0)} per run: iterations "
                      f"under --schedule paper (M transitions and one update each before C, one of each after), "
-                     f"transitions under equal-data (see each row's env steps and updates).")
+                     f"transitions under equal-data (see each row's transitions and updates).")
     versions = report.meta.get("versions") or {}
     if versions:
         lines.append("Versions: " + ", ".join(f"{k} {v}" for k, v in sorted(versions.items())) + ".")
@@ -255,7 +256,7 @@ def render_markdown(report: Report, figures: dict[str, list[Path]], out: Path) -
               "mean over seeds, ± std over seeds at that point."]
     for env, vs in report.envs.items():
         header, rows = env_rows(vs)
-        unit = "env steps" if report.axis == "transitions" else report.axis
+        unit = report.axis
         lines += ["", f"## {env}", "", f"Evaluation grid spacing: {_fmt(vs[0].spacing, 0)} {unit} (x-axis: "
                   f"{report.axis}); wall s: mean wall-clock seconds per run (the referee's, and the launcher's from "
                   "start to end).", "", _md_table(header, rows)]
@@ -314,27 +315,38 @@ def _rich_table(title: str, header: Sequence[str], rows: Sequence[Sequence[str]]
     return table
 
 
+def print_table(console: Any, title: str, header: Sequence[str], rows: Sequence[Sequence[str]],
+                fold: bool = False) -> None:
+    """A table on a terminal as a rich table; elsewhere (a pipe, a file) as a Markdown table under
+    its title, one line per row, never wrapped to the console's width."""
+    if console.is_terminal:
+        console.print(_rich_table(title, header, rows, fold=fold))
+        return
+    console.print(f"{title}\n\n{_md_table(header, rows)}\n", markup=False, highlight=False, soft_wrap=True)
+
+
 def print_tables(report: Report, console: Any) -> None:
+    """The report's tables on the console: rich tables on a terminal, Markdown otherwise (print_table)."""
     if report.verdicts or report.pending:
         header, rows = verdict_rows(report.verdicts, report.pending)
-        console.print(_rich_table("Verdict (the deployed actor's final return; rules and more columns in report.md)",
-                                  header[:TERMINAL_COLUMNS], [r[:TERMINAL_COLUMNS] for r in rows], fold=True))
+        print_table(console, "Verdict (the deployed actor's final return; rules and more columns in report.md)",
+                    header[:TERMINAL_COLUMNS], [r[:TERMINAL_COLUMNS] for r in rows], fold=True)
     for r in report.pending:
         console.print(f"[yellow]unfinished[/]: {r.env} {r.variant} vs {r.baseline}: {r.text()}")
     for note in report.notes:
         console.print(f"[yellow]note[/]: {note}")
     for env, vs in report.envs.items():
-        console.print(_rich_table(f"{env} (x-axis {report.axis})", *env_rows(vs), fold=True))
+        print_table(console, f"{env} (x-axis {report.axis})", *env_rows(vs), fold=True)
         if any(v.success is not None for v in vs):
-            console.print(_rich_table(f"{env}: 50 apple", *reach_rows(vs), fold=True))
+            print_table(console, f"{env}: 50 apple", *reach_rows(vs), fold=True)
     for env, bs in report.bias.items():
-        console.print(_rich_table(f"Estimation bias (Eq. 17), {env}", *bias_rows(bs)))
+        print_table(console, f"Estimation bias (Eq. 17), {env}", *bias_rows(bs))
     if report.comparisons:
-        console.print(_rich_table("Probability of improvement (best-of-K last-10 scores, secondary)",
-                                  *comparison_rows(report.comparisons)))
+        print_table(console, "Probability of improvement (best-of-K last-10 scores, secondary)",
+                    *comparison_rows(report.comparisons))
     if report.aggregate:
         rows = [[name, str(n), _fmt(i.value, 3), _ci(i, 3)] for name, n, i in report.aggregate]
-        console.print(_rich_table("Aggregate over envs: IQM of range-normalised scores",
-                                  ("variant", "envs", "normalised IQM", "95% CI"), rows))
+        print_table(console, "Aggregate over envs: IQM of range-normalised scores",
+                    ("variant", "envs", "normalised IQM", "95% CI"), rows)
     if report.missing:
         console.print(f"[yellow]{len(report.missing)} planned run(s) not finished[/]")

@@ -1,4 +1,4 @@
-"""The progress view of `mam experiment`: the grid's bar (runs, env steps, elapsed, ETA, the
+"""The progress view of `mam experiment`: the grid's bar (runs, transitions, elapsed, ETA, the
 --stop-by deadline) and one line per run in progress with its estimated wall time, and the table
 of the planned runs with the estimated wall time per run of each row (mam_lab.ledger.wall_estimates)."""
 
@@ -47,8 +47,9 @@ def hms(seconds: float | None) -> str:
 
 
 class GridView:
-    """Rich progress of the whole grid: runs done / total, env steps, elapsed, ETA, and one line per
-    run in progress (P of them with --parallel P).
+    """Rich progress of the whole grid: runs done / total, transitions, elapsed, ETA, and one line per
+    run in progress (P of them with --parallel P). Every count is in transitions (env steps, what the
+    learner counts; a run's budget T is in iterations under the paper schedule, `RunSpec.transitions`).
 
     The scheduler runs in the main thread; a background thread reads each current run's
     learner.jsonl / eval.jsonl once a second.
@@ -60,10 +61,10 @@ class GridView:
 
         self.console = console
         self.total_runs = len(specs)
-        self.total_steps = sum(s.steps for s in specs)
+        self.total_steps = sum(s.transitions for s in specs)
         done = list(done)
         self.done_runs = len(done)
-        self.done_steps = sum(s.steps for s in done)
+        self.done_steps = sum(s.transitions for s in done)
         self.session_steps = 0  # finished this session (runs, counted by their budget)
         self.failed = 0
         self.started = time.monotonic()
@@ -113,7 +114,7 @@ class GridView:
             deadline = f" · stop by {time.strftime('%H:%M', time.localtime(self.stop_by))}"
             deadline += f" ({self.deferred} not started)" if self.deferred else ""
         return (f"{self.done_runs}/{self.total_runs} runs{running} · {self.done_steps + self._running_steps():,}/"
-                f"{self.total_steps:,} steps · elapsed {hms(time.monotonic() - self.started)} · "
+                f"{self.total_steps:,} transitions · elapsed {hms(time.monotonic() - self.started)} · "
                 f"ETA {hms(self.eta())}{deadline}{failed}")
 
     def refresh(self) -> None:
@@ -131,7 +132,7 @@ class GridView:
             if slot not in self.tasks:
                 self.tasks[slot] = self.progress.add_task("", total=1, completed=0, info="")
             self.progress.update(self.tasks[slot], description=f"run {index}: {spec.label}{where}",
-                                 total=spec.steps, completed=0, info=f"starting · {estimate_text(estimate_s)}",
+                                 total=spec.transitions, completed=0, info=f"starting · {estimate_text(estimate_s)}",
                                  visible=True)
         self.refresh()
 
@@ -151,8 +152,8 @@ class GridView:
             self.estimates.pop(slot, None)
             if ok:
                 self.done_runs += 1
-                self.done_steps += spec.steps
-                self.session_steps += spec.steps
+                self.done_steps += spec.transitions
+                self.session_steps += spec.transitions
             elif count_failure:
                 self.failed += 1
             if slot in self.tasks:
@@ -174,11 +175,18 @@ class GridView:
                 with self.lock:
                     if self.current.get(slot, (None,))[0] is not spec:
                         continue
-                    self.current_steps[slot] = min(steps, spec.steps)
+                    self.current_steps[slot] = min(steps, spec.transitions)
                     self.progress.update(self.tasks[slot], completed=self.current_steps[slot],
-                                         info=f"{steps:,}/{spec.steps:,} steps · upd {updates:,}{best} · "
+                                         info=f"{steps:,}/{spec.transitions:,} transitions · upd {updates:,}{best} · "
                                               f"{estimate_text(self.estimates.get(slot))}")
             self.refresh()
+
+
+def budget_text(spec: RunSpec) -> str:
+    """A run's budget in its own unit and in transitions: "600 iterations (1,800 transitions)"."""
+    if spec.paper:
+        return f"{spec.steps:,} iterations ({spec.transitions:,} transitions)"
+    return f"{spec.transitions:,} transitions"
 
 
 def estimate_text(estimate_s: float | None) -> str:
@@ -189,13 +197,10 @@ def estimate_text(estimate_s: float | None) -> str:
 def describe_plan(specs: Sequence[RunSpec], aliases: Mapping[str, str], exp_dir: Path, console: Console,
                   ledger: Path | None = None, estimates: Mapping[tuple[str, str], Sequence[float]] | None = None,
                   ) -> None:
-    from rich.table import Table
-
     from mam_lab.ledger import estimate_wall_s
+    from mam_lab.tables import print_table
 
-    table = Table(title=f"{len(specs)} runs in {exp_dir}")
-    for h in ("env", "variant", "seeds", "steps", "options", "finished", "wall/run"):
-        table.add_column(h, overflow="fold")
+    rows = []
     groups: dict[tuple[str, str], list[RunSpec]] = {}
     for s in specs:
         groups.setdefault((s.env, s.variant), []).append(s)
@@ -203,8 +208,9 @@ def describe_plan(specs: Sequence[RunSpec], aliases: Mapping[str, str], exp_dir:
         done = sum(run_state(s, exp_dir, ledger) == "done" for s in ss)
         times = list((estimates or {}).get((env, variant), []))
         wall = estimate_text(estimate_wall_s(times)) + (f" (median of {len(times)})" if times else "")
-        table.add_row(env, variant, seeds_text([s.seed for s in ss]), f"{ss[0].steps:,}",
-                      flags_text(ss[0].flags) or "(paper defaults)", f"{done}/{len(ss)}", wall)
-    console.print(table)
+        rows.append([env, variant, seeds_text([s.seed for s in ss]), budget_text(ss[0]),
+                     flags_text(ss[0].flags) or "(paper defaults)", f"{done}/{len(ss)}", wall])
+    print_table(console, f"{len(specs)} runs in {exp_dir}",
+                ("env", "variant", "seeds", "budget (T)", "options", "finished", "wall/run"), rows, fold=True)
     for dup, same in aliases.items():
         console.print(f"[dim]{dup} is the same configuration as {same}: run once[/]")

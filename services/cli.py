@@ -29,10 +29,18 @@ def run(
     from services.launcher import RestartPolicy, run_local
 
     logging.basicConfig(level=logging.WARNING)
+    from services import preflight
+
     cfg = options.build_run_config(run_opts, config)
     options.check_precision(cfg)
+    run_dir = run_dir or Path("runs") / cfg.run
+    try:  # a configuration error stops here, before any process starts (services/preflight.py)
+        preflight.check_device(cfg.algo.device)
+        preflight.check_run_dir(run_dir)
+    except preflight.ConfigError as e:
+        raise typer.BadParameter(str(e)) from None
     outcome: dict[str, Any] = {}
-    summary = run_local(cfg, run_dir or Path("runs") / cfg.run, plot=not no_plot, outcome=outcome,
+    summary = run_local(cfg, run_dir, plot=not no_plot, outcome=outcome,
                         policy=RestartPolicy(max_restarts=max_restarts, window_s=restart_window))
     if not summary:  # 130 / 143 when SIGINT / SIGTERM stopped it (128 + the signal), else 1
         raise typer.Exit(128 + int(outcome["signal"]) if outcome.get("signal") else 1)
@@ -66,6 +74,9 @@ def plot(run_dir: Path = typer.Argument(..., help="a run directory written by `m
 
     if not run_dir.is_dir():
         raise typer.BadParameter(f"{run_dir} is not a directory")
+    if not any((run_dir / name).is_file() for name in ("config.json", "eval.jsonl", "learner.jsonl")):
+        raise typer.BadParameter(f"{run_dir} is not a run directory (no config.json, eval.jsonl or learner.jsonl; "
+                                 "`mam run` writes them into runs/NAME)")
     if x not in X_AXES:
         raise typer.BadParameter(f"--x must be one of {', '.join(X_AXES)}")
     plot_command(run_dir, x)

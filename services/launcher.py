@@ -27,16 +27,17 @@ from typing import Any
 
 import zenoh
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from mam_core.schedule import Schedule
-from services import bus, keys, registry, rundir, runlock
+from services import bus, keys, preflight, registry, rundir, runlock
 from services.codec import Allocation, Eval, LearnerStats, MessageError
 from services.options import RunConfig, budget_warnings, write_json
 
 STOP_GRACE_S = 15.0
 EXIT_WRITE_ERROR = 75  # the learner could not write its checkpoint (services/checkpoint.py, same value)
 EXIT_CORRUPT = 65  # no checkpoint generation verifies (services/checkpoint.py, same value)
+EXIT_CONFIG = preflight.EXIT_CONFIG  # 78: a configuration error (a device torch does not see); never restarted
 LOW_DISK_BYTES = 1 << 20  # a child that dies with less than this free in the run directory: the disk is full
 MAX_STALL_ACTIONS = 2  # watchdog restarts in a row without progress; one more stall stops the run
 STARTUP_GRACE_S = 60.0  # the watchdog's limit until a (re)started learner's first stats arrive, if longer
@@ -169,6 +170,8 @@ class LocalCluster:
     progress: tuple[int, int] = (-1, -1)  # (env_steps, updates)
     progress_at: float = field(default_factory=time.monotonic)
     stall_actions: int = 0  # watchdog restarts since progress was last seen
+    started_at: float = field(default_factory=time.monotonic)  # the launcher's start: the bar's clock
+    done_at: float | None = None  # when the learner reported the budget reached
 
     def spawn(self, role: str, args: list[str]) -> Child:
         log_path = self.run_dir / rundir.LOGS / f"{role}.log"
@@ -271,8 +274,13 @@ class LocalCluster:
 
     def fatal_exit(self, c: Child) -> None:
         """RunStopped for an exit that a restart cannot mend: the learner cannot write its
-        checkpoint (EXIT_WRITE_ERROR), a child refused the run directory, the disk is full."""
+        checkpoint (EXIT_WRITE_ERROR), a child refused the run directory, the disk is full, a
+        configuration error (EXIT_CONFIG: its one-line reason is the message)."""
         rc = c.proc.returncode
+        if rc == EXIT_CONFIG:
+            line = last_line(c.log, preflight.CONFIG_ERROR)
+            reason = line[line.index(preflight.CONFIG_ERROR):] if line else "configuration error"
+            raise RunStopped(f"{c.role} stopped on a {reason} (not restarted; see {c.log})")
         if rc == EXIT_WRITE_ERROR or (rc != 0 and free_bytes(self.run_dir) < LOW_DISK_BYTES):
             line = last_line(c.log, "stopping:")
             raise RunStopped(f"{c.role} cannot write to {self.run_dir} ({disk_free(self.run_dir)} free there)"
@@ -421,7 +429,7 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
                 cluster.wait(60.0, supervise=True)  # referee (final evaluation) and workers exit on their own
         except RunStopped as e:
             gave_up = e
-            console.print(f"[red]stopping the run: {e}[/]")
+            Console(stderr=True).print(f"[red]stopping the run: {e}[/]", highlight=False, soft_wrap=True)
         except (Interrupted, KeyboardInterrupt) as e:
             interrupted = True
             if outcome is not None:
@@ -466,9 +474,7 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
         if cluster.cancelled:
             text += "; not restarted, the run finished first: " + ", ".join(
                 f"{r} {n}" for r, n in cluster.cancelled.items())
-        returns = ", ".join("—" if r is None else f"{r:.2f}" for r in summary.get("final_returns") or [])
-        console.print(f"[bold green]done[/] in {summary['launcher_wall_time_s']:.0f} s: final returns [{returns}], "
-                      f"survivor {summary.get('survivor')}; restarts: {text}", highlight=False)
+        console.print(done_text(cfg, summary, cluster) + f"; restarts: {text}", highlight=False)
         if "transport" in summary:
             t = summary["transport"]
             skipped = f", {t['skipped_rows']:,} skipped (iterations already filled)" if t.get("skipped_rows") else ""
@@ -567,6 +573,27 @@ def audit_transport(run_dir: Path) -> dict[str, Any]:
     return audit
 
 
+def done_text(cfg: RunConfig, summary: dict[str, Any], cluster: LocalCluster) -> str:
+    """The done line: wall time (and when the budget was reached: the progress bar's last time),
+    the final returns, the survivor or "no elimination in this budget"."""
+    wall = summary["launcher_wall_time_s"]
+    text = f"[bold green]done[/] in {wall:.0f} s"
+    if cluster.done_at is not None:
+        text += f" (budget reached at {clock_text(cluster.done_at - cluster.started_at)}, then the final evaluation)"
+    returns = ", ".join("—" if r is None else f"{r:.2f}" for r in summary.get("final_returns") or [])
+    text += f": final returns [{returns}]"
+    if isinstance(summary.get("survivor"), int) and cfg.algo.actors > 1:
+        text += f", survivor {summary['survivor']}"
+    elif cfg.algo.actors > 1:
+        text += ", no elimination in this budget"
+    return text
+
+
+def clock_text(seconds: float) -> str:
+    s = int(max(seconds, 0))
+    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
+
+
 def budget_text(cfg: RunConfig) -> str:
     """The budget as the user set it and in transitions: "4,000 iterations (16,000 transitions)"."""
     transitions = Schedule.for_run(cfg.algo, cfg.steps).budget
@@ -623,12 +650,12 @@ def at_text(cfg: RunConfig, transitions: int) -> str:
 
 
 def progress_text(cfg: RunConfig, transitions: int, updates: int, rates: tuple[float, float] | None) -> str:
-    """The progress bar's text: iterations (paper), updates, env steps/s and updates/s."""
+    """The progress bar's text: iterations (paper), updates, transitions/s and updates/s."""
     clock = Schedule.for_run(cfg.algo, cfg.steps)
     text = f"it {clock.units_at(transitions):,}/{cfg.steps:,} " if clock.paper else ""
     text += f"upd {updates:,}"
     if rates is not None:
-        text += f" {rates[0]:,.0f} steps/s {rates[1]:,.0f} upd/s"
+        text += f" {rates[0]:,.0f} transitions/s {rates[1]:,.0f} upd/s"
     return text
 
 
@@ -678,9 +705,20 @@ def best_apple_return(env_id: str, env_kwargs: dict[str, Any]) -> float | None:
         env.close()
 
 
+# The mean and std of a uniform random policy's undiscounted return over 100 seeded episodes
+# (benchmarks/random_policy_returns.py, gymnasium 1.x with MuJoCo; docs/RESULTS.md, "Reference
+# returns"): the floor a MuJoCo outcome is printed beside.
+RANDOM_POLICY_RETURNS: dict[str, tuple[float, float]] = {
+    "HalfCheetah-v5": (-293.1, 96.2), "Hopper-v5": (18.8, 18.1), "Walker2d-v5": (1.9, 5.6),
+    "Ant-v5": (-63.1, 98.5), "Humanoid-v5": (111.6, 33.0), "Reacher-v5": (-42.8, 3.7),
+    "InvertedPendulum-v5": (5.1, 2.9), "InvertedDoublePendulum-v5": (46.6, 14.9), "Swimmer-v5": (-0.6, 10.6),
+}
+
+
 def outcome_text(cfg: RunConfig, summary: dict[str, Any]) -> str:
     """The run's outcome in the task's words on AppleCollect ("survivor 0 reaches the 50 apple in
-    6 steps: 49.94 of 49.94 possible"); "" for other envs (the done line has the returns)."""
+    6 steps: 49.94 of 49.94 possible"), beside a uniform random policy's return on the MuJoCo
+    tasks of RANDOM_POLICY_RETURNS; "" for other envs (the done line has the returns)."""
     returns = summary.get("final_returns") or []
     survivor = summary.get("survivor")
     known = [(r, k) for k, r in enumerate(returns) if r is not None]
@@ -691,10 +729,14 @@ def outcome_text(cfg: RunConfig, summary: dict[str, Any]) -> str:
     else:
         k = max(known, key=lambda rk: (rk[0], -rk[1]))[1]
         who = f"actor {k}" if len(returns) == 1 else f"best actor {k} (no elimination)"
+    r = float(returns[k])
+    if cfg.env_id in RANDOM_POLICY_RETURNS and not cfg.env_kwargs:
+        mean, std = RANDOM_POLICY_RETURNS[cfg.env_id]
+        return (f"{who}: mean return {r:,.1f}; a uniform random policy scores {mean:,.1f} ± {std:,.1f} on "
+                f"{cfg.env_id} (docs/RESULTS.md, \"Reference returns\")")
     best = best_apple_return(cfg.env_id, cfg.env_kwargs)
     if best is None:
         return ""
-    r = float(returns[k])
     of = f"{r:.2f} of {best:.2f} possible"
     for apple in (50.0, 10.0):
         steps = round((apple - r) / 0.01)
@@ -727,18 +769,23 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
         cluster.start_workers()
         alloc: Allocation | None = None
         last_eval = ""
-        columns = (TextColumn("[bold]transitions"), BarColumn(bar_width=16), MofNCompleteColumn(), TimeElapsedColumn(),
-                   TimeRemainingColumn(), TextColumn("{task.fields[info]}"))
+        # the clock counts from the launcher's start and stops when the budget is reached, as the done line says
+        columns = (TextColumn("[bold]transitions"), BarColumn(bar_width=16), MofNCompleteColumn(),
+                   TextColumn("[yellow]{task.fields[clock]}"), TimeRemainingColumn(), TextColumn("{task.fields[info]}"))
         try:
             with Progress(*columns, console=console, transient=False) as progress:
                 cluster.console = progress.console
                 budget = Schedule.for_run(cfg.algo, cfg.steps).budget  # in transitions, what the bar counts
-                task = progress.add_task("train", total=budget, info="starting")
+                task = progress.add_task("train", total=budget, info="starting",
+                                         clock=clock_text(time.monotonic() - cluster.started_at))
                 speed = Rates()
                 while True:
                     cluster.supervise()
                     if cluster.finished():
+                        progress.update(task, info="done")
                         return True
+                    if cluster.done_at is None:
+                        progress.update(task, clock=clock_text(time.monotonic() - cluster.started_at))
                     item = allocation.fresh().get(keys.allocation(cfg.run))
                     if item is not None:
                         try:
@@ -762,13 +809,16 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                             st = LearnerStats.from_bytes(item.payload)
                             cluster.observe(st)  # the stall watchdog (supervise -> check_stall)
                             rates = speed.update(st.env_steps, st.updates)
-                            info = (f"{progress_text(cfg, st.env_steps, st.updates, rates)}  "
-                                    f"{last_eval}")  # I_k: on the allocation lines above
-                            progress.update(task, completed=min(st.env_steps, budget), info=info)
-                            if st.done and not cluster.done:
-                                cluster.done = True
-                                info = "done: final evaluation"
-                                progress.update(task, info=info)
+                            if st.done and not cluster.done:  # the budget is reached: the bar's last line
+                                cluster.done, cluster.done_at = True, time.monotonic()
+                                progress.update(task, completed=min(st.env_steps, budget),
+                                                clock=clock_text(cluster.done_at - cluster.started_at),
+                                                info=f"{progress_text(cfg, st.env_steps, st.updates, None)}  "
+                                                     "budget reached: final evaluation")
+                            elif not cluster.done:  # after done the rates only fall to 0: not shown
+                                info = (f"{progress_text(cfg, st.env_steps, st.updates, rates)}  "
+                                        f"{last_eval}")  # I_k: on the allocation lines above
+                                progress.update(task, completed=min(st.env_steps, budget), info=info)
                         except MessageError:
                             pass
                     time.sleep(0.2)

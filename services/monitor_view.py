@@ -89,6 +89,10 @@ class MonitorState:
         self.round: int | None = None
         self.history: deque[AllocationRound] = deque(maxlen=history)
         self.last_mean: list[float | None] = []  # last evaluated mean return per actor
+        # R_k the elimination was decided on: an eliminated actor's return from then on (later
+        # evaluations leave it out, and the monitor may have missed the deciding one)
+        self.elimination_returns: list[float | None] = []
+        self.slots: dict[str, int | None] = {}  # the last allocation's slots: worker id (or slot name) -> actor
         self.eval_round: int | None = None
         self.last_bias: dict[str, Any] | None = None
         self.stats: dict[str, Any] | None = None
@@ -126,9 +130,14 @@ class MonitorState:
         self.survivor = _int(d.get("survivor"))
         self.round = _int(d.get("round"))
         slots = d.get("slots")
-        if isinstance(slots, Mapping):
-            for worker, actor in slots.items():
-                self._worker(str(worker)).actor = _int(actor)
+        if isinstance(slots, Mapping):  # keyed by worker id, or by slot name (w0, w1 ...) in exact mode:
+            self.slots = {str(w): _int(a) for w, a in slots.items()}  # a row only for a worker that exists
+            for worker, actor in self.slots.items():
+                if worker in self.workers:
+                    self.workers[worker].actor = actor
+        returns = _floats(d.get("returns"))
+        if returns and d.get("reason") == "elimination":
+            self.elimination_returns = returns
         self.history.append(
             AllocationRound(
                 round=_int(d.get("round")) or 0,
@@ -188,7 +197,7 @@ class MonitorState:
         now = self.now()
         self.roles[(role, id)] = (alive, now)
         if role == "worker":
-            view = self._worker(id)
+            view = self._worker(id)  # a worker exists once its liveliness token or its data is seen
             view.alive, view.last_seen = alive, now  # a departure is the last time it was up
 
     def on_done(self, d: Mapping[str, Any]) -> None:
@@ -200,7 +209,17 @@ class MonitorState:
     # --- derived ------------------------------------------------------------------------------
 
     def _worker(self, worker: str) -> WorkerView:
-        return self.workers.setdefault(worker, WorkerView())
+        if worker not in self.workers:
+            self.workers[worker] = WorkerView(actor=self.slots.get(worker))
+        return self.workers[worker]
+
+    def shown_return(self, k: int) -> float | None:
+        """Actor k's return for the actors table: the one its elimination was decided on once it
+        is eliminated, else the last evaluation's."""
+        eliminated = k < len(self.eliminated) and self.eliminated[k]
+        if eliminated and k < len(self.elimination_returns) and self.elimination_returns[k] is not None:
+            return self.elimination_returns[k]
+        return self.last_mean[k] if k < len(self.last_mean) else None
 
     @property
     def n_actors(self) -> int:
@@ -272,13 +291,13 @@ def _header(state: MonitorState) -> Panel:
     lines = [
         *state.progress(steps),
         f"updates [bold]{_int(stats.get('updates')) or 0:,}[/bold]",
-        f"env steps/s {_fmt(state.steps_per_s, '.1f')}",
+        f"transitions/s {_fmt(state.steps_per_s, '.1f')}",
         f"updates/s {_fmt(state.updates_per_s, '.1f')}",
         f"utd {_fmt(_float(stats.get('utd')), '.3f')}",
     ]
     second = [
         f"critic loss {_fmt(_float(losses.get('critic')), '.4g')}",
-        f"actor loss {_fmt(_float(losses.get('actor')), '.4g')}",
+        f"actor loss (sum) {_fmt(_float(losses.get('actor')), '.4g')}",
         f"iteration {_fmt(_float(stats.get('iteration')), ',.0f')}"
         + ("" if stats.get("exact", True) else f" (not exact: {stats.get('inexact')})"),
         f"last stats {_fmt(state.seconds_ago(state.stats_seen), '.1f')}s ago",
@@ -299,11 +318,15 @@ def _header(state: MonitorState) -> Panel:
 def _actors_table(state: MonitorState) -> Table:
     title = "actors" + (f" (round {state.round})" if state.round is not None else "")
     table = Table(title=title, title_justify="left")
-    for col in ("actor", "P_k", "I_k", "last mean return", "status", "policy version", "mean Q"):
+    for col in ("actor", "P_k", "I_k", "mean return", "status", "policy version", "mean Q", "actor loss"):
         table.add_column(col, justify="left" if col in ("actor", "status") else "right")
     stats = state.stats or {}
+    losses = stats.get("losses") if isinstance(stats.get("losses"), Mapping) else {}  # actor{k}: Eq. 7 per actor
+    if any(state.eliminated) and state.elimination_returns:
+        table.caption = "an eliminated actor's mean return: the one its elimination was decided on"
+        table.caption_justify = "left"
     if state.n_actors == 0:
-        table.add_row("—", "", "", "", "no allocation yet", "", "")
+        table.add_row("—", "", "", "", "no allocation yet", "", "", "")
     for k in range(state.n_actors):
         status = state.actor_status(k)
         style = {"survivor": "bold green", "eliminated": "dim"}.get(status, "")
@@ -312,10 +335,11 @@ def _actors_table(state: MonitorState) -> Table:
             f"{k}",
             _fmt(_at(state.probabilities, k), ".3f"),
             _fmt(_at(state.counts, k), "d"),
-            _fmt(_at(state.last_mean, k), ".2f"),
+            _fmt(state.shown_return(k), ".2f"),
             shown,
             _fmt(_int(_at(stats.get("versions"), k)), "d"),
             _fmt(_float(_at(stats.get("q_means"), k)), ".3g"),
+            _fmt(None if status == "eliminated" else _float(losses.get(f"actor{k}")), ".4g"),
             style=style,
         )
     return table
@@ -323,7 +347,7 @@ def _actors_table(state: MonitorState) -> Table:
 
 def _workers_table(state: MonitorState) -> Table:
     table = Table(title="workers", title_justify="left")
-    for col in ("worker", "state", "actor", "transitions", "steps/s", "policy lag", "last seen"):
+    for col in ("worker", "state", "actor", "transitions", "transitions/s", "policy lag", "last seen"):
         table.add_column(col, justify="left" if col in ("worker", "state") else "right")
     if not state.workers:
         table.add_row("—", "no workers yet", "", "", "", "", "")
@@ -412,7 +436,7 @@ class PlainLines:
             text = "   ".join(s.progress(_int(s.stats.get("env_steps"))))
             text += f"   updates {_int(s.stats.get('updates')) or 0:,}"
             if s.steps_per_s is not None:
-                text += f"   {s.steps_per_s:,.1f} env steps/s   {_fmt(s.updates_per_s, ',.1f')} updates/s"
+                text += f"   {s.steps_per_s:,.1f} transitions/s   {_fmt(s.updates_per_s, ',.1f')} updates/s"
             return [text]
         if kind == "done" and s.summary is not None:
             d = s.summary
@@ -422,5 +446,7 @@ class PlainLines:
                 text += ": final returns " + _list(_floats(d["final_returns"]), ".2f")
             if s.survivor is not None:
                 text += f", survivor {s.survivor}"
+            elif s.n_actors > 1:
+                text += ", no elimination in this budget"
             return [text]
         return []

@@ -112,7 +112,7 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
     _opt("no_ot", bool, "ablation: uniform fixed allocation, no elimination", multi_actor=True),
     _opt("no_wt", bool, "ablation: no Q-value weighting (η = 0)", multi_actor=True),
     _opt("seed", int, "random seed"),
-    _opt("device", str, "auto, cpu or cuda (learner)"),
+    _opt("device", str, "the learner's: auto, cpu, cuda or cuda:N (CUDA_VISIBLE_DEVICES picks the GPUs torch sees)"),
     _opt("hidden", str, "hidden layer sizes, e.g. 256,256"),
     _opt("precision", str, "learner GEMMs: fp32, or bf16 (mixed precision: hidden-to-hidden layers in bfloat16)"),
     _opt("single_env_after_elimination", bool, "the survivor runs one slot only (implied by --schedule paper)",
@@ -576,7 +576,7 @@ def check_precision(cfg: RunConfig) -> None:
     if cfg.algo.precision != "bf16" or os.environ.get(ALLOW_SLOW_BF16) == "1":
         return
     device = cfg.algo.device
-    if device in ("auto", "cuda"):
+    if device == "auto" or device.startswith("cuda"):
         import torch
 
         if torch.cuda.is_available():

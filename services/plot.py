@@ -6,8 +6,8 @@ Reads the JSONL metrics a run writes (`eval.jsonl`, `allocation.jsonl`, `learner
 - `learning_curves.png`  mean evaluation return per actor (±1 std over episodes), elimination at C
 - `allocation.png`       I_k (slots per actor, stacked) and P_k (Eq. 8) over env steps
 - `bias.png`             estimation bias rate (Eq. 17) from `bias.jsonl` (runs with `--bias-every`)
-- `learner.png`          critic loss, actor loss, updates per iteration (or per transition under
-                         `--schedule equal-data`), mean Q per actor
+- `learner.png`          critic loss, actor loss per actor, updates per iteration (or per transition
+                         under `--schedule equal-data`) from the first update on, mean Q per actor
 
 A run may still be going: the last JSONL line can be half written and is skipped. A plot whose
 data is absent is skipped. Figures use the object API (`Figure` + Agg canvas), never pyplot,
@@ -81,10 +81,20 @@ def _title(config: dict[str, Any]) -> str:
     return " · ".join(parts)
 
 
+TITLE_WIDTH = 70  # characters per title line at the figures' width
+
+
 def _set_title(ax: Axes, what: str, title: str) -> None:
-    """`what — run · algo · env`, wrapped so a long run name is never cut at the figure's edge."""
-    text = f"{what} — {title}" if title else what
-    ax.set_title("\n".join(textwrap.wrap(text, 70)) or what, fontsize="medium")
+    """`what — run · algo · env`, broken between its parts (never inside one, never leaving a
+    dangling "·"), so a long run name is never cut at the figure's edge."""
+    lines = [what]
+    for i, part in enumerate(p for p in title.split(" · ") if p):
+        sep = " — " if i == 0 else " · "
+        if len(lines[-1]) + len(sep) + len(part) <= TITLE_WIDTH:
+            lines[-1] += sep + part
+        else:
+            lines.append(part if len(part) <= TITLE_WIDTH else "\n".join(textwrap.wrap(part, TITLE_WIDTH)))
+    ax.set_title("\n".join(lines), fontsize="medium")
 
 
 def _last_per_x(xs: list[float], *columns: list[float]) -> tuple[list[float], ...]:
@@ -120,7 +130,7 @@ def _n_actors(*lists: Sequence[Any]) -> int:
 # --- plots ----------------------------------------------------------------------------------
 
 
-X_AXES = {"transitions": "env steps (transitions received by the learner)",
+X_AXES = {"transitions": "transitions (env steps received by the learner)",
           "iterations": "iterations (Algorithm 1: M transitions before C, one after)"}
 TRANSITIONS = X_AXES["transitions"]
 
@@ -246,6 +256,11 @@ def plot_bias(evals: list[dict[str, Any]], title: str, path: Path, xlabel: str =
     return _save(fig, path)
 
 
+def _eliminated(row: dict[str, Any], k: int) -> bool:
+    live = row.get("live")
+    return isinstance(live, list) and k < len(live) and live[k] is False
+
+
 def plot_learner(learner: list[dict[str, Any]], target_utd: float | None, title: str, path: Path,
                  xlabel: str = TRANSITIONS, utd_unit: str = "transition") -> Path | None:
     """Critic loss, actor loss, updates per schedule step (`utd_unit`: iteration under the paper's
@@ -255,8 +270,10 @@ def plot_learner(learner: list[dict[str, Any]], target_utd: float | None, title:
         return None
     x = np.asarray([float(r["env_steps"]) for r in rows])
     critic = np.asarray([_num(r.get("loss/critic")) for r in rows])
-    actor = np.asarray([_num(r.get("loss/actor")) for r in rows])
-    utd = np.asarray([_num(r.get("utd")) for r in rows])
+    # updates per schedule step from the first update on (before it the ratio only ramps up from 0)
+    utd = np.asarray([_num(r.get("utd")) if not _num(r.get("updates")) <= 0 else math.nan for r in rows])
+    actor_keys = sorted({k for r in rows for k in r if k.startswith("loss/actor") and k[10:].isdigit()},
+                        key=lambda s: int(s[10:]))
     q_keys = sorted({k for r in rows for k in r if k.startswith("q/actor")}, key=lambda s: (len(s), s))
 
     fig = Figure(figsize=(8, 8 if q_keys else 6.5), layout="constrained")
@@ -267,7 +284,15 @@ def plot_learner(learner: list[dict[str, Any]], target_utd: float | None, title:
         ax_c.set_yscale("log")
     ax_c.set_ylabel("critic loss")
     _set_title(ax_c, "Learner", title)
-    ax_a.plot(x, actor, color="C1", linewidth=1.2)
+    if actor_keys:  # Eq. 7 per actor: -Q_k1(s, pi_k(s)); an eliminated actor's line ends at C
+        for key in actor_keys:
+            k = int(key[10:])
+            ys = [math.nan if _eliminated(r, k) else _num(r.get(key)) for r in rows]
+            ax_a.plot(x, ys, color=f"C{k % 10}", linewidth=1.2, label=f"actor {k}")
+    else:  # runs from before the per-actor losses: the sum over the actors
+        ax_a.plot(x, [_num(r.get("loss/actor")) for r in rows], color="C1", linewidth=1.2,
+                  label="sum over the actors")
+    ax_a.legend(loc="best", fontsize="small")
     ax_a.set_ylabel("actor loss")
     ax_u.plot(x, utd, color="C2", linewidth=1.2, label="measured")
     if target_utd is not None:

@@ -55,6 +55,12 @@ def stop_on_signals(target: Any) -> None:
     signal.signal(signal.SIGINT, on_signal)
 
 
+def at_text(paper: bool, iterations: int, transitions: int) -> str:
+    """A point of the run in its schedule's unit, the one the allocation lines use: "iteration 100
+    (200 transitions)" under the paper schedule, "200 transitions" under equal-data."""
+    return f"iteration {iterations:,} ({transitions:,} transitions)" if paper else f"{transitions:,} transitions"
+
+
 WAIT_NOTE_EVERY_S = 30.0  # "waiting for the learner" at first, then this often
 
 

@@ -7,9 +7,9 @@ first and then the same numbers, picked by the `*_scalars` functions below, as T
 scalars. The x-axis (step) is env transitions received by the learner (`env_steps`).
 
 Tags:
-- learner (learner.jsonl, every second): loss/critic, loss/actor, q/actor{k} (mean Q of actor
-  k's critics on the last batch), learner/updates_per_s, learner/transitions_per_s,
-  learner/utd, learner/replay_size, learner/updates, learner/iterations (when the row has
+- learner (learner.jsonl, every second): loss/critic, loss/actor (summed over the actors),
+  loss/actor{k}, q/actor{k} (mean Q of actor k's critics on the last batch), learner/updates_per_s,
+  learner/transitions_per_s, learner/utd, learner/replay_size, learner/updates, learner/iterations (when the row has
   it), learner/train_return (mean return of the episodes workers finished);
 - Eq. 17 bias (bias.jsonl, with --bias-every): bias/rate/actor{k}, bias/q_estimate/actor{k},
   bias/q_true/actor{k};

@@ -91,6 +91,8 @@ def test_state_tracks_allocation_eval_and_rates():
 
 def test_elimination_marks_survivor_and_keeps_last_returns():
     state = MonitorState(now=FakeClock())
+    for w in ("w0", "w1", "w2"):
+        state.on_alive("worker", w, True)
     state.on_allocation(_allocation(1, 1_000, [0.2, 0.3, 0.5], [1, 1, 3], {"w0": 0, "w1": 1, "w2": 2}))
     state.on_eval({"t": 3.0, "round": 2, "env_steps": 24_000, "returns": [[1.0], [2.0], [9.0]],
                    "mean": [1.0, 2.0, 9.0], "versions": [1, 1, 1], "bias": None})
@@ -156,6 +158,85 @@ def test_plain_lines_one_per_update():
     clock.t = 106.0
     state.on_stats(_stats(4_000, 400, {"w0": 4_000}))
     assert lines.after("stats") == ["iteration 800 / 4,000   transitions 4,000 / 16,000   updates 400   "
-                                    "125.0 env steps/s   25.0 updates/s"]
+                                    "125.0 transitions/s   25.0 updates/s"]
     state.on_done({"survivor": 0, "wall_time_s": 171.2, "final_returns": [49.94, None, None]})
     assert lines.after("done") == ["done in 171 s: final returns [49.94 — —], survivor 0"]
+
+
+def test_split_role_workers_under_their_ids_and_the_returns_the_elimination_was_decided_on():
+    """Workers b0 and b1 (split roles), an exact-mode allocation whose slots are named w0 and w1,
+    and an elimination decided on R = [49.94 49.94 49.94] after a curve evaluation that gave
+    actor 1 -1.00: no w0/w1 rows, and every actor shows 49.94 (what eval.jsonl holds)."""
+    state = MonitorState(now=FakeClock())
+    for w in ("b0", "b1"):
+        state.on_alive("worker", w, True)
+    state.on_allocation(_allocation(0, 0, [1 / 3] * 3, [1, 1, 0], {"w0": 0, "w1": 1}, reason="initial"))
+    state.on_eval({"env_steps": 2_000, "mean": [49.94, -1.0, 9.96]})
+    state.on_stats(_stats(3_000, 1_000, {"b0": 1_500, "b1": 1_500}))
+    state.on_allocation({**_allocation(1, 3_000, [0.0, 0.0, 1.0], [0, 0, 2], {"w0": 2, "w1": 2}, survivor=2,
+                                       reason="elimination"), "returns": [49.94, 49.94, 49.94]})
+    state.on_eval({"env_steps": 3_200, "mean": [None, None, 49.94]})  # only the survivor from now on
+    assert sorted(state.workers) == ["b0", "b1"]
+    assert [state.shown_return(k) for k in range(3)] == [49.94, 49.94, 49.94]
+    text = _text(state)
+    rows = [line.split() for line in text.splitlines()]
+    assert not [r for r in rows if r and r[0].strip("│┃ ") in ("w0", "w1")], text
+    assert any("b0" in r[0] or (len(r) > 1 and r[1] == "b0") for r in rows if r), text
+    assert "-1.00" not in text, text
+    assert text.count("49.94") == 3, text
+
+
+@pytest.mark.slow
+def test_watch_a_split_role_run_with_workers_b0_b1_through_its_elimination(tmp_path):
+    """Real processes on loopback: a learner, a referee and workers `b0`/`b1` (slots 0 and 1, whose
+    allocation names the slots w0/w1), watched by `watch` to the end: only b0 and b1 are listed, and
+    every actor shows the return eval.jsonl and the elimination hold."""
+    import json
+
+    from services import bus
+    from services.monitor import watch
+    from services.rundir import read_jsonl
+    from tests.e2e import processes_of, spawn, stop, unique_run
+
+    run = unique_run("watch-split")
+    endpoint = bus.loopback_endpoint(bus.free_tcp_port())
+    common = ["--run", run, "--connect", endpoint, "--run-dir", str(tmp_path)]
+    procs = [spawn("learner", "--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--actors", "2", "--workers", "2",
+                   "--steps", "400", "--start-steps", "100", "--compete-every", "100", "--eliminate-at", "300",
+                   "--hidden", "16,16", "--batch-size", "16", "--eval-episodes", "2", "--eval-every", "100",
+                   "--run", run, "--listen", endpoint, "--run-dir", str(tmp_path), log=tmp_path / "learner.log"),
+             spawn("referee", *common, log=tmp_path / "referee.log")]
+    procs += [spawn("worker", *common, "--id", f"b{i}", "--slot", str(i), log=tmp_path / f"b{i}.log")
+              for i in range(2)]
+    try:
+        console = Console(record=True, width=160, force_terminal=False)
+        state = watch(run, bus.make_config(connect=[endpoint]), console=console, timeout=120, plain=True)
+    finally:
+        stop(*procs)
+    assert processes_of(run) == []
+    assert state.done and sorted(state.workers) == ["b0", "b1"], sorted(state.workers)
+    elimination = next(r for r in read_jsonl(tmp_path / "allocation.jsonl") if r["reason"] == "elimination")
+    decided = next(r for r in read_jsonl(tmp_path / "eval.jsonl") if r.get("purpose") == "elimination")
+    assert elimination["returns"] == decided["mean"]
+    survivor = elimination["survivor"]
+    for k in range(2):
+        if k != survivor:
+            assert state.shown_return(k) == pytest.approx(decided["mean"][k]), (k, json.dumps(decided))
+    text = _text(state)
+    assert "w0" not in text and "w1" not in text, text
+
+
+def test_plain_done_line_without_an_elimination_says_so():
+    state = MonitorState(now=FakeClock())
+    state.on_allocation(_allocation(1, 1_000, [0.5, 0.5], [1, 1], {"w0": 0, "w1": 1}))
+    state.on_done({"survivor": None, "wall_time_s": 12.0, "final_returns": [1.0, 2.0]})
+    assert PlainLines(state).after("done") == ["done in 12 s: final returns [1.00 2.00], no elimination in this budget"]
+
+
+def test_each_actor_shows_its_own_actor_loss():
+    state = MonitorState(now=FakeClock())
+    state.on_allocation(_allocation(1, 1_000, [0.5, 0.5], [1, 1], {"w0": 0, "w1": 1}))
+    state.on_stats({**_stats(2_000, 1_000, {"w0": 1_000}),
+                    "losses": {"critic": 0.5, "actor": -7.0, "actor0": -2.25, "actor1": -4.75}})
+    text = _text(state)
+    assert "actor loss (sum) -7" in text and "-2.25" in text and "-4.75" in text, text

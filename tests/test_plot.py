@@ -68,6 +68,7 @@ def make_run(run_dir: Path, with_bias: bool = True) -> Path:
                         "utd": 1.0 + 0.05 * np.sin(i) if step > 2_000 else 0.0, "transitions_per_s": 800.0,
                         "updates_per_s": 790.0, "loss/critic": 10.0 / (1 + i) + 0.1,
                         "loss/actor": None if step < 3_000 else -step / 1_000,
+                        **{f"loss/actor{k}": None if step < 3_000 else -skill[k] * step / 1_000 for k in range(K)},
                         **{f"q/actor{k}": skill[k] * step / 1_000 for k in range(K)},
                         "versions": [step // 2] * K, "live": [True] * K})
 
@@ -210,3 +211,95 @@ def test_final_evaluation_at_the_last_step_draws_one_point(tmp_path):
     finally:
         matplotlib.axes.Axes.plot = real_plot
     assert captured == {"x": [100.0, 200.0], "y": [1.0, 5.0]}
+
+
+def _figure_of(monkeypatch, draw) -> "Figure":  # noqa: F821
+    """The Figure a plot function saves (drawn and written as usual)."""
+    from services import plot
+
+    captured = []
+    real_save = plot._save
+
+    def save(fig, path):
+        captured.append(fig)
+        return real_save(fig, path)
+
+    monkeypatch.setattr(plot, "_save", save)
+    assert draw() is not None
+    return captured[-1]
+
+
+def test_learner_plot_draws_one_labelled_actor_loss_line_per_actor(tmp_path, monkeypatch):
+    """K = 3: three actor-loss lines with a legend (it drew one unlabelled line, the sum); the
+    updates panel starts at the first update (it ramped up from 0 over the random phase)."""
+    from services.plot import plot_learner, read_jsonl
+
+    run = make_run(tmp_path / "run")
+    rows = read_jsonl(run / "learner.jsonl")
+    fig = _figure_of(monkeypatch, lambda: plot_learner(rows, 1.0, "test-run · ma-ddpg · AppleCollect-v0",
+                                                       tmp_path / "learner.png", utd_unit="iteration"))
+    ax_actor, ax_utd = fig.axes[1], fig.axes[2]
+    assert ax_actor.get_ylabel() == "actor loss"
+    labelled = [ln.get_label() for ln in ax_actor.get_lines() if not ln.get_label().startswith("_")]
+    assert labelled == ["actor 0", "actor 1", "actor 2"]
+    assert [t.get_text() for t in ax_actor.get_legend().get_texts()] == labelled
+    measured = next(ln for ln in ax_utd.get_lines() if ln.get_label() == "measured")
+    xs = [x for x, y in zip(measured.get_xdata(), measured.get_ydata()) if np.isfinite(y)]
+    first_update = min(r["env_steps"] for r in rows if r["updates"] > 0)
+    assert xs and min(xs) == first_update
+    # a run from before the per-actor losses: the sum, labelled as such
+    old = [{k: v for k, v in r.items() if not k.startswith("loss/actor") or k == "loss/actor"} for r in rows]
+    fig = _figure_of(monkeypatch, lambda: plot_learner(old, 1.0, "t", tmp_path / "old.png"))
+    assert [t.get_text() for t in fig.axes[1].get_legend().get_texts()] == ["sum over the actors"]
+
+
+def test_titles_break_between_their_parts():
+    """A long title broke inside "run · algo · env", leaving a dangling "·" at a line's end."""
+    from matplotlib.figure import Figure
+
+    from services.plot import _set_title
+
+    ax = Figure().add_subplot()
+    _set_title(ax, "Learner", "ma-td3-halfcheetah-20261202-113301-4242 · ma-td3 · HalfCheetah-v5")
+    lines = ax.get_title().split("\n")
+    assert len(lines) == 2 and all(not ln.rstrip().endswith("·") and not ln.startswith("·") for ln in lines)
+    assert lines[0] == "Learner — ma-td3-halfcheetah-20261202-113301-4242 · ma-td3"
+
+
+def test_mam_plot_on_a_path_that_is_not_a_run_exits_2(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    from tests.e2e import ROOT
+
+    (tmp_path / "notes").mkdir()
+    for path in (tmp_path / "notes", tmp_path / "absent"):
+        proc = subprocess.run([sys.executable, "-m", "services.cli", "plot", str(path)], cwd=ROOT, text=True,
+                              capture_output=True, timeout=120, env=dict(os.environ, COLUMNS="400"))
+        assert proc.returncode == 2, (proc.stdout, proc.stderr)
+        assert ("not a run directory" if path.exists() else "not a directory") in proc.stderr, proc.stderr
+    assert not (tmp_path / "notes" / "plots").exists()
+
+
+def test_the_report_curves_draw_the_deployed_actor_they_promise(tmp_path, monkeypatch):
+    """The report's curves said "dashed: deployed actor" on the transitions axis, where no dashed
+    line was drawn (the deployed actor is analysed in iterations). The committed evidence-c records:
+    a dashed, labelled deployed-actor line for the multi-actor variant on both axes, on top."""
+    from mam_lab import figures
+    from mam_lab.report import build_report
+    from tests.e2e import ROOT
+
+    report = build_report(ROOT / "docs" / "results" / "evidence-c", n_boot=50, verdict_boot=10_000,
+                          stability_seeds=2, axis="transitions")
+    drawn = []
+    real_save = figures._save
+    monkeypatch.setattr(figures, "_save", lambda fig, path: (drawn.append(fig), real_save(fig, path))[1])
+    for axis in ("transitions", "iterations"):
+        for env, vs in report.envs.items():
+            assert figures.plot_env_curves(env, vs, tmp_path / f"curves_{axis}.png", n_boot=50, axis=axis)
+            ax = drawn[-1].axes[0]
+            dashed = [ln for ln in ax.get_lines() if ln.get_label().endswith(": deployed actor")]
+            assert [ln.get_label() for ln in dashed] == ["ma-ddpg: deployed actor"], axis
+            assert dashed[0].get_linestyle() != "-" and dashed[0].get_zorder() > 2
+            assert "dashed: deployed actor" in ax.get_title()
