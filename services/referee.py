@@ -211,7 +211,7 @@ class Referee:
                               "survivor": self.schedule.survivor, "reason": reason})
         self.put_allocation(reason, returns)
         at = role.at_text(self.plan.schedule.paper, it.units[1] if it else 0, it.transitions[1] if it else 0)
-        log.info("allocation (%s) at %s, from iteration %d: P=%s I=%s", reason, at,
+        log.info("allocation (%s) at %s: from iteration %d, P=%s I=%s", reason, at,
                  index + 1 + self.plan.lag if index else 1, np.round(self.schedule.probabilities, 3).tolist(), i_k)
 
     def put_allocation(self, reason: str, returns: list[float] | None = None) -> None:
@@ -254,7 +254,7 @@ class Referee:
         self.eval_log.write({"t": round(self.wall(), 3), "round": self.events_done + 1, "env_steps": steps,
                              "iterations": it.units[1], "updates": updates, "purpose": purpose, "seed": seed,
                              "returns": returns, "mean": means, "versions": versions, "bias": None})
-        log.info("%s evaluation at %s: %s", purpose, role.at_text(self.plan.schedule.paper, it.units[1], steps),
+        log.info("%s eval at %s: %s", purpose, role.at_text(self.plan.schedule.paper, it.units[1], steps),
                  [None if m is None else round(m, 2) for m in means])
         return means
 
