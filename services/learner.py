@@ -164,7 +164,8 @@ class Learner:
     # -- the loop: Algorithm 1's iterations in lock-step ------------------------------------------
     def _loop(self) -> None:
         """Iterations of the plan: iteration i's rows in slot order, then its updates."""
-        plan, stage = self.plan, SlotStage(self.algo.workers, start=self.iteration + 1)
+        plan = self.plan
+        stage = self.stage = SlotStage(self.algo.workers, start=self.iteration + 1)
         self.publish_weights(all_actors=True)
         self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
         self.checkpoint()  # at once: a learner killed early resumes from here
@@ -362,7 +363,8 @@ class Learner:
             per_worker=self.intake.counters(now, self.acked), rejected=self.rejected(), done=done,
             live=tuple(self.agent.live_actors), workers=max(len(self.workers.live()), self.intake.active(now)),
             steps=self.schedule.budget, incarnation=self.incarnation, exact=not self.inexact,
-            iteration=self.iteration, inexact=self.inexact, awaiting=self.awaiting)
+            iteration=self.iteration, inexact=self.inexact, awaiting=self.awaiting,
+            slots_next=tuple(self.stage.end) if hasattr(self, "stage") else ())
 
     @property
     def iterations(self) -> int:

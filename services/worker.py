@@ -39,6 +39,7 @@ log = logging.getLogger("mam.worker")
 
 MAX_BATCH_AGE_S = 0.05  # a partial batch is sent after this long
 STATUS_EVERY_S = 10.0
+RESYNC_S = 2.0  # waiting this long while the learner needs another iteration of this slot: go on from that one
 ENV_RETRIES = 10  # consecutive failed resets before the env is made anew; as many again: the worker exits
 FAULTS = ("step_exception", "reset_exception", "nonfinite_obs", "nonfinite_reward")
 
@@ -96,7 +97,8 @@ class Worker:
         self.batch_seq = 0
         self.sent_rows = 0
         self.learner_incarnation: str | None = None
-        self.learner_restarted = False  # a new learner incarnation: the slot steps on from its iteration
+        self.stats_at = 0.0  # when the last stats arrived
+        self.last_note = 0.0
         self.episode_return = 0.0
         self.finished_returns: list[float] = []
         self.stop_requested = False
@@ -164,14 +166,16 @@ class Worker:
                 log.info("run is done after %d transitions from this worker", self.sent_rows)
                 return
             self.refresh(decisions, index)
-            if self.learner_restarted:  # its checkpoint is behind this slot: go on from where it stands
-                self.learner_restarted, index = False, None
-                self.flush()
+            if index is not None and self.out_of_step(index, waiting_since):
+                log.info("iteration %d: the learner needs iteration %d of slot %d next; going on from there", index,
+                         self.stats.slots_next[self.slot], self.slot)
+                index, waiting_since = self.stats.slots_next[self.slot], time.monotonic()
             if index is None:  # where the run stands: the learner's stats
                 if self.stats is None:
                     self.stats_sub.wait_fresh(timeout=0.1)
                     continue
-                index = self.stats.iteration + 1
+                st = self.stats
+                index = st.slots_next[self.slot] if self.slot < len(st.slots_next) else st.iteration + 1
                 if index > 1:
                     log.info("taking slot %d over at iteration %d", self.slot, index)
             it = plan.iteration(index) if index <= plan.iterations else None
@@ -184,11 +188,11 @@ class Worker:
             version = -1 if it.random else plan.version_for(index)
             if actor is None or (version >= 0 and not self.history.has(actor, version)):
                 self.flush()
-                if time.monotonic() - waiting_since > STATUS_EVERY_S:
+                if time.monotonic() - max(waiting_since, self.last_note) > STATUS_EVERY_S:
                     log.info("iteration %d waits for %s", index,
                              f"the allocation of iteration {plan.decision_for(index)}" if actor is None
                              else f"actor {actor} at version {version}")
-                    waiting_since = time.monotonic()
+                    self.last_note = time.monotonic()
                 if actor is None:
                     self.allocation.wait_fresh(timeout=0.05)
                 else:
@@ -197,8 +201,17 @@ class Worker:
             waiting_since = time.monotonic()
             self.step(index, it.random, actor, version)
             index += 1
-            for old in [i for i in decisions if i < plan.decision_for(index)]:
-                del decisions[old]
+
+    def out_of_step(self, index: int, waiting_since: float) -> bool:
+        """This slot waits, and the learner's stats (newer than the wait) say it needs another
+        iteration of it next: the learner restarted from a checkpoint behind this slot (or lost
+        its rows), or a predecessor's rows already filled what this worker is at. The slot
+        then goes on from the learner's next iteration (weights and decisions for it are
+        re-sent while the learner waits)."""
+        st = self.stats
+        if st is None or self.slot >= len(st.slots_next) or st.slots_next[self.slot] == index:
+            return False
+        return time.monotonic() - waiting_since > RESYNC_S and self.stats_at - waiting_since > RESYNC_S / 2
 
     def take_weights(self, item: bus.Received | None, index: int | None) -> None:
         """Keep the versions this slot may still act with (none below iteration `index`'s)."""
@@ -224,7 +237,7 @@ class Worker:
             except MessageError as e:
                 self.rejects.reject("learner", e)
             else:
-                self.stats = st
+                self.stats, self.stats_at = st, time.monotonic()
                 self.on_stats(st)
         self.take_weights(None, index)
         item = self.allocation.fresh().get(keys.allocation(self.cfg.run))
@@ -265,10 +278,8 @@ class Worker:
         if st.incarnation != self.learner_incarnation:
             first = self.learner_incarnation is None
             self.learner_incarnation = st.incarnation
-            if not first:
-                self.learner_restarted = True
-                if self.unacked:
-                    self.resend()
+            if self.unacked and not first:
+                self.resend()
             log.info("learner %s is up at iteration %d", self.learner_incarnation or "?", st.iteration)
 
     def trim_acked(self, st: LearnerStats) -> None:

@@ -117,6 +117,7 @@ class LearnerStats:
     iteration: int = 0  # exact mode: the last iteration whose updates are done
     inexact: str = ""  # why the run stopped being exact (empty while exact, or never asked for)
     awaiting: tuple[int, ...] = ()  # what the learner's loop waits for now: slots, and -1 for the referee
+    slots_next: tuple[int, ...] = ()  # per slot, the iteration of the next row the learner needs from it
 
     def to_bytes(self, sender: str, seq: int) -> bytes:
         body = {
@@ -138,6 +139,7 @@ class LearnerStats:
             "iteration": int(self.iteration),
             "inexact": self.inexact,
             "awaiting": [int(a) for a in self.awaiting],
+            "slots_next": [int(a) for a in self.slots_next],
         }
         return encode(self.KIND, body, sender=sender, seq=seq)
 
@@ -165,9 +167,10 @@ class LearnerStats:
         iteration = _int(msg, "iteration", lo=0) if "iteration" in msg else 0
         inexact = _text(msg, "inexact") if "inexact" in msg else ""
         awaiting = _ints(msg, "awaiting", lo=-1) if "awaiting" in msg else ()
+        slots_next = _ints(msg, "slots_next", lo=1) if "slots_next" in msg else ()
         return cls(env_steps, updates, accept_until, utd, losses, q_means, versions,
                    per_worker, rejected, done, live, workers, steps, incarnation, exact, iteration, inexact,
-                   tuple(awaiting))
+                   tuple(awaiting), tuple(slots_next))
 
     @classmethod
     def from_bytes(cls, payload: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> "LearnerStats":
