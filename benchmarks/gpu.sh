@@ -177,7 +177,7 @@ if ! "${PIP[@]}" --no-build-isolation -e "$ROOT" >"$LOGS/pip_project.log" 2>&1; 
 fi
 T[setup]=$(( $(date +%s) - T0 ))
 "$VPY" - "$LOGS/setup.json" "$BASE_PY" "$WHEELS_INSTALLED" <<'EOF' || die "the venv does not import the project"
-import importlib.metadata as md, json, sys, torch, mam_core.agent, services.cli  # noqa: E401
+import importlib.metadata as md, json, sys, torch, mam_core.agent, services.cli.app  # noqa: E401
 def version(d):
     try:
         return md.version(d)

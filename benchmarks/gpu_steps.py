@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-LEARNER_LOG = "learner.jsonl"  # services/rundir.py
+LEARNER_LOG = "learner.jsonl"  # services/run/rundir.py
 
 
 def write(path: str, obj: dict[str, Any]) -> None:

@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import zenoh  # noqa: E402
 
-from services import bus, keys  # noqa: E402
+from services.messaging import bus, keys  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -35,7 +35,7 @@ class Accel:
     def bf16_supported(self) -> bool | None:
         """On CUDA: does the GPU compute bf16 natively (`torch.cuda.is_bf16_supported()`, Ampere
         and later)? None elsewhere: a CPU's bf16 is judged from its flags
-        (`services.options.native_bf16_cpu`). Asked on demand, so building an `Accel` never
+        (`services.cli.cpu.native_bf16_cpu`). Asked on demand, so building an `Accel` never
         initialises CUDA."""
         return bool(torch.cuda.is_bf16_supported()) if self.cuda else None
 

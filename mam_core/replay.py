@@ -216,7 +216,7 @@ class ReplayLog:
 
     Every chunk is written durably (a temp file, fsync, rename, fsync of the directory) and its
     sha256 is kept in `digests` (name -> hex) for the checkpoint's manifest
-    (services/checkpoint.py); `restore` verifies a chunk against a digest given with its manifest
+    (services/roles/checkpoint.py); `restore` verifies a chunk against a digest given with its manifest
     entry (`[first, rows, sha256]`) before it parses a byte of it. `snapshot`/`rollback` undo an
     `append` whose checkpoint could not be completed (a full disk): the chunk is deleted.
     """

@@ -12,6 +12,6 @@ run in production (`services/`) and the pure algorithm (`mam_core/`).
     provenance.py   the commit and library versions behind a result
 
 The lab imports services (it starts runs, reads their files); no module under services/ imports the
-lab, except `mam`'s command registration (services/cli.py), and the three shims that keep the old
+lab, except `mam`'s command registration (services/cli/app.py), and the three shims that keep the old
 module paths working (`python -m services.experiment`, `services.experiment_run`, `services.bench`).
 """

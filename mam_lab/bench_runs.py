@@ -17,7 +17,7 @@ import numpy as np
 
 from mam_lab.bench_learner import reference_td3
 from mam_lab.bench_sizes import ROOT, BenchSizes, _child_env, _stop
-from services import options, rundir
+from services.run import cpu, rundir
 
 
 def single_process_td3(env_id: str, steps: int, start_steps: int, sizes: BenchSizes, device: str,
@@ -64,8 +64,8 @@ def single_process_td3(env_id: str, steps: int, start_steps: int, sizes: BenchSi
 def _watch_learner(endpoint: str, run: str, until: Callable[[Any, float], bool], timeout: float,
                    procs: list[subprocess.Popen]) -> None:
     """Follow the run's learner stats as a client until `until(stats, t_received)` is true."""
-    from services import bus, keys
-    from services.codec import LearnerStats, MessageError
+    from services.messaging import bus, keys
+    from services.messaging.codec import LearnerStats, MessageError
 
     conf = bus.make_config(connect=[endpoint])
     deadline = time.monotonic() + timeout
@@ -110,7 +110,7 @@ def distributed_run(env_id: str, steps: int, start_steps: int, sizes: BenchSizes
     log_path = work_dir / f"{run}.out"
     with open(log_path, "wb") as out:
         # bf16 is measured even on a CPU without native bf16, where `mam run` refuses it by default
-        env = _child_env(**({options.ALLOW_SLOW_BF16: "1"} if precision == "bf16" else {}))
+        env = _child_env(**({cpu.ALLOW_SLOW_BF16: "1"} if precision == "bf16" else {}))
         proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, start_new_session=True)
     marks: dict[str, float] = {}
@@ -157,7 +157,7 @@ def bench_e2e(sizes: BenchSizes, device: str = "cpu", threads: int = 1, log: Cal
         bf16 = distributed_run(sizes.e2e_env, n, start, sizes, device, work, precision="bf16")
     return {
         "e2e_bf16_vs_single_process": bf16["to_done_s"] / single, "e2e_bf16_mam_run_to_done_s": bf16["to_done_s"],
-        "bf16_native_cpu": options.native_bf16_cpu(),
+        "bf16_native_cpu": cpu.native_bf16_cpu(),
         "e2e_env": sizes.e2e_env, "e2e_steps": n, "e2e_start_steps": start,
         "e2e_single_process_s": single,
         "e2e_mam_run_to_done_s": dist["to_done_s"], "e2e_mam_run_wall_s": dist["wall_s"],
@@ -174,13 +174,13 @@ def bench_e2e(sizes: BenchSizes, device: str = "cpu", threads: int = 1, log: Cal
 def collection_rate(workers: int, sizes: BenchSizes, work_dir: Path, seed: int = 0) -> float:
     """Env steps/s of `workers` real worker processes feeding a real learner in lock-step (one row
     per slot per iteration) that rarely updates, so weights rarely change and never hold them."""
-    from services import bus
+    from services.messaging import bus
 
     run = f"bench-col-{uuid.uuid4().hex[:8]}"
     run_dir = work_dir / run
     run_dir.mkdir(parents=True, exist_ok=True)
     endpoint = bus.loopback_endpoint(bus.free_tcp_port())
-    learner = [sys.executable, "-m", "services.learner", "--env", sizes.collection_env, "--algo", "td3",
+    learner = [sys.executable, "-m", "services.roles.learner", "--env", sizes.collection_env, "--algo", "td3",
                "--steps", "1000000000", "--utd", "0.001", "--start-steps", str(sizes.collection_start_steps),
                "--workers", str(workers), "--batch-size", str(sizes.batch_size),
                "--hidden", ",".join(map(str, sizes.hidden)), "--seed", str(seed), "--device", "cpu",
@@ -189,7 +189,7 @@ def collection_rate(workers: int, sizes: BenchSizes, work_dir: Path, seed: int =
     logs = []
     try:
         for i, cmd in enumerate([learner] + [
-                [sys.executable, "-m", "services.worker", "--run", run, "--connect", endpoint, "--id", f"w{j}",
+                [sys.executable, "-m", "services.roles.worker", "--run", run, "--connect", endpoint, "--id", f"w{j}",
                  "--slot", str(j)] for j in range(workers)]):
             out = open(run_dir / f"proc{i}.log", "wb")
             logs.append(out)

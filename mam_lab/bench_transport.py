@@ -23,8 +23,8 @@ WEIGHTS_WARMUP = 3  # broadcasts not counted in the latency figures
 def publisher_process(argv: list[str] | None = None) -> None:
     """Worker-like publisher (a child process): `batches` TransitionBatch messages of `rows`
     HalfCheetah-shaped rows, encoded one by one and put RELIABLE + BLOCK as fast as allowed."""
-    from services import bus, keys
-    from services.codec import TransitionBatch
+    from services.messaging import bus, keys
+    from services.messaging.codec import TransitionBatch
 
     endpoint, run, wid, batches, rows, obs_dim, act_dim = (argv or sys.argv[1:])[:7]
     batches, rows, obs_dim, act_dim = int(batches), int(rows), int(obs_dim), int(act_dim)
@@ -51,8 +51,8 @@ def bench_transport(sizes: BenchSizes, log: Callable[[str], None] = print,
                     obs_dim: int = 17, act_dim: int = 6) -> dict[str, Any]:
     """Transitions/s into a learner-like consumer from M publisher processes over loopback."""
     from mam_core.replay import ReplayBuffer
-    from services import bus, keys
-    from services.codec import TransitionBatch, TransitionSpec
+    from services.messaging import bus, keys
+    from services.messaging.codec import TransitionBatch, TransitionSpec
 
     m, per, rows = sizes.transport_publishers, sizes.transport_batches, sizes.transport_rows
     log(f"transport: {m} publisher process(es) x {per} messages of {rows} transitions -> Inbox, decode, replay")
@@ -119,8 +119,8 @@ def weights_subscriber_process(argv: list[str] | None = None) -> None:
     import torch
 
     from mam_core.ensemble import ActorEnsemble
-    from services import bus, keys
-    from services.codec import Weights
+    from services.messaging import bus, keys
+    from services.messaging.codec import Weights
 
     endpoint, run, obs_dim, act_dim, hidden, count, warmup = (argv or sys.argv[1:])[:7]
     obs_dim, act_dim, count, warmup = int(obs_dim), int(act_dim), int(count), int(warmup)
@@ -157,8 +157,8 @@ def bench_weights(sizes: BenchSizes, log: Callable[[str], None] = print) -> dict
     import torch
 
     from mam_core.ensemble import ActorEnsemble
-    from services import bus, keys
-    from services.codec import Weights
+    from services.messaging import bus, keys
+    from services.messaging.codec import Weights
 
     out: dict[str, Any] = {}
     code = ("import sys; from mam_lab.bench_transport import weights_subscriber_process; "
@@ -229,8 +229,8 @@ def profile_worker_step(env_id: str = "HalfCheetah-v5", steps: int = 2000, hidde
     import mam_core.envs  # noqa: F401
     from mam_core.ensemble import ActorEnsemble
     from mam_core.policy import EnvSpec, NumpyActors
-    from services import bus
-    from services.codec import TransitionBatch
+    from services.messaging import bus
+    from services.messaging.codec import TransitionBatch
 
     torch.set_num_threads(1)
     env = gym.make(env_id)
@@ -257,7 +257,7 @@ def profile_worker_step(env_id: str = "HalfCheetah-v5", steps: int = 2000, hidde
         for t in range(steps):
             use_torch = (t // 100) % 2 == 0
             t0 = time.perf_counter()
-            if use_torch:  # services.worker's forward before it dropped torch
+            if use_torch:  # services.roles.worker's forward before it dropped torch
                 with torch.inference_mode():
                     a = actors(torch.from_numpy(np.asarray(obs, np.float32)).view(1, -1), members=members)[0, 0].numpy()
             else:

@@ -38,9 +38,10 @@ from mam_lab.ledger import check_resume, wall_estimates, write_manifest
 from mam_lab.provenance import ROOT, code_version, commit_label
 from mam_lab.scheduler import GridResult, core_slots, default_parallel, parse_stop_by, run_grid
 from mam_lab.view import describe_plan, hms
-from services import options, preflight
+from services.cli import options
 
 # --- command ---------------------------------------------------------------------------------
+from services.run import cpu, preflight
 
 
 @options.run_options(exclude=tuple(GRID_DIMENSIONS))
@@ -111,7 +112,7 @@ def experiment_command(
         specs = plan(grid)
         for spec in specs:  # before anything starts: bf16 where it would only be slower
             if dict(spec.flags).get("precision") == "bf16":
-                options.check_precision(spec.run_config("check"))
+                cpu.check_precision(spec.run_config("check"))
         for device in sorted({str(dict(s.flags).get("device") or "auto") for s in specs}):
             try:  # a device torch does not see fails every run: say so once, before the first
                 preflight.check_device(device)

@@ -3,7 +3,7 @@
 `mam experiment` writes RUN_DIR/launch.json and starts this module once per run, with stdout and
 stderr going to RUN_DIR/launcher.log. Its learner is pinned to the cores it was given (the
 referee and workers float), then it trains the run with
-`services.launcher.run_local` (the same as `mam run`). Its exit status is the run's outcome:
+`services.run.launcher.run_local` (the same as `mam run`). Its exit status is the run's outcome:
 
     0    finished (summary.json written)
     130  interrupted (SIGINT or SIGTERM: the launcher stopped every process of the run)
@@ -22,7 +22,7 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-from services import rundir
+from services.run import rundir
 
 FINISHED, FAILED, INTERRUPTED = 0, 1, 130
 LAUNCH_FILE = rundir.LAUNCH
@@ -54,7 +54,7 @@ def main(argv: list[str]) -> int:
     stops: tuple[type[BaseException], ...] = (KeyboardInterrupt, _Stop)
     try:
         spec = json.loads((run_dir / LAUNCH_FILE).read_text())
-        from services.launcher import LEARNER_CPUS_ENV
+        from services.run.launcher import LEARNER_CPUS_ENV
 
         cores = spec.get("cores")
         if cores:  # the learner, where a run spends its CPU, gets the run's cores; the rest float
@@ -63,8 +63,8 @@ def main(argv: list[str]) -> int:
                   flush=True)
         from rich.console import Console
 
-        from services.launcher import Interrupted, run_local
-        from services.options import RunConfig
+        from services.run.config import RunConfig
+        from services.run.launcher import Interrupted, run_local
 
         stops = (*stops, Interrupted)  # a signal while the launcher starts its processes
 

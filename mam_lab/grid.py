@@ -37,9 +37,9 @@ import typer
 
 from mam_core.config import ALGOS, resolve
 from mam_core.schedule import Schedule
-from services import options
-from services.options import RunConfig
-from services.rundir import env_dirname
+from services.cli import options
+from services.run.config import RunConfig
+from services.run.rundir import env_dirname
 
 ABLATIONS = {"no-ot": "no_ot", "no-wt": "no_wt"}
 # Run options a grid sets for itself (its dimensions), not as flags of a run.

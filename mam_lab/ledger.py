@@ -35,9 +35,8 @@ from rich.console import Console
 
 from mam_lab.grid import Grid, GridError, RunSpec
 from mam_lab.provenance import ROOT, code_version, versions
-from services import rundir
-from services.options import write_json
-from services.rundir import read_json
+from services.run import rundir
+from services.run.rundir import read_json, write_json
 
 RECORD = rundir.RECORD  # written last: its presence marks a finished run in the ledger
 LEDGER_FILES = (rundir.CONFIG, rundir.SUMMARY, rundir.EVAL, rundir.ALLOCATION, rundir.BIAS)

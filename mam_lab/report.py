@@ -63,7 +63,7 @@ from mam_lab.analysis import AXES, Report, build_report
 from mam_lab.figures import plot_bias, plot_env_allocation, plot_env_curves, plot_iqm
 from mam_lab.stats import N_BOOT, N_BOOT_VERDICT, STABILITY_SEEDS
 from mam_lab.tables import print_tables, render_markdown
-from services import rundir
+from services.run import rundir
 
 
 def write_report(exp_dir: Path, out: Path | None = None, n_boot: int = N_BOOT, seed: int = 0,

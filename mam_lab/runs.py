@@ -23,8 +23,8 @@ from mam_lab.scores import (
     eval_points,
     eval_triples,
 )
-from services import rundir
-from services.rundir import read_json, read_jsonl
+from services.run import rundir
+from services.run.rundir import read_json, read_jsonl
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """Running the grid of `mam experiment`: P runs at once, each its own process whose learner is
 pinned to its own cores, its outcome in its exit status; Ctrl-C (or SIGTERM) stops them all, and a rerun resumes.
 
-Every run of the grid is a full local cluster (`services.launcher.run_local`: learner, referee
+Every run of the grid is a full local cluster (`services.run.launcher.run_local`: learner, referee
 and M workers over loopback Zenoh), started as its own process (`python -m mam_lab.experiment_run`)
 whose exit status is the run's outcome (0 finished, 130 interrupted, else failed). `--parallel P`
 runs P of them at once (default: cores ÷ `--cores-per-run`, at least 1); each run's learner is
@@ -43,9 +43,9 @@ from mam_lab.grid import RunSpec
 from mam_lab.ledger import RECORD, backfill_ledger, estimate_wall_s, make_record, run_state, write_ledger_record
 from mam_lab.provenance import ROOT, code_version
 from mam_lab.view import GridView, hms
-from services import options, rundir
-from services.options import RunConfig, write_json
-from services.rundir import env_dirname, read_json
+from services.run import config, rundir
+from services.run.config import RunConfig
+from services.run.rundir import env_dirname, read_json, write_json
 
 STOP_WAIT_S = 60.0  # after SIGTERM, how long a run may take to stop before it is killed
 
@@ -70,7 +70,7 @@ def start_run_process(job: Launch) -> subprocess.Popen:
 
     Its own session (the terminal's Ctrl-C reaches the grid, which stops each run with SIGTERM) and
     SIGTERM when the grid dies; the grid's code first on PYTHONPATH, so every run runs it."""
-    from services.launcher import _die_with_parent
+    from services.run.launcher import _die_with_parent
 
     write_json(job.run_dir / rundir.LAUNCH, {"config": job.cfg.to_dict(), "cores": list(job.cores) or None,
                                            "plot": job.plot})
@@ -105,7 +105,7 @@ def core_slots(parallel: int, cores: Sequence[int] | None = None) -> list[tuple[
 
 def run_name_for(spec: RunSpec, tag: str) -> str:
     env = re.sub(r"[^A-Za-z0-9]+", "", spec.env.split("-")[0]).lower()[:16]
-    return options.check_run_name(f"x{tag}-{spec.variant}-{env}-s{spec.seed}"[:128])
+    return config.check_run_name(f"x{tag}-{spec.variant}-{env}-s{spec.seed}"[:128])
 
 
 @dataclass

@@ -2,7 +2,7 @@
 evaluation row, evaluation points on a common grid, the last-10 mean, runs aligned on a grid and
 the paper's max average return (Table 4), and the Eq. 17 bias rate per point.
 
-Rows are the dicts of `eval.jsonl` / `bias.jsonl` (services.rundir.read_jsonl); nothing here reads
+Rows are the dicts of `eval.jsonl` / `bias.jsonl` (services.run.rundir.read_jsonl); nothing here reads
 files.
 """
 

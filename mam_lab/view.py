@@ -16,7 +16,7 @@ from rich.console import Console
 
 from mam_lab.grid import RunSpec, flags_text, seeds_text
 from mam_lab.ledger import run_state
-from services import rundir
+from services.run import rundir
 
 
 def _tail_row(path: Path, max_bytes: int = 16384) -> dict[str, Any] | None:

@@ -12,7 +12,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from services.plot import read_jsonl
+from services.cli.plot import read_jsonl
 
 ROOT = Path(__file__).resolve().parents[1]
 

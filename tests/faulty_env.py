@@ -6,7 +6,7 @@ this process or in `mam` child processes started from the repository root.
 - `FaultyPendulum-v0`: InvertedPendulum-v5 with a fault in four of every five episodes, in
   turn: an exception in `step`, a NaN observation, an infinite reward, and an exception in the
   `reset` that would start the episode. `FaultyPendulumWorkers-v0` does the same only in
-  `services.worker` processes (the referee's evaluation and the learner's shape probe see a
+  `services.roles.worker` processes (the referee's evaluation and the learner's shape probe see a
   healthy env).
 - `BrokenResetWorkers-v0`: every `reset` raises, in worker processes only (a worker that can
   never run: it exits and `mam run` restarts it until its restart limit).
@@ -27,7 +27,7 @@ class SimulatorError(RuntimeError):
 
 
 def in_worker() -> bool:
-    return sys.argv[0].replace("\\", "/").endswith("services/worker.py")
+    return sys.argv[0].replace("\\", "/").endswith("services/roles/worker.py")
 
 
 class FaultInjector(gym.Wrapper):

@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 import zenoh
 
-from services import bus, keys
-from services.bus import (
+from services.messaging import bus, keys
+from services.messaging.bus import (
     DUPLICATE,
     GAP,
     IN_ORDER,
@@ -35,7 +35,7 @@ from services.bus import (
     open_session,
     watch_alive,
 )
-from services.codec import Allocation, MessageError, TransitionBatch, TransitionSpec, Weights
+from services.messaging.codec import Allocation, MessageError, TransitionBatch, TransitionSpec, Weights
 
 
 def unique_run() -> str:
@@ -193,7 +193,7 @@ def test_a_junk_flood_on_a_weights_key_never_displaces_the_valid_weights(star):
     learner's weights and the `Inbox` (what a worker reads) queues only them; without a screen
     the junk wins."""
     from mam_core.policy import member_shapes
-    from services import role
+    from services.roles import role
 
     run = unique_run()
     rejects = RejectLog(None)
@@ -505,7 +505,7 @@ def test_keys_reject_bad_actor_and_foreign_keys():
 
 
 def test_sequence_tracker_resends_fill_gaps_exactly_once():
-    from services.bus import RECOVERED, REDUNDANT
+    from services.messaging.bus import RECOVERED, REDUNDANT
 
     t = SequenceTracker()
     assert [t.observe("w0", "i0", s) for s in (0, 1)] == [IN_ORDER] * 2

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from services.chaos import chaos
+from services.run.chaos import chaos
 from tests.e2e import processes_of, unique_run
 
 pytestmark = pytest.mark.slow

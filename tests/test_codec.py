@@ -13,8 +13,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from services import codec
-from services.codec import (
+from services.messaging import codec
+from services.messaging.codec import (
     SCHEMA_VERSION,
     Allocation,
     Done,
@@ -449,12 +449,12 @@ def test_fuzz_only_message_errors():
 
 
 def test_codec_does_not_import_zenoh():
-    code = "import sys, services.codec, services.keys; assert 'zenoh' not in sys.modules"
+    code = "import sys, services.messaging.codec, services.messaging.keys; assert 'zenoh' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
 def test_resend_flag_and_acknowledgements_are_validated():
-    from services.codec import LearnerStats, TransitionBatch, TransitionSpec, encode
+    from services.messaging.codec import LearnerStats, TransitionBatch, TransitionSpec, encode
 
     spec = TransitionSpec(3, 2, 2, max_rows=8, max_action=1.0)
     z = np.zeros

@@ -1,7 +1,7 @@
 """Configuration errors stop at once, with the reason on the terminal; restarts are for faults.
 
 Real processes: `mam run` and `mam learner` as a user starts them, and `run_local` with a
-learner child that meets a device torch does not see (services/preflight.py).
+learner child that meets a device torch does not see (services/run/preflight.py).
 """
 
 import os
@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from mam_core.config import resolve
-from services.preflight import EXIT_CONFIG, ConfigError, check_run_dir, cuda_problem
+from services.run.preflight import EXIT_CONFIG, ConfigError, check_run_dir, cuda_problem
 from tests.e2e import ROOT, unique_run
 
 ENV = dict(os.environ, COLUMNS="200", PYTHONWARNINGS="ignore")
@@ -75,8 +75,8 @@ def test_the_launcher_does_not_restart_a_child_that_exits_with_a_configuration_e
     run_dir = tmp_path / "run"
     script = (
         "import sys\n"
-        "from services.launcher import RestartPolicy, run_local\n"
-        "from services.options import build_run_config\n"
+        "from services.run.launcher import RestartPolicy, run_local\n"
+        "from services.cli.options import build_run_config\n"
         f"cfg = build_run_config({{'env': 'AppleCollect-v1', 'steps': 300, 'hidden': '16,16', 'device': 'cuda', "
         f"'run': {unique_run('cfg')!r}}}, None)\n"
         f"summary = run_local(cfg, __import__('pathlib').Path({str(run_dir)!r}), plot=False)\n"

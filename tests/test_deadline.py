@@ -14,7 +14,7 @@ import pytest
 from mam_lab.ledger import estimate_wall_s, record_wall_s, run_state, wall_estimates
 from mam_lab.scheduler import may_start, parse_stop_by, run_grid
 from mam_lab.view import estimate_text
-from services.options import write_json
+from services.run.rundir import write_json
 from tests.test_experiment import FakeLauncher, plan, quiet, small_grid
 
 

@@ -29,7 +29,7 @@ import zenoh
 from mam_core.config import resolve
 from mam_core.policy import read_policy_file
 from mam_core.reference import run_reference
-from services import bus, keys
+from services.messaging import bus, keys
 from tests.e2e import ROOT, assert_exactly_once, load, stop, unique_run
 
 DEPLOY = ROOT / "deploy"
@@ -170,7 +170,7 @@ def tls_router(tmp_path_factory):
     certs = make_certs(tmp / "certs")
     config = deploy_config("router-tls.json5", certs, tmp)
     endpoint = f"tls/127.0.0.1:{bus.free_tcp_port()}"
-    router = spawn(["services.router", "--zenoh-config", str(config), "--listen", endpoint], tmp / "router.log")
+    router = spawn(["services.roles.router", "--zenoh-config", str(config), "--listen", endpoint], tmp / "router.log")
     try:
         conf = client_config(certs, "monitor", endpoint, tmp)
         with bus.session_scope(conf, retry_for=30):
@@ -425,18 +425,19 @@ def test_a_run_across_two_hosts_through_a_router(two_hosts: Netns, tmp_path: Pat
     port = 7447  # each namespace has its own ports
     on_a, from_b = f"{transport}/127.0.0.1:{port}", f"{transport}/{hosts.addr_a}:{port}"
     logs = tmp_path / "logs"
-    router = spawn(["services.router", "--zenoh-config", conf["router"], "--listen", f"{transport}/0.0.0.0:{port}"],
+    router = spawn(["services.roles.router", "--zenoh-config", conf["router"],
+                    "--listen", f"{transport}/0.0.0.0:{port}"],
                    logs / "router.log", netns=hosts.a, env=ACL_TRACE if transport == "tls" else None)
     procs = [router]
     before = hosts.bytes_over_veth()
     try:
         time.sleep(1.0)
-        learner = spawn(["services.learner", *RUN_FLAGS, "--lag", str(lag), "--run", run, "--connect", on_a,
+        learner = spawn(["services.roles.learner", *RUN_FLAGS, "--lag", str(lag), "--run", run, "--connect", on_a,
                          "--zenoh-config", conf["learner"], "--run-dir", str(run_dir)], logs / "learner.log",
                         netns=hosts.a)
-        referee = spawn(["services.referee", "--run", run, "--connect", on_a, "--zenoh-config", conf["referee"],
+        referee = spawn(["services.roles.referee", "--run", run, "--connect", on_a, "--zenoh-config", conf["referee"],
                          "--run-dir", str(run_dir)], logs / "referee.log", netns=hosts.a)
-        workers = [spawn(["services.worker", "--run", run, "--connect", from_b, "--zenoh-config", conf["worker"],
+        workers = [spawn(["services.roles.worker", "--run", run, "--connect", from_b, "--zenoh-config", conf["worker"],
                           "--id", f"b{i}", "--slot", str(i), "--run-dir", str(run_dir)], logs / f"worker-b{i}.log",
                          netns=hosts.b) for i in range(WORKERS)]
         procs += [learner, referee, *workers]

@@ -1,5 +1,5 @@
 """Exact mode: a distributed `mam run` is the one-process Algorithm 1, bit for bit, and reruns
-from its seed (services/exact.py, mam_core/algorithm1.py)."""
+from its seed (services/roles/lockstep.py, mam_core/algorithm1.py)."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from mam_core.policy import read_policy_file
 from mam_core.reference import run_reference
 from mam_core.schedule import Schedule
 from mam_core.seeding import stream, stream_seed
-from services.plot import read_jsonl
+from services.cli.plot import read_jsonl
 from tests.e2e import ROOT, mam, unique_run
 
 # -- the plan, hand-computed ---------------------------------------------------------------------
@@ -209,7 +209,7 @@ def test_a_killed_worker_ends_exactness_and_the_run_finishes(tmp_path: Path) -> 
         while time.monotonic() < deadline and victim is None:  # a worker whose rows are in the replay
             time.sleep(0.2)
             rows = read_jsonl(run_dir / "learner.jsonl") if (run_dir / "learner.jsonl").is_file() else []
-            out = subprocess.run(["pgrep", "-f", f"services.worker --run {name} .*--id w1 "], capture_output=True,
+            out = subprocess.run(["pgrep", "-f", f"services.roles.worker --run {name} .*--id w1 "], capture_output=True,
                                  text=True).stdout.split()
             if out and rows and rows[-1]["iterations"] >= 300:
                 victim = int(out[0])
@@ -245,7 +245,7 @@ def test_weights_overwritten_on_their_keys_neither_hang_nor_change_the_run(tmp_p
     learner's last weights in a one-per-key subscriber nor fills the referee's snapshot queue (the
     learner's re-sends of late weights stay as the fallback for a sample lost anyway): the run
     finishes at its usual pace and is still exactly the reference run."""
-    from services import bus, keys
+    from services.messaging import bus, keys
 
     torch.set_num_threads(1)
     run, run_dir = unique_run("clobber"), tmp_path / "clobber"

@@ -44,7 +44,7 @@ from mam_lab.stats import (
     wilson_interval,
 )
 from mam_lab.tables import bias_rows
-from services.options import write_json
+from services.run.rundir import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -1077,7 +1077,7 @@ def test_ledger_compacts_repeated_allocation_rows(tmp_path):
 
 def test_only_the_learner_of_a_parallel_run_is_pinned(monkeypatch):
     """`mam experiment --parallel`: the run's cores go to its learner; referee and workers float."""
-    from services.launcher import LEARNER_CPUS_ENV, _child_setup
+    from services.run.launcher import LEARNER_CPUS_ENV, _child_setup
 
     every = sorted(os.sched_getaffinity(0))
     monkeypatch.setenv(LEARNER_CPUS_ENV, str(every[0]))

@@ -15,7 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from services.options import budget_warnings, build_run_config
+from services.cli.options import build_run_config
+from services.run.config import budget_warnings
 from tests.e2e import ROOT, processes_of, spawn, stop, unique_run
 
 TINY = ["--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--hidden", "32,32", "--batch-size", "32",
@@ -144,7 +145,7 @@ def test_mam_run_says_at_start_what_the_budget_leaves_out(tmp_path: Path) -> Non
 def test_split_learner_says_where_it_listens_and_warns_about_missing_workers(tmp_path: Path) -> None:
     """A `mam-learner` started by hand logs its endpoint and what it waits for, the budget notes, and,
     once its grace is over, that fewer than M workers are up."""
-    from services import bus
+    from services.messaging import bus
 
     run, endpoint = unique_run("split"), bus.loopback_endpoint(bus.free_tcp_port())
     log = tmp_path / "learner.log"
@@ -169,7 +170,8 @@ def test_split_learner_says_where_it_listens_and_warns_about_missing_workers(tmp
 
 
 def test_outcome_in_the_task_s_words():
-    from services.launcher import best_apple_return, outcome_text
+    from mam_core.envs.apple_collect import best_apple_return
+    from services.run.progress import outcome_text
 
     cfg = build_run_config({"env": "AppleCollect-v1", "algo": "ma-ddpg", "steps": 4000}, None)
     assert best_apple_return("AppleCollect-v1", {}) == pytest.approx(49.94)

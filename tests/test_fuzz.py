@@ -11,8 +11,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from services import bus, keys
-from services.codec import (
+from services.messaging import bus, keys
+from services.messaging.codec import (
     SCHEMA_VERSION,
     Allocation,
     Done,
@@ -108,8 +108,8 @@ def mutate(payload: bytes, rng: np.random.Generator, i: int) -> bytes:
 
 def is_valid(key: str, payload: bytes, run: str) -> bool:
     """Would the receiving role accept it? (A mutation that leaves a message valid is no fuzz.)"""
-    from services.codec import MessageError, TransitionSpec
-    from services.options import RunConfig
+    from services.messaging.codec import MessageError, TransitionSpec
+    from services.run.config import RunConfig
 
     try:
         if "/transitions/" in key:

@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 
 from mam_core.policy import EnvSpec, NumpyActors
-from services.exact import WeightsHistory
-from services.plot import read_jsonl
+from services.cli.plot import read_jsonl
+from services.roles.lockstep import WeightsHistory
 from tests.e2e import ROOT, unique_run
 
 SPEC = EnvSpec(3, 2, (1.0, 1.0))
@@ -60,7 +60,8 @@ def test_a_learner_killed_without_a_checkpoint_and_three_more_times_the_run_fini
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
 
     def learner_pid() -> int | None:
-        out = subprocess.run(["pgrep", "-f", f"services.learner .*{run_dir}"], capture_output=True, text=True).stdout
+        pattern = f"services.roles.learner .*{run_dir}"
+        out = subprocess.run(["pgrep", "-f", pattern], capture_output=True, text=True).stdout
         return int(out.split()[0]) if out.split() else None
 
     def updates() -> int:

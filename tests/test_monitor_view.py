@@ -4,7 +4,7 @@ import pytest
 from rich.console import Console
 
 from mam_core.config import resolve
-from services.monitor_view import MonitorState, PlainLines, render
+from services.cli.monitor_view import MonitorState, PlainLines, render
 
 
 class FakeClock:
@@ -193,9 +193,9 @@ def test_watch_a_split_role_run_with_workers_b0_b1_through_its_elimination(tmp_p
     every actor shows the return eval.jsonl and the elimination hold."""
     import json
 
-    from services import bus
-    from services.monitor import watch
-    from services.rundir import read_jsonl
+    from services.messaging import bus
+    from services.roles.monitor import watch
+    from services.run.rundir import read_jsonl
     from tests.e2e import processes_of, spawn, stop, unique_run
 
     run = unique_run("watch-split")

@@ -8,8 +8,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-from services.launcher import RANDOM_POLICY_RETURNS, LocalCluster, done_text, outcome_text
-from services.options import build_run_config
+from services.cli.options import build_run_config
+from services.run.launcher import LocalCluster
+from services.run.progress import RANDOM_POLICY_RETURNS, done_text, outcome_text
 from tests.e2e import ROOT, unique_run
 
 ENV = dict(os.environ, COLUMNS="200", PYTHONWARNINGS="ignore")

@@ -52,7 +52,7 @@ def test_numpy_actors_refuse_parameters_of_another_shape() -> None:
 
 def test_workers_and_the_referee_do_not_import_torch() -> None:
     """Seconds of start-up and ~300 MB per process saved: only the learner needs torch."""
-    code = ("import sys, services.worker, services.referee; "
+    code = ("import sys, services.roles.worker, services.roles.referee; "
             "print(sorted(m for m in sys.modules if m == 'torch' or m.startswith('torch.'))[:5])")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr

@@ -15,10 +15,11 @@ from pathlib import Path
 import pytest
 
 from mam_core.schedule import Schedule
-from services import bus, runlock
-from services.chaos import chaos
-from services.checkpoint import generations, load_checkpoint, replay_dir
-from services.options import RunConfig
+from services.messaging import bus
+from services.roles.checkpoint import generations, load_checkpoint, replay_dir
+from services.run import runlock
+from services.run.chaos import chaos
+from services.run.config import RunConfig
 from tests.e2e import ROOT, processes_of, spawn, stop, unique_run
 from tests.test_supervision import child_pid, learner_steps, start_mam_run, wait_until
 
@@ -59,10 +60,10 @@ def test_one_run_per_directory_and_sigterm_exits_143(tmp_path: Path) -> None:
         assert second.returncode == 1, text
         assert f"run directory {run_dir} is in use by mam run of run '{run}'" in text and "refusing" in text, text
         # ... and so are a learner and a referee started by hand on the live directory.
-        learner = run_module("services.learner", "--run-config", str(run_dir / "config.json"), "--run-dir",
+        learner = run_module("services.roles.learner", "--run-config", str(run_dir / "config.json"), "--run-dir",
                              str(run_dir), "--listen", bus.loopback_endpoint(bus.free_tcp_port()))
         assert learner.returncode == 73 and "already has a live learner" in learner.stderr, learner.stderr[-2000:]
-        referee = run_module("services.referee", "--run", run, "--connect", json.loads(config)["endpoint"],
+        referee = run_module("services.roles.referee", "--run", run, "--connect", json.loads(config)["endpoint"],
                              "--run-dir", str(run_dir))
         assert referee.returncode == 73 and "already has a live referee" in referee.stderr, referee.stderr[-2000:]
         assert (run_dir / "config.json").read_bytes() == config
@@ -89,7 +90,7 @@ def test_a_second_learner_of_a_live_run_name_on_the_network_is_refused(tmp_path:
         while not (tmp_path / "a" / "learner.jsonl").is_file():
             assert first.poll() is None and time.monotonic() < deadline, (tmp_path / "a.log").read_text()[-3000:]
             time.sleep(0.2)
-        second = run_module("services.learner", "--env", "AppleCollect-v0", "--algo", "td3", "--steps", "1000",
+        second = run_module("services.roles.learner", "--env", "AppleCollect-v0", "--algo", "td3", "--steps", "1000",
                             *SMALL, "--run", run, "--connect", endpoint, "--run-dir", str(tmp_path / "b"))
     finally:
         stop(first)

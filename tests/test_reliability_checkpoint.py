@@ -15,7 +15,7 @@ from mam_core.agent import EnvSpec, MultiActorAgent
 from mam_core.config import resolve
 from mam_core.policy import load_policy
 from mam_core.replay import ReplayBuffer, ReplayLog
-from services.checkpoint import (
+from services.roles.checkpoint import (
     CheckpointCorrupt,
     CheckpointError,
     generations,
@@ -24,7 +24,7 @@ from services.checkpoint import (
     replay_dir,
     save_checkpoint,
 )
-from services.options import RunConfig
+from services.run.config import RunConfig
 
 ENV = "AppleCollect-v0"
 

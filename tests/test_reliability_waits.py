@@ -7,7 +7,8 @@ import logging
 
 import pytest
 
-from services import bus, role
+from services.messaging import bus
+from services.roles import role
 from tests.e2e import unique_run
 
 

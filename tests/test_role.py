@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from mam_core.policy import EnvSpec, member_shapes
-from services import bus, keys
-from services.codec import LearnerStats, Weights
-from services.exact import WeightsHistory
-from services.role import MAX_VERSION_LEAD, Every, plausible_version, weights_screen
+from services.messaging import bus, keys
+from services.messaging.codec import LearnerStats, Weights
+from services.roles.lockstep import WeightsHistory
+from services.roles.role import MAX_VERSION_LEAD, Every, plausible_version, weights_screen
 
 ROOT = Path(__file__).resolve().parents[1]
 ROLE_MODULES = ("learner", "worker", "referee", "monitor", "router")
@@ -80,34 +80,46 @@ def test_every_is_due_once_per_period():
     assert not every.due(clock[0] + 5.5) and every.due(clock[0] + 6.0)
 
 
-def _imported_services(path: Path) -> set[str]:
+def _imported_roles(path: Path) -> set[str]:
+    """The role modules (services.roles.<role>) a source file imports, anywhere in it."""
     names = set()
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.ImportFrom) and node.module:
-            if node.module == "services":
+            if node.module == "services.roles":
                 names.update(a.name for a in node.names)
-            elif node.module.startswith("services."):
-                names.add(node.module.split(".")[1])
+            elif node.module.startswith("services.roles."):
+                names.add(node.module.split(".")[2])
         elif isinstance(node, ast.Import):
-            names.update(a.name.split(".")[1] for a in node.names if a.name.startswith("services."))
+            names.update(a.name.split(".")[2] for a in node.names if a.name.startswith("services.roles."))
     return names
 
 
 @pytest.mark.parametrize("role", ROLE_MODULES)
 def test_no_role_module_imports_another(role: str):
     others = set(ROLE_MODULES) - {role}
-    assert not _imported_services(ROOT / "services" / f"{role}.py") & others  # in the source, anywhere
-    code = (f"import sys, json; import services.{role}; "
-            f"print(json.dumps(sorted(m for m in {sorted(others)!r} if 'services.' + m in sys.modules)))")
+    assert not _imported_roles(ROOT / "services" / "roles" / f"{role}.py") & others  # in the source, anywhere
+    code = (f"import sys, json; import services.roles.{role}; "
+            f"print(json.dumps(sorted(m for m in {sorted(others)!r} if 'services.roles.' + m in sys.modules)))")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert json.loads(out.stdout.strip().splitlines()[-1]) == []  # nor through what it imports
 
 
+def test_the_services_floor_shows_the_architecture_and_fits_on_a_screen_or_two():
+    """Sub-packages by concern; no role module over 400 lines, no services/ file over 500."""
+    packages = {p.name for p in (ROOT / "services").iterdir() if (p / "__init__.py").is_file()}
+    assert packages == {"roles", "run", "messaging", "cli"}
+    assert [p.name for p in (ROOT / "services").glob("*.py")] == ["__init__.py"]  # nothing loose at the top
+    for path in (ROOT / "services").rglob("*.py"):
+        lines = len(path.read_text().splitlines())
+        limit = 400 if path.parent.name == "roles" and path.stem in ROLE_MODULES else 500
+        assert lines <= limit, f"{path.relative_to(ROOT)}: {lines} lines (at most {limit})"
+
+
 HEAVY = ("torch", "matplotlib")
 
 
-@pytest.mark.parametrize("argv", [["services.worker", "--help"], ["services.referee", "--help"],
+@pytest.mark.parametrize("argv", [["services.roles.worker", "--help"], ["services.roles.referee", "--help"],
                                   ["services.cli", "worker", "--help"], ["services.cli", "referee", "--help"]])
 def test_role_commands_import_neither_torch_nor_matplotlib(argv: list[str]):
     code = ("import json, runpy, sys\n"
@@ -125,8 +137,8 @@ def test_role_commands_import_neither_torch_nor_matplotlib(argv: list[str]):
 
 def test_the_learner_does_import_torch():
     """The check above can fail: the learner's --help does load torch."""
-    code = ("import runpy, sys\nsys.argv = ['services.learner', '--help']\n"
-            "try:\n    runpy.run_module('services.learner', run_name='__main__', alter_sys=True)\n"
+    code = ("import runpy, sys\nsys.argv = ['services.roles.learner', '--help']\n"
+            "try:\n    runpy.run_module('services.roles.learner', run_name='__main__', alter_sys=True)\n"
             "except SystemExit:\n    pass\nprint('torch' in sys.modules)\n")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert out.stdout.strip().splitlines()[-1] == "True"

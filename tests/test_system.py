@@ -14,9 +14,9 @@ from rich.console import Console
 from mam_core.config import resolve
 from mam_core.obsolescence import allocation_probabilities
 from mam_core.schedule import Schedule
-from services import bus, keys
-from services.codec import Allocation, Weights
-from services.monitor import watch
+from services.messaging import bus, keys
+from services.messaging.codec import Allocation, Weights
+from services.roles.monitor import watch
 from tests.e2e import assert_exactly_once, load, mam, processes_of, spawn, stop, unique_run
 
 SMALL = ["--hidden", "32,32", "--batch-size", "32", "--eval-episodes", "3"]

@@ -16,8 +16,8 @@ from mam_core.config import resolve
 from mam_core.evaluation import evaluate_policy
 from mam_core.policy import POLICY_FILE, EnvSpec, PolicyFileError, load_policy, read_policy_file
 from mam_core.seeding import evaluation_seed
-from services.options import RunConfig
-from services.policy_export import write_policy
+from services.cli.policy_export import write_policy
+from services.run.config import RunConfig
 from tests.e2e import ROOT, mam
 
 SPEC = EnvSpec(5, 3, (0.4, 1.0, 2.0))  # per-dimension bounds, as Humanoid (±0.4) and others have
@@ -110,7 +110,7 @@ def test_broken_policy_files_are_clear_errors(tmp_path: Path):
 def test_load_policy_and_mam_eval_need_no_torch_and_no_zenoh(tmp_path: Path):
     spec = EnvSpec.from_env_id("AppleCollect-v0")
     write_run(tmp_path, trained_agent(spec, actors=2), "AppleCollect-v0", survivor=1)
-    code = ("import sys, numpy as np; from mam_core.policy import load_policy; import services.eval_command; "
+    code = ("import sys, numpy as np; from mam_core.policy import load_policy; import services.cli.eval_command; "
             f"pi = load_policy({str(tmp_path)!r}); a = pi(np.zeros(2, np.float32)); b = pi(np.zeros((4, 2)));"
             "print(a.shape, b.shape, sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'zenoh')))")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
@@ -280,7 +280,7 @@ def test_a_custom_env_from_a_module_trains_end_to_end(tmp_path: Path):
     assert_exactly_once(run)
     assert run["config"]["env_id"] == "tests.envs.tiny:Tiny-v0" and run["config"]["env_kwargs"] == {"goal": -0.5}
     assert run["summary"]["env_steps"] >= 2000 and run["learner"][-1]["updates"] > 1500
-    from services.checkpoint import load_replay
+    from services.roles.checkpoint import load_replay
 
     replay = load_replay(run_dir)  # the chunks the checkpoint counts
     goals = replay.obs[: len(replay), 1]

@@ -8,9 +8,10 @@ import uuid
 import numpy as np
 import pytest
 
-from services import bus, keys, options
-from services.codec import TransitionBatch, TransitionSpec
-from services.worker import FAULTS, Worker
+from services.cli import options
+from services.messaging import bus, keys
+from services.messaging.codec import TransitionBatch, TransitionSpec
+from services.roles.worker import FAULTS, Worker
 from tests.faulty_env import KINDS
 
 
@@ -69,7 +70,7 @@ def worker_for_broken(session) -> None:
 
     # BrokenResetWorkers-v0 fails only in worker processes; this is one as far as it knows.
     argv0 = fe.sys.argv[0]
-    fe.sys.argv[0] = "/x/services/worker.py"
+    fe.sys.argv[0] = "/x/services/roles/worker.py"
     try:
         worker_for("tests.faulty_env:BrokenResetWorkers-v0", session, f"broken-{uuid.uuid4().hex[:8]}")
     finally:

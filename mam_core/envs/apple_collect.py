@@ -205,3 +205,27 @@ if __name__ == "__main__":  # python -m mam_core.envs.apple_collect [EPISODES]: 
     for version in ("AppleCollect-v0", "AppleCollect-v1"):
         rates = random_hit_rates(version, n)
         print(f"{version}: 50 apple {rates[50.0]:.2%}, 10 apple {rates[10.0]:.2%}")
+
+
+def best_apple_return(env_id: str, env_kwargs: dict[str, Any]) -> float | None:
+    """The return of the straight line to the (0.8, 0.8) apple on an AppleCollect env (49.94 on v1,
+    49.96 on v0: the optimum, docs/APPLECOLLECT.md); None for other envs."""
+    try:
+        import gymnasium as gym
+
+        from mam_core.envs import make_env  # registers the ids
+
+        if "apple_collect" not in str(gym.spec(env_id).entry_point):
+            return None
+        env = make_env(env_id, env_kwargs)
+    except Exception:  # not AppleCollect, or an id gym.spec cannot resolve here
+        return None
+    try:
+        env.reset(seed=0)
+        total, done = 0.0, False
+        while not done:
+            _, reward, terminated, truncated, _ = env.step(env.action_space.high.copy())
+            total, done = total + float(reward), terminated or truncated
+        return total
+    finally:
+        env.close()

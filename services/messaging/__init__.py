@@ -1,0 +1,1 @@
+"""Messaging: the Zenoh session helpers, the wire format and the key expressions."""

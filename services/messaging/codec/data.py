@@ -1,0 +1,230 @@
+"""The data plane: transition batches (worker -> learner) and actor weights (learner -> all)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, ClassVar, Mapping
+
+import numpy as np
+
+from services.messaging.codec.wire import (
+    MAX_MESSAGE_BYTES,
+    MessageError,
+    _array,
+    _bool,
+    _check_kind,
+    _f32,
+    _float,
+    _floats,
+    _get,
+    _id,
+    _int,
+    _ints,
+    _text,
+    decode,
+    encode,
+)
+
+# --------------------------------------------------------------------------- typed messages
+
+
+@dataclass(frozen=True)
+class TransitionSpec:
+    """What a learner accepts: the env's dimensions, K, and the batch size cap."""
+
+    obs_dim: int
+    act_dim: int
+    n_actors: int
+    max_rows: int = 4096
+    max_action: float | None = None  # when set, |action| <= max_action * (1 + 1e-5)
+
+
+@dataclass(frozen=True)
+class TransitionBatch:
+    """N transitions from one worker, all collected with one actor's policy ``version``.
+
+    ``terminated`` is true only for real terminal states (truncation is not terminal).
+    ``batch_seq`` counts this worker incarnation's batches from 0 (gap/duplicate detection).
+    ``version`` is -1 for the uniform random actions of the start phase.
+    """
+
+    KIND: ClassVar[str] = "transitions"
+
+    worker: str
+    incarnation: str
+    batch_seq: int
+    actor: int
+    version: int
+    obs: np.ndarray
+    action: np.ndarray
+    reward: np.ndarray
+    next_obs: np.ndarray
+    terminated: np.ndarray
+    episode_return: tuple[float, ...] | None = None
+    resend: bool = False  # sent again to a restarted learner (the tracker de-duplicates it)
+    iteration: int = -1  # exact mode: Algorithm 1's iteration of the first row (one row per iteration)
+    slot: int = -1  # exact mode: the environment slot that collected the rows
+    policy_from: str = ""  # the learner incarnation whose weights `version` counts (empty: unknown)
+    env_faults: int = 0  # simulator faults this worker incarnation has met so far (its run is then not the seed's)
+
+    @property
+    def rows(self) -> int:
+        return int(self.reward.shape[0])
+
+    def to_bytes(self, sender: str | None = None, seq: int | None = None) -> bytes:
+        body = {
+            "worker": self.worker,
+            "incarnation": self.incarnation,
+            "batch_seq": self.batch_seq,
+            "actor": self.actor,
+            "version": self.version,
+            "obs": _f32(self.obs),
+            "action": _f32(self.action),
+            "reward": _f32(self.reward),
+            "next_obs": _f32(self.next_obs),
+            "terminated": np.ascontiguousarray(self.terminated, dtype=np.bool_),
+            "episode_return": None
+            if self.episode_return is None
+            else [float(x) for x in self.episode_return],
+        }
+        if self.resend:
+            body["resend"] = True
+        if self.iteration >= 0:
+            body["iteration"] = self.iteration
+            body["slot"] = self.slot
+        if self.policy_from:
+            body["policy_from"] = self.policy_from
+        if self.env_faults:
+            body["env_faults"] = self.env_faults
+        return encode(
+            self.KIND,
+            body,
+            sender=self.worker if sender is None else sender,
+            seq=self.batch_seq if seq is None else seq,
+        )
+
+    @classmethod
+    def from_message(cls, msg: Mapping[str, Any], spec: TransitionSpec) -> "TransitionBatch":
+        _check_kind(msg, cls.KIND)
+        worker = _id(msg, "worker")
+        if msg.get("sender") != worker:
+            raise MessageError("sender_mismatch", f"sender {msg.get('sender')!r} != worker {worker!r}")
+        incarnation = _id(msg, "incarnation")
+        batch_seq = _int(msg, "batch_seq", lo=0)
+        actor = _int(msg, "actor", lo=0)
+        if actor >= spec.n_actors:
+            raise MessageError("range:actor", f"actor {actor} >= K={spec.n_actors}")
+        version = _int(msg, "version", lo=-1)
+        reward = _get(msg, "reward")
+        if not isinstance(reward, np.ndarray) or reward.ndim != 1:
+            raise MessageError("shape:reward", "reward must be a 1-d array")
+        n = reward.shape[0]
+        if not 1 <= n <= spec.max_rows:
+            raise MessageError("range:rows", f"{n} rows not in [1, {spec.max_rows}]")
+        obs = _array(msg, "obs", (n, spec.obs_dim))
+        action = _array(msg, "action", (n, spec.act_dim))
+        reward = _array(msg, "reward", (n,))
+        next_obs = _array(msg, "next_obs", (n, spec.obs_dim))
+        term = _array(msg, "terminated", (n,), dtypes=("bool", "uint8"))
+        if term.dtype.name == "uint8":
+            if n and term.max() > 1:
+                raise MessageError("range:terminated", "uint8 terminated must be 0/1")
+            term = term.view(np.bool_)
+        if spec.max_action is not None:
+            bound = spec.max_action * (1 + 1e-5)
+            if np.abs(action).max() > bound:
+                raise MessageError("range:action", f"|action| > {spec.max_action}")
+        ret = _get(msg, "episode_return") if "episode_return" in msg else None
+        episode_return = None
+        if ret is not None:
+            episode_return = _floats(msg, "episode_return")
+            if len(episode_return) > spec.max_rows:
+                raise MessageError("range:episode_return", "more episodes than rows")
+        resend = _bool(msg, "resend") if "resend" in msg else False
+        iteration = _int(msg, "iteration", lo=1) if "iteration" in msg else -1
+        slot = _int(msg, "slot", lo=0, hi=1 << 20) if iteration >= 0 else -1
+        policy_from = _id(msg, "policy_from") if "policy_from" in msg else ""
+        env_faults = _int(msg, "env_faults", lo=0) if "env_faults" in msg else 0
+        return cls(worker, incarnation, batch_seq, actor, version, obs, action, reward,
+                   next_obs, term, episode_return, resend, iteration, slot, policy_from,
+                   env_faults)
+
+    @classmethod
+    def from_bytes(cls, payload: bytes, spec: TransitionSpec, *,
+                   max_bytes: int = MAX_MESSAGE_BYTES) -> "TransitionBatch":
+        return cls.from_message(decode(payload, max_bytes=max_bytes), spec)
+
+
+@dataclass(frozen=True)
+class Weights:
+    """Actor k's policy parameters by name (float32), with a version that only grows."""
+
+    KIND: ClassVar[str] = "weights"
+
+    actor: int
+    version: int
+    params: Mapping[str, np.ndarray]
+    obs_dim: int
+    act_dim: int
+    max_action: float
+    hidden: tuple[int, ...]
+    incarnation: str = ""  # the learner incarnation that made them: its versions count from its own start
+
+    def to_bytes(self, sender: str, seq: int) -> bytes:
+        body = {
+            "incarnation": self.incarnation,
+            "actor": self.actor,
+            "version": self.version,
+            "params": {str(k): _f32(v) for k, v in self.params.items()},
+            "obs_dim": self.obs_dim,
+            "act_dim": self.act_dim,
+            "max_action": float(self.max_action),
+            "hidden": [int(h) for h in self.hidden],
+        }
+        return encode(self.KIND, body, sender=sender, seq=seq)
+
+    @classmethod
+    def from_message(
+        cls,
+        msg: Mapping[str, Any],
+        expected: Mapping[str, tuple[int, ...]] | None = None,
+        n_actors: int | None = None,
+    ) -> "Weights":
+        _check_kind(msg, cls.KIND)
+        actor = _int(msg, "actor", lo=0, hi=None if n_actors is None else n_actors - 1)
+        version = _int(msg, "version", lo=0)
+        params = _get(msg, "params")
+        if not isinstance(params, dict) or not params:
+            raise MessageError("type:params", "want a non-empty map of arrays")
+        for name, a in params.items():
+            if not isinstance(name, str) or not name or len(name) > 256:
+                raise MessageError("type:params", f"bad parameter name {name!r}"[:200])
+            if not isinstance(a, np.ndarray):
+                raise MessageError("type:params", f"{name}: want array, got {type(a).__name__}")
+            if a.dtype.name != "float32":
+                raise MessageError("dtype:params", f"{name}: {a.dtype.name} is not float32")
+            if not np.isfinite(a).all():
+                raise MessageError("not_finite:params", f"{name}: NaN or inf")
+        if expected is not None:
+            if set(params) != set(expected):
+                missing = sorted(set(expected) - set(params))
+                extra = sorted(set(params) - set(expected))
+                raise MessageError("params:names", f"missing {missing} extra {extra}"[:300])
+            for name, shape in expected.items():
+                if params[name].shape != tuple(shape):
+                    raise MessageError("shape:params", f"{name}: {params[name].shape} != {tuple(shape)}")
+        obs_dim = _int(msg, "obs_dim", lo=1)
+        act_dim = _int(msg, "act_dim", lo=1)
+        max_action = _float(msg, "max_action")
+        if max_action <= 0:
+            raise MessageError("range:max_action", f"{max_action} <= 0")
+        hidden = _ints(msg, "hidden", lo=1)
+        if len(hidden) > 16:
+            raise MessageError("range:hidden", "more than 16 hidden layers")
+        incarnation = _text(msg, "incarnation") if "incarnation" in msg else ""
+        return cls(actor, version, params, obs_dim, act_dim, max_action, hidden, incarnation)
+
+    @classmethod
+    def from_bytes(cls, payload: bytes, expected: Mapping[str, tuple[int, ...]] | None = None,
+                   n_actors: int | None = None, *, max_bytes: int = MAX_MESSAGE_BYTES) -> "Weights":
+        return cls.from_message(decode(payload, max_bytes=max_bytes), expected, n_actors)

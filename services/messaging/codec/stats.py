@@ -1,0 +1,177 @@
+"""The learner's counters (learner -> all), per worker as a typed `WorkerCounters`."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field, fields
+from typing import Any, ClassVar
+
+from services.messaging.codec.control import _plain_value
+from services.messaging.codec.wire import (
+    MAX_MESSAGE_BYTES,
+    MessageError,
+    _as_float,
+    _bool,
+    _check_kind,
+    _float,
+    _floats,
+    _id,
+    _int,
+    _ints,
+    _list,
+    _str_map,
+    _text,
+    decode,
+    encode,
+)
+
+
+@dataclass(frozen=True, eq=False)
+class WorkerCounters(Mapping):
+    """What the learner counts for one worker (`LearnerStats.per_worker[worker]`).
+
+    On the wire a msgpack map with the field names as keys; `received` and `last_seq` always,
+    the others once known (None is left out). `acked_incarnation` and `acked_seq` come as a
+    pair: every batch of that worker incarnation up to `acked_seq` is in the learner's last
+    checkpoint, so the worker may stop keeping it for a resend. Keys this version does not know
+    are kept in `extra` if they are plain scalars. It reads as a mapping of its wire keys too
+    (`counters["received"]`, `counters.get("lag")`), and compares equal to that mapping.
+    """
+
+    received: int = 0  # rows received from this worker (all its incarnations)
+    last_seq: int = -1  # highest batch seq of its current incarnation
+    incarnation: str | None = None  # its current incarnation
+    incarnation_rows: int | None = None  # rows received from that incarnation
+    redundant_rows: int | None = None  # resent rows of that incarnation already held (dropped)
+    rejected_rows: int | None = None  # rows of that incarnation refused (they are not in flight any more)
+    actor: int | None = None  # the actor of its last batch
+    lag: int | None = None  # policy versions between its last batch and the learner
+    rate: float | None = None  # rows per second, over the last second or so
+    acked_incarnation: str | None = None
+    acked_seq: int | None = None
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "extra"}
+        return {**{k: v for k, v in out.items() if v is not None}, **self.extra}
+
+    def __getitem__(self, key: str) -> Any:
+        return self.to_dict()[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.to_dict())
+
+    def __len__(self) -> int:
+        return len(self.to_dict())
+
+    @classmethod
+    def from_message(cls, d: Mapping[str, Any], worker: str = "?") -> "WorkerCounters":
+        d = _str_map({"per_worker": d}, "per_worker")
+        for v in d.values():
+            if isinstance(v, list):
+                raise MessageError("type:per_worker", f"{worker}: values must be scalars")
+            _plain_value(v, "per_worker")
+        values: dict[str, Any] = {"received": _int(d, "received", lo=0), "last_seq": _int(d, "last_seq", lo=-1)}
+        if "acked_seq" in d or "acked_incarnation" in d:  # the checkpointed prefix of its stream
+            values["acked_seq"] = _int(d, "acked_seq", lo=-1)
+            values["acked_incarnation"] = _id(d, "acked_incarnation")
+        for name in ("incarnation_rows", "redundant_rows", "rejected_rows", "actor", "lag"):
+            if d.get(name) is not None:
+                values[name] = _int(d, name)
+        if d.get("incarnation") is not None:
+            values["incarnation"] = _text(d, "incarnation")
+        if d.get("rate") is not None:
+            values["rate"] = _float(d, "rate")
+        known = {f.name for f in fields(cls)}
+        return cls(**values, extra={k: v for k, v in d.items() if k not in known})
+
+
+@dataclass(frozen=True)
+class LearnerStats:
+    """The learner's counters. ``accept_until`` is the rate limiter's credit: workers may
+    send transitions while the learner's ``env_steps`` is below it. Losses and Q means may be
+    non-finite on purpose (a diverging run must stay visible).
+
+    ``per_worker[w]`` is a `WorkerCounters` (a plain mapping with at least ``received`` and
+    ``last_seq`` is accepted when building one to send). ``live[k]`` is false for an
+    eliminated actor, ``workers`` the number of live workers, ``steps`` the run's budget.
+    """
+
+    KIND: ClassVar[str] = "learner_stats"
+
+    env_steps: int
+    updates: int
+    accept_until: int
+    utd: float
+    losses: Mapping[str, float] = field(default_factory=dict)
+    q_means: tuple[float, ...] = ()
+    versions: tuple[int, ...] = ()
+    per_worker: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    rejected: Mapping[str, int] = field(default_factory=dict)
+    done: bool = False
+    live: tuple[bool, ...] = ()
+    workers: int = 0
+    steps: int = 0
+    incarnation: str = ""  # changes when a learner restarts (workers reset their in-flight count)
+    exact: bool = False  # collection in lock-step with Algorithm 1 (services/roles/lockstep.py); false once broken
+    iteration: int = 0  # exact mode: the last iteration whose updates are done
+    inexact: str = ""  # why the run stopped being exact (empty while exact, or never asked for)
+    awaiting: tuple[int, ...] = ()  # what the learner's loop waits for now: slots, and -1 for the referee
+    slots_next: tuple[int, ...] = ()  # per slot, the iteration of the next row the learner needs from it
+
+    def to_bytes(self, sender: str, seq: int) -> bytes:
+        body = {
+            "incarnation": self.incarnation,
+            "env_steps": self.env_steps,
+            "updates": self.updates,
+            "accept_until": self.accept_until,
+            "utd": float(self.utd),
+            "losses": {str(k): float(v) for k, v in self.losses.items()},
+            "q_means": [float(q) for q in self.q_means],
+            "versions": [int(v) for v in self.versions],
+            "per_worker": {str(w): dict(d.items()) for w, d in self.per_worker.items()},
+            "rejected": {str(r): int(n) for r, n in self.rejected.items()},
+            "done": bool(self.done),
+            "live": [bool(x) for x in self.live],
+            "workers": int(self.workers),
+            "steps": int(self.steps),
+            "exact": bool(self.exact),
+            "iteration": int(self.iteration),
+            "inexact": self.inexact,
+            "awaiting": [int(a) for a in self.awaiting],
+            "slots_next": [int(a) for a in self.slots_next],
+        }
+        return encode(self.KIND, body, sender=sender, seq=seq)
+
+    @classmethod
+    def from_message(cls, msg: Mapping[str, Any]) -> "LearnerStats":
+        _check_kind(msg, cls.KIND)
+        env_steps = _int(msg, "env_steps", lo=0)
+        updates = _int(msg, "updates", lo=0)
+        accept_until = _int(msg, "accept_until", lo=0)
+        utd = _float(msg, "utd", lo=0.0)
+        losses = {k: _as_float(v, "losses", finite=False) for k, v in _str_map(msg, "losses").items()}
+        q_means = _floats(msg, "q_means", finite=False)
+        versions = _ints(msg, "versions", lo=-1)
+        per_worker = {w: WorkerCounters.from_message(d, w) for w, d in _str_map(msg, "per_worker").items()}
+        rej_raw = _str_map(msg, "rejected")
+        rejected = {r: _int(rej_raw, r, lo=0) for r in rej_raw}
+        done = _bool(msg, "done")
+        live = tuple(_list(msg, "live")) if "live" in msg else ()
+        if any(type(x) is not bool for x in live):
+            raise MessageError("type:live", "want bools")
+        workers = _int(msg, "workers", lo=0) if "workers" in msg else 0
+        steps = _int(msg, "steps", lo=0) if "steps" in msg else 0
+        incarnation = _text(msg, "incarnation") if "incarnation" in msg else ""
+        exact = _bool(msg, "exact") if "exact" in msg else False
+        iteration = _int(msg, "iteration", lo=0) if "iteration" in msg else 0
+        inexact = _text(msg, "inexact") if "inexact" in msg else ""
+        awaiting = _ints(msg, "awaiting", lo=-1) if "awaiting" in msg else ()
+        slots_next = _ints(msg, "slots_next", lo=1) if "slots_next" in msg else ()
+        return cls(env_steps, updates, accept_until, utd, losses, q_means, versions,
+                   per_worker, rejected, done, live, workers, steps, incarnation, exact, iteration, inexact,
+                   tuple(awaiting), tuple(slots_next))
+
+    @classmethod
+    def from_bytes(cls, payload: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> "LearnerStats":
+        return cls.from_message(decode(payload, max_bytes=max_bytes))

@@ -1,0 +1,616 @@
+"""`mam-learner`: replay buffer, all K actors and n·K critics, checkpoints.
+
+One loop, Algorithm 1's iterations in lock-step (mam_core/algorithm1.py, services/roles/lockstep.py):
+stage the workers' transitions per slot, insert iteration i's rows in slot order, make its
+updates (the referee's elimination where the plan places it), publish weights when they change
+and the snapshots the referee judges, stats a few times a second, checkpoint
+(services/roles/checkpoint.py), and end the run with the plan's last iteration.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import socket
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import typer
+
+from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
+from mam_core.algorithm1 import Algorithm1
+from mam_core.evaluation import estimation_bias
+from mam_core.pacing import CheckpointRule
+from mam_core.replay import ReplayBuffer, ReplayLog
+from mam_core.seeding import bias_seed
+from services.cli import options
+from services.messaging import bus, keys
+from services.messaging.codec import (
+    Allocation,
+    Done,
+    LearnerStats,
+    MessageError,
+    TransitionSpec,
+    Weights,
+    decode,
+    encode,
+)
+from services.roles import role, tb
+from services.roles.checkpoint import (
+    EXIT_CORRUPT,
+    CheckpointCorrupt,
+    exit_on_write_error,
+    load_checkpoint,
+    replay_dir,
+    save_checkpoint,
+)
+from services.roles.intake import Intake
+from services.roles.lockstep import SlotStage, snapshot_versions
+from services.run import announce, cpu, rundir, runlock
+from services.run.config import RunConfig
+from services.run.rundir import JsonlWriter, write_json
+
+log = logging.getLogger("mam.learner")
+
+STATS_PERIOD_S = 0.1  # stats this often while updating; four times as often while waiting for data
+LOG_PERIOD_S = 1.0
+HEARTBEAT_S = 2.0  # config re-published this often
+# After done: how long to wait for a referee that is gone (a restart: `mam run`'s backoff is up to
+# 15 s, and a referee starting on a loaded box took more than 20 s in the chaos test) ...
+REFEREE_GRACE_S = 60.0
+REFEREE_WAIT_S = 240.0  # ... and at most, in all, for its final evaluation
+
+
+class Learner:
+    def __init__(self, cfg: RunConfig, session: Any, run_dir: Path, resume: dict[str, Any] | None = None) -> None:
+        self.cfg, self.algo, self.session, self.run_dir = cfg, cfg.algo, session, run_dir
+        self.id = f"{socket.gethostname()}-{os.getpid()}"
+        self.incarnation = uuid.uuid4().hex[:12]
+        self.spec = EnvSpec.from_env_id(cfg.env_id, cfg.env_kwargs)
+        self.device = pick_device(self.algo.device)
+        torch.manual_seed(self.algo.seed)
+        if cfg.learner_threads > 0:
+            torch.set_num_threads(cfg.learner_threads)
+        self.agent = MultiActorAgent(self.algo, self.spec, self.device)
+        self.plan = Algorithm1.for_run(self.algo, cfg.steps)  # every "when" of the run
+        self.schedule = self.plan.schedule
+        self.iteration = 0  # iterations whose updates are done
+        self.inexact = ""  # why the run is not exact ("" while it is)
+        self.decided_survivor: int | None = None  # the referee's choice at C, applied where the plan places it
+        self.buffer = ReplayBuffer(self.plan.replay_capacity(self.algo.buffer_size), self.spec.obs_dim,
+                                   self.spec.act_dim, self.device, self.algo.seed)
+        spec = TransitionSpec(self.spec.obs_dim, self.spec.act_dim, self.algo.actors, max_rows=4096,
+                              max_action=max(self.spec.max_action))
+        max_message = spec.max_rows * (2 * self.spec.obs_dim + self.spec.act_dim + 2) * 4 + (1 << 16)
+        self.intake = Intake(self.buffer, spec, max_message)
+        self.intake.incarnation = self.incarnation
+        self.replay_log = ReplayLog(replay_dir(run_dir)) if cfg.save_replay else None
+        # Per worker: (incarnation, seq) such that all its batches up to seq are in the checkpoint
+        # generation before the newest (with the replay). Workers keep the batches after it and
+        # resend them to a restarted learner. One generation late: when the newest fails to
+        # verify at a resume, the learner falls back to the previous one, and the rows after that
+        # are still with the workers.
+        self.acked: dict[str, tuple[str, int]] = {}
+        self.acked_newest: dict[str, tuple[str, int]] = {}  # the same for the newest generation
+        self.referee_seen = False
+        self.other_rejects = bus.RejectLog(log, "message")  # allocation topic
+        self.metrics: dict[str, float] = {}
+        self.env_steps = 0  # transitions in the replay buffer
+        self.survivor: int | None = None
+        self.checkpoints = CheckpointRule(cfg.checkpoint_every, cfg.checkpoint_rows, cfg.checkpoint_seconds)
+        self.started = time.monotonic()
+        self.wall_before = 0.0  # wall seconds of the run before this incarnation (from the checkpoint)
+        self.stop_requested = False
+        self.mid_iteration = False
+        self.awaiting: tuple[int, ...] = ()  # slots whose rows the loop waits for; -1: the referee's decision
+        if resume is not None:
+            self._restore(resume)
+
+    def _restore(self, state: dict[str, Any]) -> None:
+        self.agent.load_state_dict(state["agent"])
+        c = state["counters"]
+        self.env_steps = int(c["env_steps"])
+        if "replay" in state:  # checkpoints written before the chunked replay log
+            self.buffer.load_state_dict(state["replay"])
+        if "replay_log" in state and self.replay_log is not None:
+            meta = state["replay_log"]
+            self.replay_log.restore(self.buffer, meta["manifest"], int(meta["inserted"]), json.loads(meta["rng"]))
+            if self.buffer.inserted != self.env_steps:
+                raise ValueError(f"checkpoint counts {self.env_steps} transitions, its replay {self.buffer.inserted}")
+        self.intake.stream_rows = {k: int(v) for k, v in json.loads(c.get("stream_rows", "{}")).items()}
+        self.intake.stream_skipped = {k: int(v) for k, v in json.loads(c.get("stream_skipped", "{}")).items()}
+        # The run had a referee: a learner resumed at its budget waits for it (its final evaluation).
+        self.referee_seen = bool(int(c.get("referee_seen", 0)))
+        # Sequence numbers go on from the checkpoint: a gap then counts what died with the old
+        # learner, until the workers' resends fill it.
+        self.intake.tracker.restore(json.loads(c.get("per_worker", "{}")))
+        if self.replay_log is not None:  # just verified: its rows need not be kept twice
+            self.acked = self.acked_newest = self.intake.checkpointed_prefixes()
+        self.iteration = int(c["iteration"]) if "iteration" in c else self.plan.iteration_at(self.env_steps)
+        self.wall_before = float(c.get("wall_s", 0.0))
+        self.inexact = str(c.get("inexact", "")) or f"the learner restarted from its checkpoint at iteration " \
+                                                      f"{self.iteration}"
+        live = self.agent.live_actors
+        if sum(live) == 1 and self.algo.actors > 1:
+            self.survivor = self.decided_survivor = live.index(True)
+        log.info("resumed at iteration %d: %d transitions, %d updates (replay rows: %d)", self.iteration,
+                 self.env_steps, self.agent.updates, len(self.buffer))
+
+    def serve(self) -> None:
+        run, s = self.cfg.run, self.session
+        self.config_pub = bus.declare_latest_publisher(s, keys.config(run), drop=True)  # heartbeats: never block
+        self.weights_pubs = [bus.declare_latest_publisher(s, keys.weights(run, k)) for k in range(self.algo.actors)]
+        self.stats_pub = bus.declare_latest_publisher(s, keys.learner_stats(run), drop=True)  # 10 Hz, latest only
+        self.done_pub = bus.declare_latest_publisher(s, keys.done(run))
+        self.token = bus.declare_alive(s, run, "learner", self.id)
+        self.workers = bus.watch_alive(s, run, "worker")
+        self.referees = bus.watch_alive(s, run, "referee")
+        self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
+        self.referee_reports = bus.Latest(late_join=False).subscribe(s, keys.role_stats_all(run, "referee"))
+        self.inbox = bus.Inbox(maxsize=8192).subscribe(s, keys.transitions_all(run))
+        self.snapshot_pubs = [bus.declare_reliable_publisher(s, keys.eval_weights(run, k))
+                              for k in range(self.algo.actors)]
+        # What a late or restarted role may still need, re-sent while it is awaited: the weights of
+        # the versions workers act with in the next B+1 iterations, the referee's snapshots by version.
+        self.recent_weights: dict[int, list[bytes]] = {}
+        self.snapshots: dict[int, list[tuple[int, bytes]]] = {}
+        self.referee_events = 0  # evaluations the referee reports done
+        self.board = tb.RunBoard(self.run_dir, "learner")  # RUN_DIR/tb/learner: the JSONL rows' scalars
+        self.log_writer = self.board.tee(JsonlWriter(self.run_dir / rundir.LEARNER_LOG), tb.learner_scalars)
+        self.bias_writer = (self.board.tee(JsonlWriter(self.run_dir / rundir.BIAS), tb.bias_scalars)
+                            if self.cfg.bias_every else None)
+        self.seq = 0
+        self.publish_config()
+        try:
+            self._loop()
+        finally:
+            for closable in (self.inbox, self.allocation, self.referee_reports, self.workers, self.referees,
+                             self.log_writer, self.bias_writer, self.board):
+                if closable is not None:
+                    closable.close()
+
+    # -- the loop: Algorithm 1's iterations in lock-step ------------------------------------------
+    def _loop(self) -> None:
+        """Iterations of the plan: iteration i's rows in slot order, then its updates."""
+        plan = self.plan
+        stage = self.stage = SlotStage(self.algo.workers, start=self.iteration + 1)
+        self.publish_weights(all_actors=True)
+        self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
+        self.checkpoint()  # at once: a learner killed early resumes from here
+        self.stats_due, self.heartbeat, self.log_row = role.Every(STATS_PERIOD_S), role.Every(HEARTBEAT_S), \
+            role.Every(LOG_PERIOD_S)
+        self.rates, self._rate_base = (0.0, 0.0), (self.env_steps, self.agent.updates, time.monotonic())
+        self.wait_s = 0.0  # seconds the loop waited for an iteration's rows (learner.jsonl: where time goes)
+        self.publish_snapshots(self.iteration)
+        while not self.stop_requested:
+            index = self.iteration + 1
+            if index > plan.iterations:
+                self.finish()
+                return
+            it = plan.iteration(index)
+            waited = time.perf_counter()
+            while not stage.ready(index, it.slots) and not self.stop_requested:  # line 9: the rows
+                self.receive(stage, timeout=0.002)
+                self.awaiting = tuple(stage.missing(index, it.slots))
+                self.idle_duties(f"iteration {index}'s rows from slots {list(self.awaiting)}", waited)
+            self.awaiting = ()
+            self.wait_s += time.perf_counter() - waited
+            if self.stop_requested:
+                break
+            rows, used = stage.take(index, it.slots)
+            self.buffer.add_batch(rows["obs"], rows["action"], rows["reward"], rows["next_obs"],
+                                  rows["terminated"], actor=rows["actor"], version=rows["version"])
+            self.env_steps += len(it.slots)
+            for batch, skipped in used:
+                if self.intake.admit(batch):
+                    self.intake.count(batch, self.agent.versions, skipped)
+            self.mid_iteration = True  # a stop in the elimination's wait leaves this iteration half done
+            self.metrics = plan.run_updates(it, self.agent, self.sample, self.apply_elimination) or self.metrics
+            if self.stop_requested:
+                break
+            self.mid_iteration = False
+            self.iteration = index
+            if plan.weights_change(index):
+                self.publish_weights()
+            self.publish_snapshots(index)
+            bias = plan.crossing(index, self.cfg.bias_every)
+            if bias is not None:
+                self.measure_bias(bias)
+            now = time.monotonic()
+            if self.stats_due.due(now):
+                self.publish_stats()
+            if self.log_row.due(now):
+                self.write_log(now)
+            if self.heartbeat.due(now):
+                self.publish_config()
+            if self.checkpoints.due(self.agent.updates, self.env_steps, now):
+                self.checkpoint()
+        # Stopped by a signal: keep a usable checkpoint (of the last whole iteration); the run is not done.
+        self.write_log()
+        if not self.mid_iteration:
+            self.checkpoint()
+
+    def sample(self) -> Any:
+        return self.buffer.sample(self.algo.batch_size, self.agent.batch_groups)
+
+    def idle_duties(self, awaited: str, since: float) -> None:
+        """While the loop waits: stats, config and log rows; after HEARTBEAT_S, what a role may
+        have missed once more; every `stall_timeout`, a line saying what is awaited."""
+        now = time.monotonic()
+        if self.stats_due.due(now, STATS_PERIOD_S / 4):
+            self.publish_stats()
+        if self.heartbeat.due(now):
+            self.publish_config()
+            if time.perf_counter() - since > HEARTBEAT_S:  # late: something may be lost
+                self.resend()
+        if self.log_row.due(now):
+            self.write_log(now)
+        limit, waited = self.cfg.stall_timeout, time.perf_counter() - since
+        if limit > 0 and waited > limit and now - getattr(self, "_stall_note", 0.0) > limit:
+            self._stall_note = now
+            log.warning("waiting %.0f s for %s; %d workers live, referee %s", waited, awaited,
+                        len(self.workers.live()), "live" if self.referees.live() else "gone")
+
+    def receive(self, stage: SlotStage, timeout: float) -> None:
+        """Stage what arrived; follow the referee."""
+        items = self.inbox.drain(max_items=256)
+        if not items:
+            item = self.inbox.get(timeout=timeout)
+            items = [item] if item is not None else []
+        for item in items:
+            batch = self.intake.validate(item, self.agent.versions)
+            if batch is None:
+                continue
+            staged, why = stage.add(batch)
+            if why:
+                self.break_exact(why)
+            if batch.env_faults:
+                self.break_exact(f"worker {batch.worker} (slot {batch.slot}) met {batch.env_faults} simulator "
+                                 f"faults in {self.cfg.env_id} by iteration {batch.iteration + batch.rows - 1}")
+            if not staged and self.intake.admit(batch) and not batch.resend:
+                self.intake.skip(batch, batch.rows)  # iterations its slot has from elsewhere
+        self.follow_allocation()
+        if not self.referee_seen and self.referees.live():
+            self.referee_seen = True  # finish() waits for its final evaluation
+
+    def break_exact(self, why: str) -> None:
+        """The run goes on in the same order, but it is no longer the seed's run (stats, summary)."""
+        if not self.inexact:
+            self.inexact = why
+            log.warning("the run is no longer exact: %s; it goes on in lock-step", why)
+
+    def apply_elimination(self) -> None:
+        """The referee's survivor (waits for its decision at C: it evaluates the actors after
+        iteration C-1 while this iteration's rows come in)."""
+        since = time.perf_counter()
+        self.awaiting = (-1,)
+        while self.decided_survivor is None and not self.stop_requested:
+            self.follow_allocation()
+            self.idle_duties("the referee's elimination", since)
+            self.allocation.wait_fresh(timeout=0.05)
+        self.awaiting = ()
+        if self.decided_survivor is None:
+            return  # stopping: the checkpoint is of the iteration before
+        self.survivor = self.decided_survivor
+        self.agent.eliminate(self.survivor)
+        log.info("eliminated all actors but %d at iteration %d", self.survivor, self.plan.elimination)
+
+    def follow_allocation(self) -> None:
+        """The survivor, once the referee has decided it (applied where the plan places it)."""
+        item = self.allocation.fresh().get(keys.allocation(self.cfg.run))
+        if item is None:
+            return
+        try:
+            alloc = Allocation.from_bytes(item.payload, self.algo.actors)
+        except MessageError as e:
+            self.other_rejects.reject("allocation", e)
+            return
+        if alloc.survivor is not None:
+            self.decided_survivor = alloc.survivor
+
+    # -- publishing -------------------------------------------------------------------------------
+    def weights_message(self, k: int) -> bytes:
+        return Weights(k, self.agent.versions[k], self.agent.actor_params(k), self.spec.obs_dim, self.spec.act_dim,
+                       max(self.spec.max_action), tuple(self.algo.hidden), self.incarnation
+                       ).to_bytes(self.id, self._next_seq())
+
+    def publish_weights(self, all_actors: bool = False) -> None:
+        """The live actors' weights (all with `all_actors`), kept while a slot may act with them."""
+        live = self.agent.live_actors
+        msgs = []
+        for k in range(self.algo.actors):
+            if live[k] or all_actors:
+                msg = self.weights_message(k)
+                self.weights_pubs[k].put(msg)
+                msgs.append((k, msg))
+        version = self.plan.version_after(self.iteration)
+        self.recent_weights[version] = msgs
+        needed = self.plan.version_for(min(self.iteration + 1, self.plan.iterations))
+        for old in [v for v in self.recent_weights if v < needed]:
+            del self.recent_weights[old]
+
+    def publish_snapshots(self, index: int) -> None:
+        """The versions the referee's next evaluations judge, once each (`snapshot_versions`)."""
+        for version in sorted(snapshot_versions(self.plan, index) - set(self.snapshots)):
+            self.snapshots[version] = [(k, self.weights_message(k)) for k, alive in enumerate(self.agent.live_actors)
+                                       if alive]
+            for k, msg in self.snapshots[version]:
+                self.snapshot_pubs[k].put(msg)
+
+    def resend(self) -> None:
+        """Once more what a late role may have missed: the weights of the versions the slots act
+        with next, and the snapshots of the evaluations the referee has not reported done.
+        Versions a role holds are not loaded again, so this changes nothing for a role that had them."""
+        for version in sorted(self.recent_weights):
+            for k, msg in self.recent_weights[version]:
+                self.weights_pubs[k].put(msg)
+        for item in self.referee_reports.snapshot().values():
+            try:
+                self.referee_events = max(self.referee_events, int(decode(item.payload).get("events", 0)))
+            except (MessageError, TypeError, ValueError):
+                continue
+        events = self.plan.events()[self.referee_events:]
+        pending = {self.plan.judged_version(i, purpose) for i, purpose in events}
+        for version in sorted(pending & set(self.snapshots)):
+            for k, msg in self.snapshots[version]:
+                self.snapshot_pubs[k].put(msg)
+        for old in [v for v in self.snapshots if v < min(pending, default=0)]:
+            del self.snapshots[old]
+
+    def _next_seq(self) -> int:
+        self.seq += 1
+        return self.seq
+
+    def stats(self, done: bool = False) -> LearnerStats:
+        now = time.monotonic()
+        losses = {k.split("/", 1)[1]: v for k, v in self.metrics.items() if k.startswith("loss/")}
+        q_means = [self.metrics.get(f"q/actor{k}", float("nan")) for k in range(self.algo.actors)]
+        return LearnerStats(
+            env_steps=self.env_steps, updates=self.agent.updates, accept_until=self.schedule.budget,
+            utd=self.utd(), losses=losses, q_means=tuple(q_means), versions=tuple(self.agent.versions),
+            per_worker=self.intake.counters(now, self.acked), rejected=self.rejected(), done=done,
+            live=tuple(self.agent.live_actors), workers=max(len(self.workers.live()), self.intake.active(now)),
+            steps=self.schedule.budget, incarnation=self.incarnation, exact=not self.inexact,
+            iteration=self.iteration, inexact=self.inexact, awaiting=self.awaiting,
+            slots_next=tuple(self.stage.end) if hasattr(self, "stage") else ())
+
+    @property
+    def iterations(self) -> int:
+        """Schedule steps done: Algorithm 1's iterations (paper) or transitions (equal-data)."""
+        return self.schedule.units_at(self.env_steps)
+
+    def utd(self) -> float:
+        """Updates per schedule step past the start (per iteration or per transition)."""
+        consumed = max(self.iterations - self.algo.start_steps, 0)
+        return self.agent.updates / consumed if consumed else 0.0
+
+    def rejected(self) -> dict[str, int]:
+        """Rejection counts by reason: transitions by reason, the allocation topic as allocation:<reason>."""
+        out = dict(self.intake.rejects.counts())
+        out.update({f"allocation:{r}": n for r, n in self.other_rejects.counts().items()})
+        return out
+
+    def publish_config(self) -> None:
+        self.config_pub.put(encode("config", {"config": self.cfg.to_dict()}, sender=self.id, seq=self._next_seq()))
+
+    def publish_stats(self, done: bool = False) -> None:
+        self.stats_pub.put(self.stats(done).to_bytes(self.id, self._next_seq()))
+
+    def write_log(self, now: float | None = None) -> None:
+        """One learner.jsonl row; with `now`, the rates since the previous such row first."""
+        if now is not None:
+            steps, updates, t = self._rate_base
+            dt = max(now - t, 1e-9)
+            self.rates = ((self.env_steps - steps) / dt, (self.agent.updates - updates) / dt)
+            self._rate_base = (self.env_steps, self.agent.updates, now)
+        tracker = self.intake.tracker
+        row = {"t": round(time.monotonic() - self.started, 3), "env_steps": self.env_steps,
+               "iterations": self.iterations, "updates": self.agent.updates, "utd": self.utd(),
+               "transitions_per_s": round(self.rates[0], 2), "updates_per_s": round(self.rates[1], 2),
+               "versions": list(self.agent.versions), "live": self.agent.live_actors,
+               "lost": tracker.lost, "duplicates": tracker.duplicates,
+               "rejected": self.intake.rejects.total, "buffer": len(self.buffer),
+               "received": {w: t.received for w, t in self.intake.workers.items()},
+               "exact_wait_s": round(getattr(self, "wait_s", 0.0), 3)}
+        row.update(self.metrics)
+        if self.intake.episode_returns:
+            row["train_return"] = float(np.mean(self.intake.episode_returns))
+            self.intake.episode_returns.clear()
+        self.log_writer.write(row)
+
+    def measure_bias(self, point_index: int) -> None:
+        """Eq. 17 for every live actor k at bias point j: Q_k1(s0, π_k(s0)) of the current critic
+        against the discounted Monte-Carlo return of π_k from the same initial states
+        (`bias_rollouts` rollouts, `seeding.bias_seed`). Training pauses meanwhile."""
+        started = time.monotonic()
+        point = point_index * self.cfg.bias_every
+        live = self.agent.live_actors
+        for k in (k for k, alive in enumerate(live) if alive):
+            try:
+                result = estimation_bias(lambda obs, k=k: self.agent.act(obs, k),
+                                         lambda obs, act, k=k: self.agent.q_value(obs, act, k),
+                                         self.cfg.env_id, self.cfg.bias_rollouts, self.algo.gamma,
+                                         bias_seed(self.algo.seed, point_index), self.cfg.env_kwargs,
+                                         horizon=self.cfg.bias_horizon)
+            except Exception:  # a diagnostic never stops the training
+                log.exception("bias measurement at %d failed (actor %d)", point, k)
+                continue
+            self.bias_writer.write({"env_steps": self.env_steps, "iterations": self.iterations, "point": point,
+                                    "updates": self.agent.updates, "live": list(live),
+                                    "rollouts": self.cfg.bias_rollouts, "bias": {"actor": k, **result}})
+        log.info("bias at %d transitions measured in %.1f s", self.env_steps, time.monotonic() - started)
+
+    def checkpoint(self) -> None:
+        started = time.monotonic()
+        counters = {"env_steps": self.env_steps, "per_worker": json.dumps(self.intake.tracker.per_sender()),
+                    "stream_rows": json.dumps(self.intake.stream_rows),
+                    "stream_skipped": json.dumps(self.intake.stream_skipped), "referee_seen": int(self.referee_seen),
+                    "iteration": self.iteration, "inexact": self.inexact,
+                    "wall_s": round(self.wall_before + time.monotonic() - self.started, 3)}
+        path = save_checkpoint(self.run_dir, self.agent, self.buffer, counters, self.cfg, self.replay_log,
+                               survivor=self.survivor)  # with policy.npz, in a verified generation
+        self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
+        if self.replay_log is not None:  # only now on disk: workers may drop what the previous one holds
+            self.acked, self.acked_newest = self.acked_newest, self.intake.checkpointed_prefixes()
+        log.info("checkpoint %s at iteration %d, %d updates, %d transitions (%.2f s)", path, self.iteration,
+                 self.agent.updates, self.env_steps, time.monotonic() - started)
+
+    def finish(self) -> None:
+        """Budget reached: final weights, checkpoint, then tell everyone until they have left."""
+        self.publish_weights(all_actors=True)
+        self.write_log()
+        self.checkpoint()
+        self.publish_stats(done=True)
+        msg = Done("budget", self.env_steps, self.agent.updates)
+        deadline = time.monotonic() + 10.0
+        # The last put before close can be lost: repeat until workers have gone (their tokens vanish).
+        while True:
+            self.done_pub.put(msg.to_bytes(self.id, self._next_seq()))
+            self.publish_stats(done=True)
+            if not self.workers.live() or time.monotonic() > deadline:
+                break
+            self.count_late(self.inbox.drain())
+            time.sleep(0.1)
+        self.inbox.close()
+        self.count_late(self.inbox.drain())
+        self.wait_for_referee(msg)
+        tracker = self.intake.tracker
+        write_json(self.run_dir / rundir.TRANSPORT, {
+            "env_steps": self.env_steps, "iterations": self.iterations, "updates": self.agent.updates,
+            "lost": tracker.lost, "duplicates": tracker.duplicates, "rejected": self.rejected(),
+            "recovered": tracker.recovered, "redundant": tracker.redundant,
+            "replay_rows": self.buffer.inserted if self.replay_log is not None else None,
+            "wall_s": round(self.wall_before + time.monotonic() - self.started, 3),
+            **self.intake.transport(),
+            "inbox_dropped": self.inbox.dropped})  # shed before decoding when the inbox overflowed
+        log.info("done: %d transitions, %d updates, lost %d, duplicates %d, rejected %d", self.env_steps,
+                 self.agent.updates, tracker.lost, tracker.duplicates, self.intake.rejects.total)
+
+    def count_late(self, items: list[bus.Received]) -> None:
+        """Batches that arrive after the last iteration (a resend): counted, never inserted."""
+        for item in items:
+            batch = self.intake.validate(item, self.agent.versions)
+            if batch is not None:
+                self.intake.admit(batch)
+
+    def wait_for_referee(self, msg: Done) -> None:
+        """Stay up (repeating done) until the referee has written its final evaluation.
+
+        A referee that dies now is restarted (`mam run`) and needs this learner's config,
+        done notice and snapshots. Waits while a referee was seen during the run and has not
+        reported `final`: up to REFEREE_GRACE_S without any referee alive, and at most
+        REFEREE_WAIT_S in all.
+        """
+        if not self.referee_seen:
+            return
+        deadline = time.monotonic() + REFEREE_WAIT_S
+        gone_since: float | None = None
+        last_put = 0.0
+        while time.monotonic() < deadline and not self.stop_requested:
+            if any(self._is_final(item) for item in self.referee_reports.snapshot().values()):
+                return
+            now = time.monotonic()
+            if self.referees.live():
+                gone_since = None
+            elif gone_since is None:
+                gone_since = now
+            elif now - gone_since > REFEREE_GRACE_S:
+                log.warning("no referee for %.0f s after done: not waiting for its final evaluation",
+                            REFEREE_GRACE_S)
+                return
+            if now - last_put >= 1.0:  # a restarted referee needs these (the caches serve them too)
+                self.done_pub.put(msg.to_bytes(self.id, self._next_seq()))
+                self.publish_stats(done=True)
+                self.publish_config()
+                self.resend()
+                last_put = now
+            time.sleep(0.1)
+        log.warning("the referee did not report its final evaluation within %.0f s", REFEREE_WAIT_S)
+
+    @staticmethod
+    def _is_final(item: bus.Received) -> bool:
+        try:
+            return decode(item.payload).get("final") is True
+        except MessageError:
+            return False
+
+
+def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None:
+    try:  # one learner per run directory and per run name: refused before anything is written
+        lock = runlock.lock_role(run_dir, "learner", cfg.run)
+    except runlock.RunInUse as e:
+        log.error("%s", e)
+        raise SystemExit(runlock.EXIT_REFUSED) from None
+    with lock, exit_on_write_error(run_dir):  # a full disk: one line naming the path, exit EXIT_WRITE_ERROR
+        try:
+            state = load_checkpoint(run_dir) if resume else None
+        except CheckpointCorrupt as e:  # every generation is damaged: nothing to resume from
+            log.error("stopping: %s", e)
+            raise SystemExit(EXIT_CORRUPT) from None
+        if state is not None:
+            cfg = RunConfig.from_dict({**json.loads(state["config"]), "steps": cfg.steps})
+        with bus.session_scope(conf, retry_for=30.0) as session:  # a router may still be starting
+            try:
+                runlock.refuse_live_learner(session, cfg.run)
+            except runlock.RunInUse as e:
+                log.error("%s", e)
+                raise SystemExit(runlock.EXIT_REFUSED) from None
+            write_json(run_dir / rundir.CONFIG, cfg.to_dict())
+            learner = Learner(cfg, session, run_dir, state)
+            role.stop_on_signals(learner)
+            workers = announce.WorkerCount(session, cfg, log)  # a split-role run short of M workers warns
+            try:
+                learner.serve()
+            finally:
+                workers.close()
+
+
+app = typer.Typer(add_completion=False, help=__doc__)
+
+
+@app.command(cls=options.PlainFlags)
+@options.run_options()
+def learner_command(
+    run_opts: dict[str, Any], config: options.ConfigFile = None, connect: options.Connect = None,
+    listen: options.Listen = None, zenoh_config: options.ZenohConfig = None, run_dir: options.RunDir = None,
+    resume: Path = typer.Option(None, help="resume the run in this run directory from its checkpoint"),
+    run_config: Path = typer.Option(None, help="a resolved config.json (written by `mam run`)"),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="debug logging"),
+) -> None:
+    """Run the learner: replay buffer, K actors and n·K critics, weights and stats publisher."""
+    role.setup_logging(verbose)
+    if run_config is not None:
+        cfg = RunConfig.from_dict(json.loads(run_config.read_text()))
+    elif resume is not None:
+        cfg = RunConfig.from_dict(json.loads((resume / rundir.CONFIG).read_text()))
+    else:
+        cfg = options.build_run_config(run_opts, config)
+    steps = run_opts["steps"]
+    if steps is not None and (run_config is not None or resume is not None):
+        cfg = RunConfig.from_dict({**cfg.to_dict(), "steps": steps})
+    cpu.check_precision(cfg)
+    from services.run.preflight import require_device
+    require_device(cfg.algo.device, log)  # a device torch does not see: exit 78 (EXIT_CONFIG) after one line
+    if not listen and not connect and cfg.endpoint:
+        listen = [cfg.endpoint]  # a resumed or launched learner comes back where its clients look
+    listen = listen or ([] if connect or zenoh_config else [role.LISTEN_ALL])
+    conf = bus.make_config(connect=connect, listen=listen, config_file=zenoh_config)
+    if zenoh_config is None or "wait_before_close" not in zenoh_config.read_text():
+        # A blocking put (weights, done) on a cut link holds the loop at most this long, then Zenoh
+        # closes that transport (default 5 s; docs/ZENOH-NOTES.md, "Congestion").
+        conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close", "1000000")
+    announce.announce_learner(cfg, listen, connect, log)  # where it listens, what it waits for, budget notes
+    directory = resume or run_dir or Path("runs") / cfg.run
+    main(cfg, conf, directory, resume=resume is not None)
+
+
+cli = app  # the `mam-learner` entry point
+
+
+if __name__ == "__main__":
+    cli()

@@ -1,0 +1,158 @@
+"""Lock-step: the pieces the roles share to run Algorithm 1 across processes.
+
+The control flow is `mam_core.algorithm1.Algorithm1`; every role builds it from the run's
+config and follows it (docs/DESIGN-DECISIONS.md, "Exact Algorithm 1" and "The lag"):
+
+- A worker steps iteration i of its slot once it holds the allocation that applies to i
+  (`decision_for(i)`) and, unless i is random, its actor at `version_for(i)` (after iteration
+  i-1-B). It keeps the few versions it may still need (`WeightsHistory`). Its batch carries the
+  iteration of its first row and the slot.
+- The learner stages what arrives per slot (`SlotStage`), inserts iteration i's rows in slot
+  order, makes iteration i's updates (the elimination between the critic and actor phases,
+  from the referee's decision), and publishes weights only when they changed. The versions an
+  evaluation judges also go, once, to the referee on `weights/<k>/eval` (`snapshot_versions`).
+- The referee evaluates each event of `plan.events()` on exactly those versions, draws the
+  allocation with the run's `allocation` stream over the slots `w0 .. w{M-1}`, and tags each
+  decision with its iteration.
+
+A fault does not change this order. A restarted referee continues from its saved state (its
+allocation stream included) and stays exact; a restarted worker (fresh random streams) or
+learner (from its checkpoint) continues in the same lock-step order, and the run records
+`exact: false` with the reason.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from mam_core.algorithm1 import Algorithm1
+from services.messaging.codec import TransitionBatch
+
+
+@dataclass
+class _Staged:
+    batch: TransitionBatch
+    first: int  # the iteration of batch row `used`
+    used: int = 0  # rows of the batch already inserted (or skipped: iterations the slot had already)
+    skipped: int = 0  # rows skipped (the first ones)
+
+
+class SlotStage:
+    """The learner's staging of transition batches per slot, until their iteration comes.
+
+    Each slot has an owner, the (worker, incarnation) whose rows it takes. A batch of another
+    incarnation takes the slot over (a restarted or replacement worker); its predecessor's
+    late batches are dropped from then on. Rows of iterations the slot already has are
+    skipped (resends to a restarted learner, a replacement starting behind); a batch that
+    starts past the slot's next iteration fills the gap (rows were lost) and says so.
+    """
+
+    def __init__(self, slots: int, start: int = 1) -> None:
+        self.queues: list[deque[_Staged]] = [deque() for _ in range(slots)]
+        self.end = [start] * slots  # per slot: the iteration its next new row belongs to
+        self.owner: list[tuple[str, str] | None] = [None] * slots
+        self.retired: set[tuple[str, str]] = set()
+
+    def add(self, batch: TransitionBatch) -> tuple[bool, str]:
+        """Stage a batch: (staged, why exactness broke or ""). A batch not staged holds nothing new."""
+        s, owner = batch.slot, (batch.worker, batch.incarnation)
+        if batch.iteration < 1 or not 0 <= s < len(self.queues):
+            return False, f"worker {batch.worker} sent iteration {batch.iteration} of slot {s} " \
+                          f"(of {len(self.queues)} slots)"
+        if owner in self.retired:
+            return False, ""  # a predecessor's late batch
+        why = ""
+        if self.owner[s] is None:
+            self.owner[s] = owner
+        elif self.owner[s] != owner:
+            self.retired.add(self.owner[s])
+            why = f"slot {s} changed hands ({self.owner[s][0]} -> {batch.worker}): a worker restarted"
+            self.owner[s] = owner
+        skip = self.end[s] - batch.iteration
+        if skip >= batch.rows:
+            return False, why
+        if skip < 0:
+            why = why or f"slot {s} lost iterations {self.end[s]}..{batch.iteration - 1} (rows lost in flight)"
+            skip = 0  # its rows stand in for the lost iterations
+        staged = _Staged(batch, self.end[s], used=skip, skipped=skip)
+        self.queues[s].append(staged)
+        self.end[s] += batch.rows - skip
+        return True, why
+
+    def ready(self, index: int, slots: Sequence[int]) -> bool:
+        return all(self.queues[s] and self.queues[s][0].first == index for s in slots)
+
+    def missing(self, index: int, slots: Sequence[int]) -> list[int]:
+        return [s for s in slots if not (self.queues[s] and self.queues[s][0].first == index)]
+
+    def take(self, index: int, slots: Sequence[int]) -> tuple[dict[str, np.ndarray], list[tuple[TransitionBatch, int]]]:
+        """Iteration `index`'s rows in slot order, and the batches this used up (with the rows
+        each skipped)."""
+        parts, done = [], []
+        for s in slots:
+            st = self.queues[s][0]
+            b, r = st.batch, st.used
+            parts.append((b.obs[r], b.action[r], b.reward[r], b.next_obs[r], b.terminated[r], b.actor, b.version))
+            st.used += 1
+            st.first += 1
+            if st.used == b.rows:
+                done.append((b, self.queues[s].popleft().skipped))
+        obs, action, reward, next_obs, term, actor, version = zip(*parts)
+        rows = {"obs": np.stack(obs), "action": np.stack(action), "reward": np.asarray(reward, np.float32),
+                "next_obs": np.stack(next_obs), "terminated": np.asarray(term, np.bool_),
+                "actor": np.asarray(actor, np.int64), "version": np.asarray(version, np.int64)}
+        return rows, done
+
+
+def snapshot_versions(plan: Algorithm1, index: int) -> set[int]:
+    """Versions the referee needs once iteration `index`'s updates are done (index 0: before
+    the first iteration): the competition of the next iteration and this iteration's curve
+    point (`Algorithm1.judged_version`)."""
+    out = set()
+    if index < plan.iterations and plan.iteration(index + 1).competes:
+        out.add(plan.judged_version(index + 1, "round"))
+    if index >= 1:
+        it = plan.iteration(index)
+        if it.curve is not None or it.last:
+            out.add(plan.judged_version(index, "curve"))
+    return out
+
+
+class WeightsHistory:
+    """A role's copies of each actor at the versions it may still need (the referee's
+    evaluations, a worker's next B+1 iterations). A version is one set of parameters of one
+    learner incarnation; after a learner restart its successor's copy of a version replaces
+    the dead one's (`prefer`)."""
+
+    def __init__(self, n_actors: int) -> None:
+        self.by_actor: list[dict[int, tuple[str, dict[str, np.ndarray]]]] = [{} for _ in range(n_actors)]
+
+    def add(self, actor: int, version: int, params: Mapping[str, np.ndarray], incarnation: str = "",
+            prefer: str = "") -> bool:
+        """Keep `params` as `actor`'s `version` unless a copy from `prefer` (the current learner
+        incarnation) is held already; True if kept."""
+        held = self.by_actor[actor].get(version)
+        if held is not None and (held[0] == incarnation or (prefer and held[0] == prefer)):
+            return False
+        self.by_actor[actor][version] = (incarnation,
+                                         {name: np.array(a, np.float32, copy=True) for name, a in params.items()})
+        return True
+
+    def has(self, actor: int, version: int) -> bool:
+        return version in self.by_actor[actor]
+
+    def get(self, actor: int, version: int) -> dict[str, np.ndarray]:
+        return self.by_actor[actor][version][1]
+
+    def source(self, actor: int, version: int) -> str:
+        """The learner incarnation the held copy came from."""
+        return self.by_actor[actor][version][0]
+
+    def forget_below(self, version: int) -> None:
+        for versions in self.by_actor:
+            for v in [v for v in versions if v < version]:
+                del versions[v]

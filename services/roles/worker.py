@@ -1,0 +1,460 @@
+"""`mam-worker`: one environment slot. Steps its slot's iterations of Algorithm 1, publishes transitions.
+
+The worker needs only `--run`, `--connect` and `--slot`: the env, K and the noise come from the
+learner's config topic. It steps iteration i once it holds the allocation and the actor version
+that apply to i (mam_core/algorithm1.py: with a lag B, up to B iterations ahead of the
+learner), explores with Gaussian noise (uniform random actions in the start phase), sends
+transitions in small batches tagged with worker id, incarnation, slot, iteration, actor and
+policy version, and exits when the run is done.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import os
+import socket
+import time
+import uuid
+from collections import deque
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+import typer
+
+from mam_core.algorithm1 import Algorithm1
+from mam_core.envs import make_env  # registers AppleCollect-v0; imports `module:EnvId` modules
+from mam_core.obsolescence import obsolescence_for
+from mam_core.policy import EnvSpec, NumpyActors
+from mam_core.seeding import stream
+from mam_core.slot import SlotStreams, explore, uniform
+from services.cli import options
+from services.messaging import bus, keys
+from services.messaging.codec import Allocation, LearnerStats, MessageError, TransitionBatch, Weights
+from services.roles import role
+from services.roles.lockstep import WeightsHistory
+from services.run import config, rundir
+from services.run.config import RunConfig
+from services.run.rundir import write_json
+
+log = logging.getLogger("mam.worker")
+
+MAX_BATCH_AGE_S = 0.05  # a partial batch is sent after this long
+STATUS_EVERY_S = 10.0
+RESYNC_S = 2.0  # waiting this long while the learner needs another iteration of this slot: go on from that one
+ENV_RETRIES = 10  # consecutive failed resets before the env is made anew; as many again: the worker exits
+FAULTS = ("step_exception", "reset_exception", "nonfinite_obs", "nonfinite_reward")
+
+
+class EnvFault(Exception):
+    """The simulator raised or returned something unusable (counted by kind)."""
+
+    def __init__(self, kind: str, detail: str = "") -> None:
+        super().__init__(f"{kind}: {detail}")
+        self.kind = kind
+        self.detail = detail
+
+
+class Worker:
+    def __init__(self, cfg: RunConfig, session: Any, worker_id: str, slot_index: int = 0,
+                 run_dir: Path | None = None, generation: int = 0) -> None:
+        self.run_dir = run_dir
+        self.cfg = cfg
+        self.algo = cfg.algo
+        self.session = session
+        self.id = worker_id
+        self.incarnation = uuid.uuid4().hex[:12]
+        self.rejects = bus.RejectLog(log, "message")
+        self.env = make_env(cfg.env_id, cfg.env_kwargs)
+        self.spec = EnvSpec.from_env(self.env)
+        self.max_action = np.asarray(self.spec.max_action, np.float32)
+        self.plan = Algorithm1.for_run(self.algo, cfg.steps)
+        # The slot's streams (mam_core.seeding): from --seed, the slot and the restart generation only.
+        self.slot = slot_index
+        self.streams = SlotStreams.for_slot(self.algo.seed, slot_index, generation)
+        self.rng = self.streams.noise
+        # Simulator faults: the step is retried on a reset env, the fault counted (by kind).
+        self.faults = {kind: 0 for kind in FAULTS}
+        self.env_remade = 0
+        self.env.action_space.seed(self.streams.action_seed)
+        self.obs = self.reset_env(seed=self.streams.reset_seed)
+        # Exactly once across a learner restart: batches the learner has not yet checkpointed
+        # are kept and resent to its next incarnation (bounded by cfg.resend_rows).
+        self.retain = cfg.save_replay
+        self.unacked: deque[TransitionBatch] = deque()
+        self.unacked_rows = 0
+        self.unacked_dropped_rows = 0  # over the bound: not kept (if then lost, a counted gap)
+        self.resent_rows = 0
+        self.resends = 0
+        self.batch_log = None
+        # numpy forwards, no torch in a worker: a one-row torch forward costs ~100 µs of dispatch
+        # between env steps, this ~14 µs, and importing torch ~3 s and ~180 MB (docs/PERFORMANCE.md)
+        self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden)
+        self.shapes = self.actors.shapes
+        self.policies = [self.actors.policy(k) for k in range(self.algo.actors)]
+        self.history = WeightsHistory(self.algo.actors)  # the versions the next B+1 iterations act with
+        self.loaded: list[tuple[int, str] | None] = [None] * self.algo.actors  # (version, incarnation) in `actors`
+        self.actor = slot_index % self.algo.actors
+        self.stats: LearnerStats | None = None
+        self.batch_seq = 0
+        self.sent_rows = 0
+        self.learner_incarnation: str | None = None
+        self.stats_at = 0.0  # when the last stats arrived
+        self.last_note = 0.0
+        self.episode_return = 0.0
+        self.finished_returns: list[float] = []
+        self.stop_requested = False
+        self._reset_pending()
+
+    def _reset_pending(self) -> None:
+        n, o, a = self.cfg.send_batch, self.spec.obs_dim, self.spec.act_dim
+        self.p_obs = np.empty((n, o), np.float32)
+        self.p_action = np.empty((n, a), np.float32)
+        self.p_reward = np.empty(n, np.float32)
+        self.p_next = np.empty((n, o), np.float32)
+        self.p_term = np.empty(n, np.bool_)
+        self.p_n = 0
+        self.p_actor = -1
+        self.p_version = -1
+        self.p_iteration = -1  # the iteration of the first pending row
+        self.p_from = ""  # the learner incarnation of the pending rows' weights
+        self.p_started = time.monotonic()
+
+    # -- the loop -----------------------------------------------------------------------------
+    def serve(self) -> None:
+        run, s = self.cfg.run, self.session
+        self.pub = bus.declare_reliable_publisher(s, keys.transitions(run, self.id))
+        self.report = role.RoleReport(s, run, "worker", self.id)
+        # Every version, in order (a slot acts with one of the last B+1): a queue, not the latest sample.
+        self.weights = bus.Inbox.subscribe(s, keys.weights_all(run), maxsize=1024,
+                                            screen=role.weights_screen(self.shapes, self.algo.actors, self.rejects))
+        self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
+        self.stats_sub = bus.Latest.subscribe(s, keys.learner_stats(run))
+        self.done = bus.Latest.subscribe(s, keys.done(run))
+        self.token = bus.declare_alive(s, run, "worker", self.id)
+        if self.run_dir is not None:  # one line per batch, before it is put: what a killed worker had sent
+            path = self.run_dir / rundir.WORKERS / f"{self.id}-{self.incarnation}.batches"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self.batch_log = open(path, "a", buffering=1)
+        log.info("worker %s (incarnation %s), slot %d, on %s, run %s", self.id, self.incarnation, self.slot,
+                 self.cfg.env_id, run)
+        try:
+            self._loop()
+        finally:
+            self.flush()
+            self.publish_report(force=True)
+            self.write_report()
+            if self.batch_log is not None:
+                self.batch_log.close()
+            self.token.undeclare()
+            for sub in (self.weights, self.allocation, self.stats_sub, self.done):
+                sub.close()
+
+    def _loop(self) -> None:
+        """The slot's iterations of the plan, each once it holds the allocation and the actor
+        version that apply to it (mam_core/algorithm1.py), until the learner says done. The
+        first is the one after the learner's last: 1 in a fresh run, later for a replacement."""
+        plan, name = self.plan, keys.slot_name(self.slot)
+        # Iteration of a competition -> its slots. The initial allocation is the allocation stream's first
+        # draw (the referee's too): computed here, so collection starts before the referee is up.
+        first = obsolescence_for(self.algo, self.cfg.steps).allocation(self.algo.workers,
+                                                                       stream(self.algo.seed, "allocation"))
+        decisions = {0: {keys.slot_name(i): int(k) for i, k in enumerate(first)}}
+        index: int | None = None  # the next iteration to step
+        waiting_since = time.monotonic()
+        while not self.stop_requested:
+            self.publish_report()
+            if bus.run_is_done(self.done, self.cfg.run, self.rejects):
+                log.info("run is done after %d transitions from this worker", self.sent_rows)
+                return
+            self.refresh(decisions, index)
+            if index is not None and self.out_of_step(index, waiting_since):
+                log.info("iteration %d: the learner needs iteration %d of slot %d next; going on from there", index,
+                         self.stats.slots_next[self.slot], self.slot)
+                index, waiting_since = self.stats.slots_next[self.slot], time.monotonic()
+            if index is None:  # where the run stands: the learner's stats
+                if self.stats is None:
+                    self.stats_sub.wait_fresh(timeout=0.1)
+                    continue
+                st = self.stats
+                index = st.slots_next[self.slot] if self.slot < len(st.slots_next) else st.iteration + 1
+                if index > 1:
+                    log.info("taking slot %d over at iteration %d", self.slot, index)
+            it = plan.iteration(index) if index <= plan.iterations else None
+            if it is None or self.slot not in it.slots:
+                self.flush()  # this slot's part of the run is over (the survivor runs slot 0 after C)
+                self.done.wait_fresh(timeout=0.1)
+                continue
+            slots = decisions.get(plan.decision_for(index))
+            actor = None if slots is None else slots.get(name)
+            version = -1 if it.random else plan.version_for(index)
+            if actor is None or (version >= 0 and not self.history.has(actor, version)):
+                self.flush()
+                if time.monotonic() - max(waiting_since, self.last_note) > STATUS_EVERY_S:
+                    log.info("iteration %d waits for %s", index,
+                             f"the allocation of iteration {plan.decision_for(index)}" if actor is None
+                             else f"actor {actor} at version {version}")
+                    self.last_note = time.monotonic()
+                if actor is None:
+                    self.allocation.wait_fresh(timeout=0.05)
+                else:
+                    self.take_weights(self.weights.get(timeout=0.05), index)
+                continue
+            waiting_since = time.monotonic()
+            self.step(index, it.random, actor, version)
+            index += 1
+
+    def out_of_step(self, index: int, waiting_since: float) -> bool:
+        """This slot waits, and the learner's stats (newer than the wait) say it needs another
+        iteration of it next: the learner restarted from a checkpoint behind this slot (or lost
+        its rows), or a predecessor's rows already filled what this worker is at. The slot
+        then goes on from the learner's next iteration (weights and decisions for it are
+        re-sent while the learner waits)."""
+        st = self.stats
+        if st is None or self.slot >= len(st.slots_next) or st.slots_next[self.slot] == index:
+            return False
+        return time.monotonic() - waiting_since > RESYNC_S and self.stats_at - waiting_since > RESYNC_S / 2
+
+    def take_weights(self, item: bus.Received | None, index: int | None) -> None:
+        """Keep the versions this slot may still act with (none below iteration `index`'s)."""
+        items = ([item] if item is not None else []) + self.weights.drain()
+        oldest = self.plan.version_for(index) if index is not None and index <= self.plan.iterations else 0
+        current = self.stats.incarnation if self.stats is not None else ""
+        for item in items:
+            try:
+                w = Weights.from_bytes(item.payload, self.shapes, self.algo.actors)
+            except MessageError as e:
+                self.rejects.reject(keys.parse_last(item.key), e)
+                continue
+            if w.version >= oldest and role.plausible_version(w, self.stats):
+                self.history.add(w.actor, w.version, w.params, w.incarnation, prefer=current)
+        self.history.forget_below(oldest)
+
+    def refresh(self, decisions: dict[int, dict[str, int]], index: int | None) -> None:
+        """Weights, the referee's decisions (with the one before: none is missed), the learner's stats."""
+        item = self.stats_sub.fresh().get(keys.learner_stats(self.cfg.run))
+        if item is not None:
+            try:
+                st = LearnerStats.from_bytes(item.payload)
+            except MessageError as e:
+                self.rejects.reject("learner", e)
+            else:
+                self.stats, self.stats_at = st, time.monotonic()
+                self.on_stats(st)
+        self.take_weights(None, index)
+        item = self.allocation.fresh().get(keys.allocation(self.cfg.run))
+        if item is not None:
+            try:
+                alloc = Allocation.from_bytes(item.payload, self.algo.actors)
+            except MessageError as e:
+                self.rejects.reject("referee", e)
+            else:
+                if alloc.iteration is not None:
+                    decisions[alloc.iteration] = dict(alloc.slots)
+                    if alloc.previous is not None:
+                        decisions.setdefault(alloc.previous[0], dict(alloc.previous[1]))
+
+    def publish_report(self, force: bool = False) -> None:
+        """This worker's counters on mam/<run>/stats/worker-<id> (rejections are visible there)."""
+        self.report.publish({"incarnation": self.incarnation, "sent_rows": self.sent_rows, "batches": self.batch_seq,
+                             "actor": self.actor, "slot": self.slot, "rejected": self.rejects.counts(),
+                             **self.fault_counters()}, seq=self.batch_seq, force=force)
+
+    def write_report(self) -> None:
+        """What this incarnation sent (compared with the learner's transport.json in tests)."""
+        if self.run_dir is None:
+            return
+        write_json(self.run_dir / rundir.WORKERS / f"{self.id}-{self.incarnation}.json", {
+            "worker": self.id, "incarnation": self.incarnation, "sent_rows": self.sent_rows,
+            "batches": self.batch_seq, "rejected": self.rejects.counts(), **self.fault_counters()})
+
+    def fault_counters(self) -> dict[str, Any]:
+        """Simulator faults and resends (role_stats topic and workers/*.json)."""
+        return {"env_faults": dict(self.faults), "env_remade": self.env_remade, "resent_rows": self.resent_rows,
+                "resends": self.resends, "unacked_rows": self.unacked_rows,
+                "unacked_dropped_rows": self.unacked_dropped_rows}
+
+    def on_stats(self, st: LearnerStats) -> None:
+        """Drop what the learner has checkpointed; on a new learner incarnation resend the rest."""
+        self.trim_acked(st)
+        if st.incarnation != self.learner_incarnation:
+            first = self.learner_incarnation is None
+            self.learner_incarnation = st.incarnation
+            if self.unacked and not first:
+                self.resend()
+            log.info("learner %s is up at iteration %d", self.learner_incarnation or "?", st.iteration)
+
+    def trim_acked(self, st: LearnerStats) -> None:
+        mine = st.per_worker.get(self.id)
+        if not mine or mine.acked_incarnation != self.incarnation or mine.acked_seq is None:
+            return
+        acked = mine.acked_seq
+        while self.unacked and self.unacked[0].batch_seq <= acked:
+            self.unacked_rows -= self.unacked.popleft().rows
+
+    def resend(self) -> None:
+        """Every kept batch again, in order, flagged: the learner keeps the rows it has not got."""
+        n = 0
+        for batch in self.unacked:
+            self.pub.put(dataclasses.replace(batch, resend=True).to_bytes())
+            n += batch.rows
+        self.resent_rows += n
+        self.resends += 1
+        log.info("resent %d rows in %d batches (seq %d..%d) to the new learner", n, len(self.unacked),
+                 self.unacked[0].batch_seq, self.unacked[-1].batch_seq)
+
+    def step(self, index: int, random_phase: bool, actor: int, version: int) -> None:
+        """Iteration `index` of this slot: one transition (a simulator fault: counted, the env
+        reset, the step retried; the run is then not the seed's, and the learner says so)."""
+        self.actor = actor
+        policy_from = ""
+        if version >= 0:
+            policy_from = self.history.source(actor, version)
+            if self.loaded[actor] != (version, policy_from):
+                self.actors.load_member(actor, self.history.get(actor, version))
+                self.loaded[actor] = (version, policy_from)
+        if self.p_n and (actor != self.p_actor or version != self.p_version or policy_from != self.p_from):
+            self.flush()  # a batch carries one actor and one policy version (of one learner incarnation)
+        while True:
+            action = uniform(self.env) if random_phase else \
+                explore(self.policies[actor], self.obs, self.rng, self.algo.explore_noise, self.max_action)
+            try:
+                next_obs, reward, terminated, truncated = self.env_step(action)
+                break
+            except EnvFault as fault:
+                self.count_fault(fault)
+                self.episode_return = 0.0
+                self.obs = self.reset_env()
+        i = self.p_n
+        if i == 0:
+            self.p_iteration, self.p_started = index, time.monotonic()
+        self.p_obs[i] = self.obs
+        self.p_action[i] = action
+        self.p_reward[i] = reward
+        self.p_next[i] = next_obs
+        self.p_term[i] = terminated  # truncation is not terminal: the target still bootstraps
+        self.p_actor, self.p_version, self.p_from = actor, version, policy_from
+        self.p_n += 1
+        self.episode_return += reward
+        if terminated or truncated:
+            self.finished_returns.append(self.episode_return)
+            self.episode_return = 0.0
+            self.obs = self.reset_env()
+        else:
+            self.obs = next_obs
+        if self.p_n >= self.cfg.send_batch or time.monotonic() - self.p_started > MAX_BATCH_AGE_S:
+            self.flush()
+
+    # -- the simulator, guarded ------------------------------------------------------------------
+    def env_step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
+        """env.step, or EnvFault if it raises or returns a non-finite observation or reward."""
+        try:
+            next_obs, reward, terminated, truncated, _ = self.env.step(action)
+            next_obs = np.asarray(next_obs, np.float32)
+            reward = float(reward)
+        except Exception as e:  # anything the simulator throws: this episode is lost, not the worker
+            raise EnvFault("step_exception", f"{type(e).__name__}: {e}") from e
+        if next_obs.shape != (self.spec.obs_dim,) or not np.isfinite(next_obs).all():
+            raise EnvFault("nonfinite_obs", f"shape {next_obs.shape}")
+        if not math.isfinite(reward):
+            raise EnvFault("nonfinite_reward", repr(reward))
+        return next_obs, reward, bool(terminated), bool(truncated)
+
+    def reset_env(self, seed: int | None = None) -> np.ndarray:
+        """A finite first observation: retries a failing reset, then makes the env anew,
+        and gives up (the worker exits, its supervisor restarts it) if that fails too."""
+        for attempt in range(2 * ENV_RETRIES):
+            if attempt == ENV_RETRIES:
+                log.warning("env reset failed %d times in a row: making %s anew", ENV_RETRIES, self.cfg.env_id)
+                try:
+                    self.env.close()
+                except Exception:
+                    pass
+                self.env = make_env(self.cfg.env_id, self.cfg.env_kwargs)
+                self.env_remade += 1
+            try:
+                obs, _ = self.env.reset(seed=seed) if seed is not None and attempt == 0 else self.env.reset()
+                obs = np.asarray(obs, np.float32)
+            except Exception as e:
+                self.count_fault(EnvFault("reset_exception", f"{type(e).__name__}: {e}"))
+                continue
+            if obs.shape != (self.spec.obs_dim,) or not np.isfinite(obs).all():
+                self.count_fault(EnvFault("nonfinite_obs", "after reset"))
+                continue
+            return obs
+        raise RuntimeError(f"{self.cfg.env_id}: no usable reset in {2 * ENV_RETRIES} tries")
+
+    def count_fault(self, fault: EnvFault) -> None:
+        self.faults[fault.kind] += 1
+        if self.faults[fault.kind] <= 3 or self.faults[fault.kind] % 100 == 0:
+            log.warning("env fault %s (%d so far): %s", fault.kind, self.faults[fault.kind], fault.detail[:300])
+
+    def flush(self) -> None:
+        if self.p_n == 0:
+            return
+        n = self.p_n
+        rows = (self.p_obs[:n], self.p_action[:n], self.p_reward[:n], self.p_next[:n], self.p_term[:n])
+        if self.retain:  # kept for a resend: the pending arrays are reused
+            rows = tuple(a.copy() for a in rows)
+        batch = TransitionBatch(self.id, self.incarnation, self.batch_seq, self.p_actor, self.p_version,
+                                *rows, tuple(self.finished_returns) or None, iteration=self.p_iteration,
+                                slot=self.slot, policy_from=self.p_from, env_faults=sum(self.faults.values()))
+        if self.batch_log is not None:
+            self.batch_log.write(f"{self.batch_seq} {n}\n")
+        self.pub.put(batch.to_bytes())
+        if self.retain:
+            self.unacked.append(batch)
+            self.unacked_rows += n
+            while self.unacked_rows > self.cfg.resend_rows and len(self.unacked) > 1:
+                dropped = self.unacked.popleft()
+                self.unacked_rows -= dropped.rows
+                self.unacked_dropped_rows += dropped.rows
+        self.batch_seq += 1
+        self.sent_rows += n
+        self.finished_returns = []
+        self.p_n = 0
+
+
+def main(run: str, conf: Any, worker_id: str, slot_index: int = 0, run_dir: Path | None = None,
+         generation: int = 0) -> None:
+    with bus.session_scope(conf, retry_for=30.0) as session:
+        cfg = role.fetch_config(session, run, bus.RejectLog(log, "config"))
+        worker = Worker(cfg, session, worker_id, slot_index, run_dir, generation)
+        role.stop_on_signals(worker)
+        worker.serve()
+
+
+app = typer.Typer(add_completion=False, help=__doc__)
+
+
+@app.command(cls=options.PlainFlags)
+def worker_command(
+    run: options.Run = None, connect: options.Connect = None, listen: options.Listen = None,
+    zenoh_config: options.ZenohConfig = None,
+    id: str = typer.Option(None, "--id", help="worker id (slot name); default HOST-PID"),  # noqa: A002
+    slot: int = typer.Option(0, help="slot index (0..M-1): the slot's random streams (from --seed) and its "
+                             "place in each iteration"),
+    generation: int = typer.Option(0, help="restarts of this slot so far (the launcher counts them): a restarted "
+                                   "worker draws fresh streams (the run is then not exact)"),
+    run_dir: Optional[Path] = typer.Option(None, "--run-dir", help="the run directory for this worker's batch log "
+                                           "(workers/ID-INCARNATION.batches) and report; default: none, neither is "
+                                           "kept", rich_help_panel=options.RUN_PANEL),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="debug logging"),
+) -> None:
+    """Run one environment slot of a run (needs only --run and --connect)."""
+    role.setup_logging(verbose)
+    if not run:
+        raise typer.BadParameter("--run NAME is required (the learner prints it and writes it to config.json)")
+    config.check_run_name(run)
+    worker_id = id or f"{socket.gethostname()}-{os.getpid()}"
+    keys.check_name(worker_id, "worker id")
+    main(run, role.client_config(connect, listen, zenoh_config), worker_id, slot, run_dir, generation)
+
+
+cli = app  # the `mam-worker` entry point
+
+
+if __name__ == "__main__":
+    cli()

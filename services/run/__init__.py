@@ -1,0 +1,1 @@
+"""Run supervision: the launcher, the run directory and its locks, the chaos driver."""

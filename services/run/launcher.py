@@ -1,0 +1,511 @@
+"""`mam run`: a whole run on one box — learner, referee and M workers as child processes.
+
+The learner listens on a free loopback port; the referee and workers connect to it as clients
+(multicast scouting off, a unique run name). The launcher itself is one more client: it shows
+a progress bar of env steps with the current allocation, supervises the children (one that
+dies is restarted with backoff, the learner with `--resume`; see RestartPolicy and
+docs/DESIGN-DECISIONS.md), stops every child on Ctrl-C or at the end of the budget, reconciles
+what the workers sent with what the replay holds (`audit_transport`), and draws the plots.
+Children are started with `subprocess` (Zenoh sessions do not survive `fork`), each logging to
+RUN_DIR/logs/<role>.log (a restarted child appends to the same log).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from services.messaging import bus
+from services.messaging.codec import LearnerStats
+from services.run import preflight, registry, rundir, runlock
+from services.run.audit import audit_transport
+from services.run.config import RunConfig, budget_warnings
+from services.run.progress import budget_text, command_name, done_text, follow, outcome_text
+from services.run.rundir import write_json
+
+STOP_GRACE_S = 15.0
+EXIT_WRITE_ERROR = 75  # the learner could not write its checkpoint (services/roles/checkpoint.py, same value)
+EXIT_CORRUPT = 65  # no checkpoint generation verifies (services/roles/checkpoint.py, same value)
+EXIT_CONFIG = preflight.EXIT_CONFIG  # 78: a configuration error (a device torch does not see); never restarted
+LOW_DISK_BYTES = 1 << 20  # a child that dies with less than this free in the run directory: the disk is full
+MAX_STALL_ACTIONS = 2  # watchdog restarts in a row without progress; one more stall stops the run
+STARTUP_GRACE_S = 60.0  # the watchdog's limit until a (re)started learner's first stats arrive, if longer
+# `mam experiment --parallel`: the cores of a run's learner ("0,1"); its referee and workers float
+LEARNER_CPUS_ENV = "MAM_LEARNER_CPUS"
+CHECKPOINT_FILE = rundir.LEARNER_CHECKPOINT
+PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:
+    """Runs in the child before exec: SIGTERM it if the launcher dies (even by SIGKILL)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except OSError:
+        pass
+
+
+def _child_setup(role: str) -> Callable[[], None]:
+    """What a child runs before exec: die with the launcher; the learner also takes the cores
+    named in LEARNER_CPUS_ENV (set by `mam experiment --parallel`: P runs' learners, where the
+    CPU goes, do not fight, while the light referee and workers use whatever core is free —
+    measured faster than pinning whole runs, docs/PERFORMANCE.md)."""
+    cpus = os.environ.get(LEARNER_CPUS_ENV, "") if role == "learner" else ""
+    cores = {int(c) for c in cpus.split(",") if c.strip().isdigit()}
+
+    def setup() -> None:
+        _die_with_parent()
+        if cores:
+            try:
+                os.sched_setaffinity(0, cores)
+            except OSError:
+                pass
+
+    return setup
+
+
+class Interrupted(Exception):
+    """SIGTERM / SIGINT reached the launcher."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _raise_interrupted(signum: int, _frame: Any) -> None:
+    raise Interrupted(signum)
+
+
+@dataclass
+class RestartPolicy:
+    """When and how often `mam run` restarts a child that died.
+
+    A child that exits abnormally is started again after a backoff (backoff_s, doubling with
+    each recent restart, at most backoff_max_s). More than `max_restarts` restarts of the
+    same child within `window_s` seconds stop the run.
+    """
+
+    max_restarts: int = 5
+    window_s: float = 300.0
+    backoff_s: float = 1.0
+    backoff_max_s: float = 15.0
+
+    def __post_init__(self) -> None:
+        if self.max_restarts < 0 or self.window_s <= 0:
+            raise ValueError("max_restarts must be >= 0 and the restart window > 0")
+
+
+class RunStopped(Exception):
+    """The launcher stops the run (exit status 1) and says why."""
+
+
+class RunStalled(RunStopped):
+    """No progress for `stall_timeout` seconds, and restarting the stuck child did not help."""
+
+
+class RoleKeepsDying(RunStopped):
+    """A child died more often than the restart policy allows."""
+
+    def __init__(self, child: "Child", restarts: int, window_s: float) -> None:
+        super().__init__(f"{child.role} keeps dying: exited with {describe_exit(child.proc.returncode)}, "
+                         f"{restarts} restarts within {window_s:.0f} s; see {child.log}")
+        self.child = child
+
+
+def describe_exit(rc: int | None) -> str:
+    if rc is None:
+        return "nothing (running)"
+    if rc < 0:
+        try:
+            return f"{rc} ({signal.Signals(-rc).name})"
+        except ValueError:
+            return str(rc)
+    return str(rc)
+
+
+@dataclass
+class Child:
+    role: str
+    proc: subprocess.Popen
+    log: Path
+    args: list[str] = field(default_factory=list)
+    started: float = field(default_factory=time.monotonic)
+
+
+@dataclass
+class LocalCluster:
+    """Child processes of one local run, supervised; `stop()` leaves nothing running.
+
+    `children` holds the current incarnation of every role (learner, referee, worker-i);
+    `supervise()` restarts those that died (see RestartPolicy) until the run is done or stopping.
+    """
+
+    cfg: RunConfig
+    run_dir: Path
+    endpoint: str
+    children: list[Child] = field(default_factory=list)
+    policy: RestartPolicy = field(default_factory=RestartPolicy)
+    console: Console | None = None
+    restarts: dict[str, list[float]] = field(default_factory=dict)  # role -> restart times
+    cancelled: dict[str, int] = field(default_factory=dict)  # role -> restarts not made: the run finished first
+    pending: dict[str, tuple[float, Child]] = field(default_factory=dict)  # role -> (due, dead child)
+    stopping: bool = False
+    done: bool = False  # the learner reported the budget reached
+    lock_token: str = ""  # run.lock's token (services/run/runlock.py): lets the children into the run directory
+    # The stall watchdog (`check_stall`): the learner's last stats and when progress was last seen
+    last_stats: LearnerStats | None = None
+    last_stats_at: float | None = None
+    progress: tuple[int, int] = (-1, -1)  # (env_steps, updates)
+    progress_at: float = field(default_factory=time.monotonic)
+    stall_actions: int = 0  # watchdog restarts since progress was last seen
+    started_at: float = field(default_factory=time.monotonic)  # the launcher's start: the bar's clock
+    done_at: float | None = None  # when the learner reported the budget reached
+
+    def spawn(self, role: str, args: list[str]) -> Child:
+        log_path = self.run_dir / rundir.LOGS / f"{role}.log"
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        env = dict(os.environ, **{runlock.LOCK_ENV: self.lock_token}) if self.lock_token else None
+        with open(log_path, "ab") as out:
+            proc = subprocess.Popen([sys.executable, "-m", f"services.{role.split('-')[0]}", *args],
+                                    stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                    start_new_session=True, preexec_fn=_child_setup(role), env=env)
+        child = Child(role, proc, log_path, list(args))
+        self.children = [c for c in self.children if c.role != role] + [child]
+        if role == "learner":  # its start-up counts as progress for the watchdog
+            self.progress_at, self.last_stats_at = time.monotonic(), None
+        return child
+
+    def learner_args(self) -> list[str]:
+        rd = str(self.run_dir)
+        if rundir.has_checkpoint(self.run_dir):  # a verified generation's manifest; none: start afresh
+            # Its endpoint is in config.json: it listens where the clients reconnect.
+            return ["--resume", rd]
+        return ["--run-config", str(self.run_dir / rundir.CONFIG), "--listen", self.endpoint, "--run-dir", rd]
+
+    def start_learner_and_referee(self) -> None:
+        run, rd = self.cfg.run, str(self.run_dir)
+        self.spawn("learner", self.learner_args())
+        self.spawn("referee", ["--run", run, "--connect", self.endpoint, "--run-dir", rd])
+
+    def start_workers(self) -> None:
+        """After the referee is up, so the first allocation round is a barrier from step 0."""
+        run, rd = self.cfg.run, str(self.run_dir)
+        for i in range(self.cfg.algo.workers):
+            self.spawn(f"worker-{i}", ["--run", run, "--connect", self.endpoint, "--id", f"w{i}", "--slot", str(i),
+                                         "--run-dir", rd])
+
+    def child(self, role: str) -> Child | None:
+        return next((c for c in self.children if c.role == role), None)
+
+    def finished(self) -> bool:
+        """The learner has written its last checkpoint and transport.json and exited 0."""
+        learner = self.child("learner")
+        return (learner is not None and learner.proc.poll() == 0 and "learner" not in self.pending
+                and (self.run_dir / rundir.TRANSPORT).is_file())
+
+    def needs_restart(self, c: Child) -> bool:
+        rc = c.proc.returncode
+        if self.stopping or rc is None:
+            return False
+        if c.role != "learner" and self.finished():  # nothing left for it to do
+            return False
+        if c.role == "learner":  # exits 0 only when done (or stopped by the launcher)
+            return rc != 0 or not (self.run_dir / rundir.TRANSPORT).is_file()
+        if rc == 0 or rc == -signal.SIGTERM:
+            return False
+        if c.role == "referee":
+            return not (self.run_dir / rundir.SUMMARY).is_file()
+        return not self.done  # a worker after done has nothing left to do
+
+    def supervise(self) -> None:
+        """Restart children that died (after their backoff), and act on a stall (check_stall).
+        Raises RunStopped (RoleKeepsDying, RunStalled, a fatal exit)."""
+        now = time.monotonic()
+        self.check_stall(now)
+        for c in list(self.children):
+            if c.role in self.pending or c.proc.poll() is None or not self.needs_restart(c):
+                continue
+            self.fatal_exit(c)
+            recent = [t for t in self.restarts.get(c.role, []) if now - t <= self.policy.window_s]
+            if len(recent) >= self.policy.max_restarts:
+                raise RoleKeepsDying(c, len(recent), self.policy.window_s)
+            delay = min(self.policy.backoff_s * 2 ** len(recent), self.policy.backoff_max_s)
+            self.pending[c.role] = (now + delay, c)
+            self._print(f"[yellow]{c.role} exited with {describe_exit(c.proc.returncode)}[/] after "
+                        f"{now - c.started:.0f} s: restarting in {delay:.1f} s (see {c.log})")
+        for role, (due, dead) in list(self.pending.items()):
+            if now < due or self.stopping:
+                continue
+            del self.pending[role]
+            if not self.needs_restart(dead):  # e.g. the run finished meanwhile
+                self.cancelled[role] = self.cancelled.get(role, 0) + 1
+                continue
+            self.restarts.setdefault(role, []).append(now)
+            try:
+                with open(dead.log, "ab") as out:
+                    out.write(f"\n--- mam run: {role} exited with {describe_exit(dead.proc.returncode)}; "
+                              f"restart {len(self.restarts[role])} ---\n".encode())
+            except OSError as e:  # a full disk: say so, do not crash
+                self._print(f"[red]cannot write to {dead.log}: {e.strerror or e} ({disk_free(self.run_dir)} free)[/]")
+            args = self.learner_args() if role == "learner" else dead.args
+            if role.startswith("worker-"):  # a restarted slot draws the next generation of its streams
+                args = [a for a in args if not a.startswith("--generation=")] + \
+                    [f"--generation={len(self.restarts[role])}"]
+            try:
+                new = self.spawn(role, args)
+            except OSError as e:
+                raise RunStopped(f"cannot restart {role}: {e} ({disk_free(self.run_dir)} free in {self.run_dir})") \
+                    from None
+            what = " (resuming from its checkpoint)" if role == "learner" and "--resume" in args else ""
+            self._print(f"[yellow]restarted[/] {role}{what}: pid {new.proc.pid}, "
+                        f"restart {len(self.restarts[role])} of this run")
+
+    def fatal_exit(self, c: Child) -> None:
+        """RunStopped for an exit that a restart cannot mend: the learner cannot write its
+        checkpoint (EXIT_WRITE_ERROR), a child refused the run directory, the disk is full, a
+        configuration error (EXIT_CONFIG: its one-line reason is the message)."""
+        rc = c.proc.returncode
+        if rc == EXIT_CONFIG:
+            line = last_line(c.log, preflight.CONFIG_ERROR)
+            reason = line[line.index(preflight.CONFIG_ERROR):] if line else "configuration error"
+            raise RunStopped(f"{c.role} stopped on a {reason} (not restarted; see {c.log})")
+        if rc == EXIT_WRITE_ERROR or (rc != 0 and free_bytes(self.run_dir) < LOW_DISK_BYTES):
+            line = last_line(c.log, "stopping:")
+            raise RunStopped(f"{c.role} cannot write to {self.run_dir} ({disk_free(self.run_dir)} free there)"
+                             f"{': ' + line if line else ''}; the last verified checkpoint is intact; see {c.log}")
+        if c.role == "learner" and rc == EXIT_CORRUPT:
+            line = last_line(c.log, "stopping:")
+            raise RunStopped(f"the learner cannot resume: {line or 'no checkpoint generation verifies'}; see {c.log}")
+        if rc == runlock.EXIT_REFUSED:
+            line = last_line(c.log, "refusing")
+            raise RunStopped(f"{c.role} refused to start{': ' + line if line else ''}; see {c.log}")
+
+    def observe(self, st: LearnerStats) -> None:
+        """The learner's stats, for the stall watchdog."""
+        now = time.monotonic()
+        self.last_stats, self.last_stats_at = st, now
+        if (st.env_steps, st.updates) != self.progress:
+            self.progress, self.progress_at, self.stall_actions = (st.env_steps, st.updates), now, 0
+
+    def check_stall(self, now: float) -> None:
+        """The watchdog: no new transition and no new update for `stall_timeout` seconds. It prints
+        what each side waits for and SIGKILLs the stuck child (supervise restarts it, the learner
+        with --resume); after MAX_STALL_ACTIONS such restarts without progress RunStalled stops
+        the run with the diagnosis."""
+        limit = self.cfg.stall_timeout
+        if self.last_stats_at is None and limit > 0:  # a learner starting up (torch, a resume) gets longer
+            limit = max(limit, STARTUP_GRACE_S)
+        if limit <= 0 or self.done or self.stopping or self.pending or now - self.progress_at < limit:
+            return
+        diagnosis, victims = self.diagnose(now)
+        if self.stall_actions >= MAX_STALL_ACTIONS or not victims:
+            raise RunStalled(f"the run is stalled: {diagnosis}"
+                             + (f"; {self.stall_actions} watchdog restarts did not help" if self.stall_actions else ""))
+        self.stall_actions += 1
+        self._print(f"[red]stalled[/]: {diagnosis}: restarting {', '.join(c.role for c in victims)}")
+        for c in victims:
+            if c.proc.poll() is None:
+                c.proc.kill()  # SIGKILL also ends a frozen (SIGSTOPped) process
+        self.progress_at = now  # a full period for the restarted children
+
+    def diagnose(self, now: float) -> tuple[str, list[Child]]:
+        """What the run waits for (from the learner's last stats) and the children to restart."""
+        limit = self.cfg.stall_timeout
+        learner, referee = self.child("learner"), self.child("referee")
+        workers = [c for c in self.children if c.role.startswith("worker") and c.proc.poll() is None]
+        st, age = self.last_stats, (now - self.last_stats_at) if self.last_stats_at is not None else None
+        head = f"no new transition or update for {now - self.progress_at:.0f} s"
+        ref = "referee " + ("running" if referee is not None and referee.proc.poll() is None else "down")
+        if st is None or age is None or age > limit:
+            seen = "never" if age is None else f"not for {age:.0f} s"
+            return (f"{head}; learner stats: {seen} (the learner is frozen, blocked or cut off); {ref}",
+                    [learner] if learner is not None and learner.proc.poll() is None else [])
+        facts = (f"learner at iteration {st.iteration:,} ({st.env_steps:,} transitions, {st.updates:,} updates), "
+                 f"versions {list(st.versions)}, {st.workers} workers, rejected {dict(st.rejected) or 'none'}, {ref}")
+        if -1 in st.awaiting:
+            return (f"{head}; {facts}: waiting for the referee's elimination decision",
+                    [referee] if referee is not None and referee.proc.poll() is None else [learner])
+        if st.awaiting:
+            slots = [a for a in st.awaiting if a >= 0]
+            stuck = [c for c in workers if c.role in {f"worker-{i}" for i in slots}]
+            return (f"{head}; {facts}: waiting for iteration {st.iteration + 1:,}'s transitions from slots {slots}",
+                    stuck or workers)
+        return f"{head}; {facts}: the learner waits for nothing and does not update", [learner]
+
+    def restart_counts(self) -> dict[str, int]:
+        return {c.role: len(self.restarts.get(c.role, [])) for c in self.children}
+
+    def _print(self, text: str) -> None:
+        (self.console or Console()).print(text)
+
+    def failed(self) -> list[Child]:
+        """Children that exited with an error."""
+        return [c for c in self.children if c.proc.poll() not in (None, 0)]
+
+    def running(self) -> list[Child]:
+        return [c for c in self.children if c.proc.poll() is None]
+
+    def wait(self, timeout: float, supervise: bool = False) -> bool:
+        deadline = time.monotonic() + timeout
+        while (self.running() or (supervise and self.pending)) and time.monotonic() < deadline:
+            if supervise:
+                self.supervise()
+            time.sleep(0.1)
+        return not self.running()
+
+    def stop(self, grace: float = STOP_GRACE_S) -> None:
+        """SIGTERM (the learner checkpoints), then SIGKILL what is still up after `grace`.
+        Nothing is restarted from now on."""
+        self.stopping = True
+        for role in self.pending:  # waiting out their backoff when the run ended
+            self.cancelled[role] = self.cancelled.get(role, 0) + 1
+        self.pending.clear()
+        for c in self.running():
+            c.proc.send_signal(signal.SIGTERM)
+        if not self.wait(grace):
+            for c in self.running():
+                c.proc.kill()
+            self.wait(5.0)
+
+
+def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plot: bool = True,
+              outcome: dict[str, Any] | None = None, policy: RestartPolicy | None = None) -> dict[str, Any]:
+    """Train `cfg` on this box; returns summary.json's content (empty if the run was stopped
+    or did not finish). Children that die are restarted (`policy`).
+
+    `outcome`, when given, gets "interrupted": whether SIGINT / SIGTERM stopped the run."""
+    console = console or Console()
+    try:  # one run per directory: refused before anything is written (services/run/runlock.py)
+        lock = runlock.lock_run(run_dir, cfg.run)
+    except runlock.RunInUse as e:
+        console.print(f"[red]{e}[/]")
+        if outcome is not None:
+            outcome["interrupted"] = False
+        return {}
+    try:
+        return _run_locked(cfg, run_dir, console, plot, outcome, policy, lock)
+    finally:
+        lock.release()
+
+
+def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, outcome: dict[str, Any] | None,
+                policy: RestartPolicy | None, lock: runlock.DirLock) -> dict[str, Any]:
+    port = bus.free_tcp_port()
+    endpoint = bus.loopback_endpoint(port)
+    cfg = RunConfig.from_dict({**cfg.to_dict(), "endpoint": endpoint})
+    try:
+        write_json(run_dir / rundir.CONFIG, cfg.to_dict())
+    except OSError as e:
+        console.print(f"[red]cannot write {run_dir / rundir.CONFIG}: {e.strerror or e} ({disk_free(run_dir)} free)[/]")
+        return {}
+    cluster = LocalCluster(cfg, run_dir, endpoint, policy=policy or RestartPolicy(), console=console,
+                           lock_token=lock.token)
+    console.print(f"[bold]run[/] {cfg.run}  [bold]env[/] {cfg.env_id}  [bold]algo[/] {cfg.algo.algo} "
+                  f"K={cfg.algo.actors} M={cfg.algo.workers}  budget {budget_text(cfg)}")
+    for line in budget_warnings(cfg):  # no silent no-op: what the budget leaves out, and M < K
+        console.print(f"[yellow]note:[/] {line}", highlight=False)
+    registry.register(cfg.run, endpoint, run_dir)  # `mam watch --run NAME` finds it without --connect
+    console.print(f"run dir {run_dir}   watch live: [cyan]{command_name()} watch --run {cfg.run}[/]")
+    started = time.monotonic()
+    interrupted = False
+    gave_up: RunStopped | None = None
+    previous = {sig: signal.signal(sig, _raise_interrupted) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        cluster.start_learner_and_referee()
+        try:
+            if follow(cfg, endpoint, cluster, console):
+                cluster.wait(60.0, supervise=True)  # referee (final evaluation) and workers exit on their own
+        except RunStopped as e:
+            gave_up = e
+            Console(stderr=True).print(f"[red]stopping the run: {e}[/]", highlight=False, soft_wrap=True)
+        except (Interrupted, KeyboardInterrupt) as e:
+            interrupted = True
+            if outcome is not None:
+                outcome["signal"] = e.signum if isinstance(e, Interrupted) else signal.SIGINT
+            console.print("[yellow]interrupted: stopping all processes (the learner writes a checkpoint)[/]")
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        cluster.stop()
+        registry.unregister(cfg.run)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if outcome is not None:
+        outcome["interrupted"] = interrupted
+    failed = [c for c in cluster.children if c.proc.returncode not in (0, -signal.SIGTERM, None)]
+    for c in failed:
+        console.print(f"[red]{c.role} exited with {describe_exit(c.proc.returncode)}[/]: see {c.log}")
+    restarts = cluster.restart_counts()
+    summary_path = run_dir / rundir.SUMMARY
+    summary: dict[str, Any] = {}
+    finished = cluster.finished() and gave_up is None and not interrupted
+    if summary_path.is_file() and finished:
+        summary = json.loads(summary_path.read_text())
+        summary["launcher_wall_time_s"] = round(time.monotonic() - started, 2)
+        summary["restarts"] = restarts
+        summary["restarts_total"] = sum(restarts.values())
+        summary["restarts_cancelled"] = dict(cluster.cancelled)  # died in their backoff as the run finished
+        audit = audit_transport(run_dir)
+        if audit:
+            summary["transport"] = {k: v for k, v in audit.items() if k != "per_stream"}
+        write_json(summary_path, summary)
+    elif finished:
+        console.print(f"[red]the run reached its budget but the referee wrote no summary.json[/]: see "
+                      f"{run_dir / 'logs' / 'referee.log'}")
+    if plot and summary:
+        from services.cli.plot import plot_run
+        for p in plot_run(run_dir):
+            console.print(f"plot {p}")
+    if summary:
+        total = summary["restarts_total"]
+        text = ", ".join(f"{r} {n}" for r, n in restarts.items() if n) if total else "none"
+        if cluster.cancelled:
+            text += "; not restarted, the run finished first: " + ", ".join(
+                f"{r} {n}" for r, n in cluster.cancelled.items())
+        console.print(done_text(cfg, summary, cluster) + f"; restarts: {text}", highlight=False)
+        if "transport" in summary:
+            t = summary["transport"]
+            skipped = f", {t['skipped_rows']:,} skipped (iterations already filled)" if t.get("skipped_rows") else ""
+            console.print(f"transport: {t['sent_rows']:,} rows sent, {t['replay_rows']:,} in the replay{skipped}, "
+                          f"{t['lost_rows']} lost, {t['duplicated_rows']} duplicated")
+        verdict = outcome_text(cfg, summary)
+        if verdict:
+            console.print(f"[bold]{verdict}[/]", highlight=False)
+    return summary
+
+
+def free_bytes(path: Path) -> int:
+    try:
+        return shutil.disk_usage(path).free
+    except OSError:
+        return 1 << 62
+
+
+def disk_free(path: Path) -> str:
+    n = free_bytes(path)
+    return f"{n / (1 << 20):.1f} MiB" if n >= 1 << 20 else f"{n / 1024:.1f} KiB"
+
+
+def last_line(path: Path, needle: str) -> str:
+    """The last line of a log holding `needle` ("" if none, or unreadable)."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(max(f.seek(0, 2) - 65536, 0))
+            lines = [ln for ln in f.read().decode(errors="replace").splitlines() if needle in ln]
+    except OSError:
+        return ""
+    return lines[-1].strip()[-400:] if lines else ""
+
+

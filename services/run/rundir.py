@@ -1,0 +1,146 @@
+"""The names of the files and folders of a run directory (and of an experiment directory).
+
+One place for every name a process writes and a reader (plots, reports, the lab, `mam eval`)
+looks for, so a rename is one edit. Plain string constants: importing this module costs nothing.
+
+    RUN_DIR/config.json            the run's configuration (RunConfig.to_dict)
+    RUN_DIR/summary.json           written by the referee when the run is done
+    RUN_DIR/transport.json         the learner's transport counters at the end
+    RUN_DIR/referee_state.json     the referee's state, for a restarted referee
+    RUN_DIR/learner.jsonl          learner metrics (one row per log interval)
+    RUN_DIR/eval.jsonl             evaluations (one row per evaluation point)
+    RUN_DIR/allocation.jsonl       allocation rounds (I_k, P_k)
+    RUN_DIR/bias.jsonl             Eq. 17 bias measurements (runs with --bias-every)
+    RUN_DIR/checkpoints/learner.pt the learner's checkpoint; checkpoints/replay/ its replay chunks;
+    RUN_DIR/checkpoints/policy.npz the exported policy (mam_core.policy.POLICY_FILE); both are links
+                                   to the newest generation's learner-<g>.pt and policy-<g>.npz,
+                                   which manifest-<g>.json verifies (services/roles/checkpoint.py)
+    RUN_DIR/run.lock, learner.lock, referee.lock   who owns the directory (services/run/runlock.py)
+    RUN_DIR/logs/<role>.log        each process's output (`mam run`)
+    RUN_DIR/workers/               per-worker batch logs and end records
+    RUN_DIR/plots/                 `mam plot` PNGs
+    RUN_DIR/tb/                    TensorBoard event files
+    RUN_DIR/launch.json, launcher.log, record.json   a run of a `mam experiment` grid
+
+    EXP_DIR/experiment.json, report.md, figures/, failures/   a `mam experiment` directory
+
+`read_json` and `read_jsonl` read them, for the plots, the reports and the lab alike: a file
+that is missing, unreadable or (for JSONL) a row that is half written reads as nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+# --- a run directory ---------------------------------------------------------------------------
+CONFIG = "config.json"
+SUMMARY = "summary.json"
+TRANSPORT = "transport.json"
+REFEREE_STATE = "referee_state.json"
+LEARNER_LOG = "learner.jsonl"
+EVAL = "eval.jsonl"
+ALLOCATION = "allocation.jsonl"
+BIAS = "bias.jsonl"
+CHECKPOINTS = "checkpoints"
+LEARNER_CHECKPOINT = "learner.pt"  # in CHECKPOINTS
+REPLAY = "replay"  # in CHECKPOINTS: the replay buffer's chunk log
+MANIFEST_GLOB = "manifest-*.json"  # in CHECKPOINTS: one per verified checkpoint generation
+LOGS = "logs"
+WORKERS = "workers"
+PLOTS = "plots"
+TB = "tb"
+CHAOS = "chaos.json"  # `mam chaos`'s result
+
+# --- a run of a `mam experiment` grid ------------------------------------------------------------
+LAUNCH = "launch.json"  # what the run process is to do (written by the grid)
+LAUNCHER_LOG = "launcher.log"  # the run process's stdout and stderr
+RECORD = "record.json"  # which code ran it; in the ledger, written last: marks a finished run
+
+# --- an experiment directory (and a ledger) ----------------------------------------------------
+EXPERIMENT = "experiment.json"
+REPORT = "report.md"
+FIGURES = "figures"
+FAILURES = "failures"
+
+
+def env_dirname(env: str) -> str:
+    """An env id as a directory name (EXP_DIR/<env>/<variant>/seed<k>, figure names)."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", env)
+
+
+def has_checkpoint(run_dir: Path | str) -> bool:
+    """A checkpoint generation is on disk (its manifest; services/roles/checkpoint.py verifies it)."""
+    return any((Path(run_dir) / CHECKPOINTS).glob(MANIFEST_GLOB))
+
+
+def role_log(role: str) -> str:
+    """LOGS/<role>.log, relative to the run directory."""
+    return f"{LOGS}/{role}.log"
+
+
+# --- reading ---------------------------------------------------------------------------------
+
+
+def read_json(path: Path | str) -> dict[str, Any]:
+    """A JSON object file as a dict; {} when it is missing, unreadable or not an object."""
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, ValueError):  # ValueError: JSONDecodeError, UnicodeDecodeError
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def read_jsonl(path: Path | str) -> list[dict[str, Any]]:
+    """Rows of a JSONL file; blank, partial (a live run's last line) or corrupt lines are skipped.
+
+    A missing file gives []. Only JSON objects count as rows.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except FileNotFoundError:
+        return []
+    lines = text.splitlines()
+    last = max((i for i, line in enumerate(lines) if line.strip()), default=-1)
+    rows: list[dict[str, Any]] = []
+    for i, line in enumerate(lines):
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            if i != last:  # a trailing partial line is expected while a run is live; others are not
+                log.warning("%s:%d: skipping corrupt line", path, i + 1)
+            continue
+        if isinstance(row, dict):
+            rows.append(row)
+    return rows
+
+
+def write_json(path: Path, data: Any) -> None:
+    """Atomic write: a reader never sees half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=True))
+    os.replace(tmp, path)
+
+
+class JsonlWriter:
+    """Append-only JSON lines, flushed per row so a crash loses at most one line."""
+
+    def __init__(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._f = open(path, "a", buffering=1)
+
+    def write(self, row: dict[str, Any]) -> None:
+        self._f.write(json.dumps(row, allow_nan=True) + "\n")
+
+    def close(self) -> None:
+        self._f.close()
