@@ -18,39 +18,32 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 import typer
 
 from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
 from mam_core.algorithm1 import Algorithm1
-from mam_core.evaluation import estimation_bias
 from mam_core.pacing import CheckpointRule
 from mam_core.replay import ReplayBuffer, ReplayLog
-from mam_core.seeding import bias_seed
 from services.cli import options
 from services.messaging import bus, keys
 from services.messaging.codec import (
     Allocation,
     Done,
-    LearnerStats,
     MessageError,
     TransitionSpec,
-    Weights,
-    decode,
-    encode,
 )
-from services.roles import role, tb
+from services.roles import learner_files, role, tb
 from services.roles.checkpoint import (
     EXIT_CORRUPT,
     CheckpointCorrupt,
     exit_on_write_error,
     load_checkpoint,
     replay_dir,
-    save_checkpoint,
 )
 from services.roles.intake import Intake
-from services.roles.lockstep import SlotStage, snapshot_versions
+from services.roles.lockstep import SlotStage
+from services.roles.outbox import Outbox
 from services.run import announce, cpu, rundir, runlock
 from services.run.config import RunConfig
 from services.run.rundir import JsonlWriter, write_json
@@ -60,10 +53,6 @@ log = logging.getLogger("mam.learner")
 STATS_PERIOD_S = 0.1  # stats this often while updating; four times as often while waiting for data
 LOG_PERIOD_S = 1.0
 HEARTBEAT_S = 2.0  # config re-published this often
-# After done: how long to wait for a referee that is gone (a restart: `mam run`'s backoff is up to
-# 15 s, and a referee starting on a loaded box took more than 20 s in the chaos test) ...
-REFEREE_GRACE_S = 60.0
-REFEREE_WAIT_S = 240.0  # ... and at most, in all, for its final evaluation
 
 
 class Learner:
@@ -107,68 +96,30 @@ class Learner:
         self.wall_before = 0.0  # wall seconds of the run before this incarnation (from the checkpoint)
         self.stop_requested = False
         self.mid_iteration = False
+        self.stage: SlotStage | None = None
         self.awaiting: tuple[int, ...] = ()  # slots whose rows the loop waits for; -1: the referee's decision
         if resume is not None:
-            self._restore(resume)
-
-    def _restore(self, state: dict[str, Any]) -> None:
-        self.agent.load_state_dict(state["agent"])
-        c = state["counters"]
-        self.env_steps = int(c["env_steps"])
-        if "replay" in state:  # checkpoints written before the chunked replay log
-            self.buffer.load_state_dict(state["replay"])
-        if "replay_log" in state and self.replay_log is not None:
-            meta = state["replay_log"]
-            self.replay_log.restore(self.buffer, meta["manifest"], int(meta["inserted"]), json.loads(meta["rng"]))
-            if self.buffer.inserted != self.env_steps:
-                raise ValueError(f"checkpoint counts {self.env_steps} transitions, its replay {self.buffer.inserted}")
-        self.intake.stream_rows = {k: int(v) for k, v in json.loads(c.get("stream_rows", "{}")).items()}
-        self.intake.stream_skipped = {k: int(v) for k, v in json.loads(c.get("stream_skipped", "{}")).items()}
-        # The run had a referee: a learner resumed at its budget waits for it (its final evaluation).
-        self.referee_seen = bool(int(c.get("referee_seen", 0)))
-        # Sequence numbers go on from the checkpoint: a gap then counts what died with the old
-        # learner, until the workers' resends fill it.
-        self.intake.tracker.restore(json.loads(c.get("per_worker", "{}")))
-        if self.replay_log is not None:  # just verified: its rows need not be kept twice
-            self.acked = self.acked_newest = self.intake.checkpointed_prefixes()
-        self.iteration = int(c["iteration"]) if "iteration" in c else self.plan.iteration_at(self.env_steps)
-        self.wall_before = float(c.get("wall_s", 0.0))
-        self.inexact = str(c.get("inexact", "")) or f"the learner restarted from its checkpoint at iteration " \
-                                                      f"{self.iteration}"
-        live = self.agent.live_actors
-        if sum(live) == 1 and self.algo.actors > 1:
-            self.survivor = self.decided_survivor = live.index(True)
-        log.info("resumed at iteration %d: %d transitions, %d updates (replay rows: %d)", self.iteration,
-                 self.env_steps, self.agent.updates, len(self.buffer))
+            learner_files.restore(self, resume)
 
     def serve(self) -> None:
         run, s = self.cfg.run, self.session
-        self.config_pub = bus.declare_latest_publisher(s, keys.config(run), drop=True)  # heartbeats: never block
-        self.weights_pubs = [bus.declare_latest_publisher(s, keys.weights(run, k)) for k in range(self.algo.actors)]
-        self.stats_pub = bus.declare_latest_publisher(s, keys.learner_stats(run), drop=True)  # 10 Hz, latest only
-        self.done_pub = bus.declare_latest_publisher(s, keys.done(run))
         self.token = bus.declare_alive(s, run, "learner", self.id)
         self.workers = bus.watch_alive(s, run, "worker")
         self.referees = bus.watch_alive(s, run, "referee")
         self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
         self.referee_reports = bus.Latest(late_join=False).subscribe(s, keys.role_stats_all(run, "referee"))
         self.inbox = bus.Inbox(maxsize=8192).subscribe(s, keys.transitions_all(run))
-        self.snapshot_pubs = [bus.declare_reliable_publisher(s, keys.eval_weights(run, k))
-                              for k in range(self.algo.actors)]
-        # What a late or restarted role may still need, re-sent while it is awaited: the weights of
-        # the versions workers act with in the next B+1 iterations, the referee's snapshots by version.
-        self.recent_weights: dict[int, list[bytes]] = {}
-        self.snapshots: dict[int, list[tuple[int, bytes]]] = {}
-        self.referee_events = 0  # evaluations the referee reports done
+        self.out = Outbox(self)
         self.board = tb.RunBoard(self.run_dir, "learner")  # RUN_DIR/tb/learner: the JSONL rows' scalars
         self.log_writer = self.board.tee(JsonlWriter(self.run_dir / rundir.LEARNER_LOG), tb.learner_scalars)
         self.bias_writer = (self.board.tee(JsonlWriter(self.run_dir / rundir.BIAS), tb.bias_scalars)
                             if self.cfg.bias_every else None)
-        self.seq = 0
-        self.publish_config()
+        self.out.config()
+        workers = announce.WorkerCount(s, self.cfg, log)  # a split-role run short of M workers warns
         try:
             self._loop()
         finally:
+            workers.close()
             for closable in (self.inbox, self.allocation, self.referee_reports, self.workers, self.referees,
                              self.log_writer, self.bias_writer, self.board):
                 if closable is not None:
@@ -179,14 +130,14 @@ class Learner:
         """Iterations of the plan: iteration i's rows in slot order, then its updates."""
         plan = self.plan
         stage = self.stage = SlotStage(self.algo.workers, start=self.iteration + 1)
-        self.publish_weights(all_actors=True)
+        self.out.weights(all_actors=True)
         self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
-        self.checkpoint()  # at once: a learner killed early resumes from here
+        learner_files.checkpoint(self)  # at once: a learner killed early resumes from here
         self.stats_due, self.heartbeat, self.log_row = role.Every(STATS_PERIOD_S), role.Every(HEARTBEAT_S), \
             role.Every(LOG_PERIOD_S)
         self.rates, self._rate_base = (0.0, 0.0), (self.env_steps, self.agent.updates, time.monotonic())
         self.wait_s = 0.0  # seconds the loop waited for an iteration's rows (learner.jsonl: where time goes)
-        self.publish_snapshots(self.iteration)
+        self.out.snapshots_after(self.iteration)
         while not self.stop_requested:
             index = self.iteration + 1
             if index > plan.iterations:
@@ -216,24 +167,24 @@ class Learner:
             self.mid_iteration = False
             self.iteration = index
             if plan.weights_change(index):
-                self.publish_weights()
-            self.publish_snapshots(index)
+                self.out.weights()
+            self.out.snapshots_after(index)
             bias = plan.crossing(index, self.cfg.bias_every)
             if bias is not None:
-                self.measure_bias(bias)
+                learner_files.measure_bias(self, bias)
             now = time.monotonic()
             if self.stats_due.due(now):
-                self.publish_stats()
+                self.out.stats()
             if self.log_row.due(now):
-                self.write_log(now)
+                learner_files.write_log(self, now)
             if self.heartbeat.due(now):
-                self.publish_config()
+                self.out.config()
             if self.checkpoints.due(self.agent.updates, self.env_steps, now):
-                self.checkpoint()
+                learner_files.checkpoint(self)
         # Stopped by a signal: keep a usable checkpoint (of the last whole iteration); the run is not done.
-        self.write_log()
+        learner_files.write_log(self)
         if not self.mid_iteration:
-            self.checkpoint()
+            learner_files.checkpoint(self)
 
     def sample(self) -> Any:
         return self.buffer.sample(self.algo.batch_size, self.agent.batch_groups)
@@ -243,13 +194,13 @@ class Learner:
         have missed once more; every `stall_timeout`, a line saying what is awaited."""
         now = time.monotonic()
         if self.stats_due.due(now, STATS_PERIOD_S / 4):
-            self.publish_stats()
+            self.out.stats()
         if self.heartbeat.due(now):
-            self.publish_config()
+            self.out.config()
             if time.perf_counter() - since > HEARTBEAT_S:  # late: something may be lost
-                self.resend()
+                self.out.resend()
         if self.log_row.due(now):
-            self.write_log(now)
+            learner_files.write_log(self, now)
         limit, waited = self.cfg.stall_timeout, time.perf_counter() - since
         if limit > 0 and waited > limit and now - getattr(self, "_stall_note", 0.0) > limit:
             self._stall_note = now
@@ -313,72 +264,6 @@ class Learner:
         if alloc.survivor is not None:
             self.decided_survivor = alloc.survivor
 
-    # -- publishing -------------------------------------------------------------------------------
-    def weights_message(self, k: int) -> bytes:
-        return Weights(k, self.agent.versions[k], self.agent.actor_params(k), self.spec.obs_dim, self.spec.act_dim,
-                       max(self.spec.max_action), tuple(self.algo.hidden), self.incarnation
-                       ).to_bytes(self.id, self._next_seq())
-
-    def publish_weights(self, all_actors: bool = False) -> None:
-        """The live actors' weights (all with `all_actors`), kept while a slot may act with them."""
-        live = self.agent.live_actors
-        msgs = []
-        for k in range(self.algo.actors):
-            if live[k] or all_actors:
-                msg = self.weights_message(k)
-                self.weights_pubs[k].put(msg)
-                msgs.append((k, msg))
-        version = self.plan.version_after(self.iteration)
-        self.recent_weights[version] = msgs
-        needed = self.plan.version_for(min(self.iteration + 1, self.plan.iterations))
-        for old in [v for v in self.recent_weights if v < needed]:
-            del self.recent_weights[old]
-
-    def publish_snapshots(self, index: int) -> None:
-        """The versions the referee's next evaluations judge, once each (`snapshot_versions`)."""
-        for version in sorted(snapshot_versions(self.plan, index) - set(self.snapshots)):
-            self.snapshots[version] = [(k, self.weights_message(k)) for k, alive in enumerate(self.agent.live_actors)
-                                       if alive]
-            for k, msg in self.snapshots[version]:
-                self.snapshot_pubs[k].put(msg)
-
-    def resend(self) -> None:
-        """Once more what a late role may have missed: the weights of the versions the slots act
-        with next, and the snapshots of the evaluations the referee has not reported done.
-        Versions a role holds are not loaded again, so this changes nothing for a role that had them."""
-        for version in sorted(self.recent_weights):
-            for k, msg in self.recent_weights[version]:
-                self.weights_pubs[k].put(msg)
-        for item in self.referee_reports.snapshot().values():
-            try:
-                self.referee_events = max(self.referee_events, int(decode(item.payload).get("events", 0)))
-            except (MessageError, TypeError, ValueError):
-                continue
-        events = self.plan.events()[self.referee_events:]
-        pending = {self.plan.judged_version(i, purpose) for i, purpose in events}
-        for version in sorted(pending & set(self.snapshots)):
-            for k, msg in self.snapshots[version]:
-                self.snapshot_pubs[k].put(msg)
-        for old in [v for v in self.snapshots if v < min(pending, default=0)]:
-            del self.snapshots[old]
-
-    def _next_seq(self) -> int:
-        self.seq += 1
-        return self.seq
-
-    def stats(self, done: bool = False) -> LearnerStats:
-        now = time.monotonic()
-        losses = {k.split("/", 1)[1]: v for k, v in self.metrics.items() if k.startswith("loss/")}
-        q_means = [self.metrics.get(f"q/actor{k}", float("nan")) for k in range(self.algo.actors)]
-        return LearnerStats(
-            env_steps=self.env_steps, updates=self.agent.updates, accept_until=self.schedule.budget,
-            utd=self.utd(), losses=losses, q_means=tuple(q_means), versions=tuple(self.agent.versions),
-            per_worker=self.intake.counters(now, self.acked), rejected=self.rejected(), done=done,
-            live=tuple(self.agent.live_actors), workers=max(len(self.workers.live()), self.intake.active(now)),
-            steps=self.schedule.budget, incarnation=self.incarnation, exact=not self.inexact,
-            iteration=self.iteration, inexact=self.inexact, awaiting=self.awaiting,
-            slots_next=tuple(self.stage.end) if hasattr(self, "stage") else ())
-
     @property
     def iterations(self) -> int:
         """Schedule steps done: Algorithm 1's iterations (paper) or transitions (equal-data)."""
@@ -395,90 +280,25 @@ class Learner:
         out.update({f"allocation:{r}": n for r, n in self.other_rejects.counts().items()})
         return out
 
-    def publish_config(self) -> None:
-        self.config_pub.put(encode("config", {"config": self.cfg.to_dict()}, sender=self.id, seq=self._next_seq()))
-
-    def publish_stats(self, done: bool = False) -> None:
-        self.stats_pub.put(self.stats(done).to_bytes(self.id, self._next_seq()))
-
-    def write_log(self, now: float | None = None) -> None:
-        """One learner.jsonl row; with `now`, the rates since the previous such row first."""
-        if now is not None:
-            steps, updates, t = self._rate_base
-            dt = max(now - t, 1e-9)
-            self.rates = ((self.env_steps - steps) / dt, (self.agent.updates - updates) / dt)
-            self._rate_base = (self.env_steps, self.agent.updates, now)
-        tracker = self.intake.tracker
-        row = {"t": round(time.monotonic() - self.started, 3), "env_steps": self.env_steps,
-               "iterations": self.iterations, "updates": self.agent.updates, "utd": self.utd(),
-               "transitions_per_s": round(self.rates[0], 2), "updates_per_s": round(self.rates[1], 2),
-               "versions": list(self.agent.versions), "live": self.agent.live_actors,
-               "lost": tracker.lost, "duplicates": tracker.duplicates,
-               "rejected": self.intake.rejects.total, "buffer": len(self.buffer),
-               "received": {w: t.received for w, t in self.intake.workers.items()},
-               "exact_wait_s": round(getattr(self, "wait_s", 0.0), 3)}
-        row.update(self.metrics)
-        if self.intake.episode_returns:
-            row["train_return"] = float(np.mean(self.intake.episode_returns))
-            self.intake.episode_returns.clear()
-        self.log_writer.write(row)
-
-    def measure_bias(self, point_index: int) -> None:
-        """Eq. 17 for every live actor k at bias point j: Q_k1(s0, π_k(s0)) of the current critic
-        against the discounted Monte-Carlo return of π_k from the same initial states
-        (`bias_rollouts` rollouts, `seeding.bias_seed`). Training pauses meanwhile."""
-        started = time.monotonic()
-        point = point_index * self.cfg.bias_every
-        live = self.agent.live_actors
-        for k in (k for k, alive in enumerate(live) if alive):
-            try:
-                result = estimation_bias(lambda obs, k=k: self.agent.act(obs, k),
-                                         lambda obs, act, k=k: self.agent.q_value(obs, act, k),
-                                         self.cfg.env_id, self.cfg.bias_rollouts, self.algo.gamma,
-                                         bias_seed(self.algo.seed, point_index), self.cfg.env_kwargs,
-                                         horizon=self.cfg.bias_horizon)
-            except Exception:  # a diagnostic never stops the training
-                log.exception("bias measurement at %d failed (actor %d)", point, k)
-                continue
-            self.bias_writer.write({"env_steps": self.env_steps, "iterations": self.iterations, "point": point,
-                                    "updates": self.agent.updates, "live": list(live),
-                                    "rollouts": self.cfg.bias_rollouts, "bias": {"actor": k, **result}})
-        log.info("bias at %d transitions measured in %.1f s", self.env_steps, time.monotonic() - started)
-
-    def checkpoint(self) -> None:
-        started = time.monotonic()
-        counters = {"env_steps": self.env_steps, "per_worker": json.dumps(self.intake.tracker.per_sender()),
-                    "stream_rows": json.dumps(self.intake.stream_rows),
-                    "stream_skipped": json.dumps(self.intake.stream_skipped), "referee_seen": int(self.referee_seen),
-                    "iteration": self.iteration, "inexact": self.inexact,
-                    "wall_s": round(self.wall_before + time.monotonic() - self.started, 3)}
-        path = save_checkpoint(self.run_dir, self.agent, self.buffer, counters, self.cfg, self.replay_log,
-                               survivor=self.survivor)  # with policy.npz, in a verified generation
-        self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
-        if self.replay_log is not None:  # only now on disk: workers may drop what the previous one holds
-            self.acked, self.acked_newest = self.acked_newest, self.intake.checkpointed_prefixes()
-        log.info("checkpoint %s at iteration %d, %d updates, %d transitions (%.2f s)", path, self.iteration,
-                 self.agent.updates, self.env_steps, time.monotonic() - started)
-
     def finish(self) -> None:
         """Budget reached: final weights, checkpoint, then tell everyone until they have left."""
-        self.publish_weights(all_actors=True)
-        self.write_log()
-        self.checkpoint()
-        self.publish_stats(done=True)
+        self.out.weights(all_actors=True)
+        learner_files.write_log(self)
+        learner_files.checkpoint(self)
+        self.out.stats(done=True)
         msg = Done("budget", self.env_steps, self.agent.updates)
         deadline = time.monotonic() + 10.0
         # The last put before close can be lost: repeat until workers have gone (their tokens vanish).
         while True:
-            self.done_pub.put(msg.to_bytes(self.id, self._next_seq()))
-            self.publish_stats(done=True)
+            self.out.done(msg.to_bytes(self.id, self.out.next_seq()))
+            self.out.stats(done=True)
             if not self.workers.live() or time.monotonic() > deadline:
                 break
             self.count_late(self.inbox.drain())
             time.sleep(0.1)
         self.inbox.close()
         self.count_late(self.inbox.drain())
-        self.wait_for_referee(msg)
+        self.out.wait_for_referee(msg)
         tracker = self.intake.tracker
         write_json(self.run_dir / rundir.TRANSPORT, {
             "env_steps": self.env_steps, "iterations": self.iterations, "updates": self.agent.updates,
@@ -498,55 +318,9 @@ class Learner:
             if batch is not None:
                 self.intake.admit(batch)
 
-    def wait_for_referee(self, msg: Done) -> None:
-        """Stay up (repeating done) until the referee has written its final evaluation.
-
-        A referee that dies now is restarted (`mam run`) and needs this learner's config,
-        done notice and snapshots. Waits while a referee was seen during the run and has not
-        reported `final`: up to REFEREE_GRACE_S without any referee alive, and at most
-        REFEREE_WAIT_S in all.
-        """
-        if not self.referee_seen:
-            return
-        deadline = time.monotonic() + REFEREE_WAIT_S
-        gone_since: float | None = None
-        last_put = 0.0
-        while time.monotonic() < deadline and not self.stop_requested:
-            if any(self._is_final(item) for item in self.referee_reports.snapshot().values()):
-                return
-            now = time.monotonic()
-            if self.referees.live():
-                gone_since = None
-            elif gone_since is None:
-                gone_since = now
-            elif now - gone_since > REFEREE_GRACE_S:
-                log.warning("no referee for %.0f s after done: not waiting for its final evaluation",
-                            REFEREE_GRACE_S)
-                return
-            if now - last_put >= 1.0:  # a restarted referee needs these (the caches serve them too)
-                self.done_pub.put(msg.to_bytes(self.id, self._next_seq()))
-                self.publish_stats(done=True)
-                self.publish_config()
-                self.resend()
-                last_put = now
-            time.sleep(0.1)
-        log.warning("the referee did not report its final evaluation within %.0f s", REFEREE_WAIT_S)
-
-    @staticmethod
-    def _is_final(item: bus.Received) -> bool:
-        try:
-            return decode(item.payload).get("final") is True
-        except MessageError:
-            return False
-
 
 def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None:
-    try:  # one learner per run directory and per run name: refused before anything is written
-        lock = runlock.lock_role(run_dir, "learner", cfg.run)
-    except runlock.RunInUse as e:
-        log.error("%s", e)
-        raise SystemExit(runlock.EXIT_REFUSED) from None
-    with lock, exit_on_write_error(run_dir):  # a full disk: one line naming the path, exit EXIT_WRITE_ERROR
+    def build(cfg: RunConfig, session: Any) -> Learner:
         try:
             state = load_checkpoint(run_dir) if resume else None
         except CheckpointCorrupt as e:  # every generation is damaged: nothing to resume from
@@ -554,20 +328,16 @@ def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None
             raise SystemExit(EXIT_CORRUPT) from None
         if state is not None:
             cfg = RunConfig.from_dict({**json.loads(state["config"]), "steps": cfg.steps})
-        with bus.session_scope(conf, retry_for=30.0) as session:  # a router may still be starting
-            try:
-                runlock.refuse_live_learner(session, cfg.run)
-            except runlock.RunInUse as e:
-                log.error("%s", e)
-                raise SystemExit(runlock.EXIT_REFUSED) from None
-            write_json(run_dir / rundir.CONFIG, cfg.to_dict())
-            learner = Learner(cfg, session, run_dir, state)
-            role.stop_on_signals(learner)
-            workers = announce.WorkerCount(session, cfg, log)  # a split-role run short of M workers warns
-            try:
-                learner.serve()
-            finally:
-                workers.close()
+        try:
+            runlock.refuse_live_learner(session, cfg.run)
+        except runlock.RunInUse as e:
+            log.error("%s", e)
+            raise SystemExit(runlock.EXIT_REFUSED) from None
+        write_json(run_dir / rundir.CONFIG, cfg.to_dict())
+        return Learner(cfg, session, run_dir, state)
+
+    with exit_on_write_error(run_dir):  # a full disk: one line naming the path, exit EXIT_WRITE_ERROR
+        role.serve_role("learner", conf, build, run=cfg.run, run_dir=run_dir, cfg=cfg, log=log)
 
 
 app = typer.Typer(add_completion=False, help=__doc__)

@@ -317,18 +317,8 @@ def keep_logs(path: Path, rows: int) -> None:
 
 
 def main(run: str, conf: Any, run_dir: Path) -> None:
-    from services.run import runlock
-
-    try:  # one referee per run directory, none in a directory another `mam run` owns
-        lock = runlock.lock_role(run_dir, "referee", run)
-    except runlock.RunInUse as e:
-        log.error("%s", e)
-        raise SystemExit(runlock.EXIT_REFUSED) from None
-    with lock, bus.session_scope(conf, retry_for=30.0) as session:
-        cfg = role.fetch_config(session, run, bus.RejectLog(log, "config"))
-        referee = Referee(cfg, session, run_dir)
-        role.stop_on_signals(referee)
-        referee.serve()
+    role.serve_role("referee", conf, lambda cfg, session: Referee(cfg, session, run_dir), run=run, run_dir=run_dir,
+                    log=log)
 
 
 app = typer.Typer(add_completion=False, help=__doc__)

@@ -6,6 +6,7 @@ imports another role module. This module imports neither torch nor matplotlib.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import signal
 import time
@@ -38,6 +39,28 @@ def client_config(connect: list[str] | None, listen: list[str] | None = None,
     """The Zenoh config of a client role: `--connect`, else the config file, else DEFAULT_ENDPOINT."""
     return bus.make_config(connect=connect or ([] if zenoh_config else [DEFAULT_ENDPOINT]), listen=listen,
                            config_file=zenoh_config)
+
+
+def serve_role(name: str, conf: Any, build: Callable[[RunConfig | None, Any], Any], *, run: str,
+               run_dir: Path | None = None, cfg: RunConfig | None = None, log: logging.Logger = log) -> None:
+    """The skeleton every role runs: its run lock (a role with a run directory: one learner and one
+    referee per directory and run), the Zenoh session, the run's config (fetched from the
+    learner unless given), `build(cfg, session)` making the role, signals, and its `serve()`."""
+    from services.run import runlock
+
+    lock: Any = contextlib.nullcontext()
+    if run_dir is not None and name in ("learner", "referee"):
+        try:  # refused before anything is written
+            lock = runlock.lock_role(run_dir, name, run)
+        except runlock.RunInUse as e:
+            log.error("%s", e)
+            raise SystemExit(runlock.EXIT_REFUSED) from None
+    with lock, bus.session_scope(conf, retry_for=30.0) as session:  # a router may still be starting
+        if cfg is None:
+            cfg = fetch_config(session, run, bus.RejectLog(log, "config"))
+        process = build(cfg, session)
+        stop_on_signals(process)
+        process.serve()
 
 
 def stop_on_signals(target: Any) -> None:

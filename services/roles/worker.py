@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 import os
 import socket
 import time
@@ -35,6 +34,7 @@ from services.messaging import bus, keys
 from services.messaging.codec import Allocation, LearnerStats, MessageError, TransitionBatch, Weights
 from services.roles import role
 from services.roles.lockstep import WeightsHistory
+from services.roles.simulator import FAULTS, EnvFault, GuardedSimulator
 from services.run import config, rundir
 from services.run.config import RunConfig
 from services.run.rundir import write_json
@@ -44,20 +44,7 @@ log = logging.getLogger("mam.worker")
 MAX_BATCH_AGE_S = 0.05  # a partial batch is sent after this long
 STATUS_EVERY_S = 10.0
 RESYNC_S = 2.0  # waiting this long while the learner needs another iteration of this slot: go on from that one
-ENV_RETRIES = 10  # consecutive failed resets before the env is made anew; as many again: the worker exits
-FAULTS = ("step_exception", "reset_exception", "nonfinite_obs", "nonfinite_reward")
-
-
-class EnvFault(Exception):
-    """The simulator raised or returned something unusable (counted by kind)."""
-
-    def __init__(self, kind: str, detail: str = "") -> None:
-        super().__init__(f"{kind}: {detail}")
-        self.kind = kind
-        self.detail = detail
-
-
-class Worker:
+class Worker(GuardedSimulator):
     def __init__(self, cfg: RunConfig, session: Any, worker_id: str, slot_index: int = 0,
                  run_dir: Path | None = None, generation: int = 0) -> None:
         self.run_dir = run_dir
@@ -347,50 +334,6 @@ class Worker:
         if self.p_n >= self.cfg.send_batch or time.monotonic() - self.p_started > MAX_BATCH_AGE_S:
             self.flush()
 
-    # -- the simulator, guarded ------------------------------------------------------------------
-    def env_step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
-        """env.step, or EnvFault if it raises or returns a non-finite observation or reward."""
-        try:
-            next_obs, reward, terminated, truncated, _ = self.env.step(action)
-            next_obs = np.asarray(next_obs, np.float32)
-            reward = float(reward)
-        except Exception as e:  # anything the simulator throws: this episode is lost, not the worker
-            raise EnvFault("step_exception", f"{type(e).__name__}: {e}") from e
-        if next_obs.shape != (self.spec.obs_dim,) or not np.isfinite(next_obs).all():
-            raise EnvFault("nonfinite_obs", f"shape {next_obs.shape}")
-        if not math.isfinite(reward):
-            raise EnvFault("nonfinite_reward", repr(reward))
-        return next_obs, reward, bool(terminated), bool(truncated)
-
-    def reset_env(self, seed: int | None = None) -> np.ndarray:
-        """A finite first observation: retries a failing reset, then makes the env anew,
-        and gives up (the worker exits, its supervisor restarts it) if that fails too."""
-        for attempt in range(2 * ENV_RETRIES):
-            if attempt == ENV_RETRIES:
-                log.warning("env reset failed %d times in a row: making %s anew", ENV_RETRIES, self.cfg.env_id)
-                try:
-                    self.env.close()
-                except Exception:
-                    pass
-                self.env = make_env(self.cfg.env_id, self.cfg.env_kwargs)
-                self.env_remade += 1
-            try:
-                obs, _ = self.env.reset(seed=seed) if seed is not None and attempt == 0 else self.env.reset()
-                obs = np.asarray(obs, np.float32)
-            except Exception as e:
-                self.count_fault(EnvFault("reset_exception", f"{type(e).__name__}: {e}"))
-                continue
-            if obs.shape != (self.spec.obs_dim,) or not np.isfinite(obs).all():
-                self.count_fault(EnvFault("nonfinite_obs", "after reset"))
-                continue
-            return obs
-        raise RuntimeError(f"{self.cfg.env_id}: no usable reset in {2 * ENV_RETRIES} tries")
-
-    def count_fault(self, fault: EnvFault) -> None:
-        self.faults[fault.kind] += 1
-        if self.faults[fault.kind] <= 3 or self.faults[fault.kind] % 100 == 0:
-            log.warning("env fault %s (%d so far): %s", fault.kind, self.faults[fault.kind], fault.detail[:300])
-
     def flush(self) -> None:
         if self.p_n == 0:
             return
@@ -419,11 +362,8 @@ class Worker:
 
 def main(run: str, conf: Any, worker_id: str, slot_index: int = 0, run_dir: Path | None = None,
          generation: int = 0) -> None:
-    with bus.session_scope(conf, retry_for=30.0) as session:
-        cfg = role.fetch_config(session, run, bus.RejectLog(log, "config"))
-        worker = Worker(cfg, session, worker_id, slot_index, run_dir, generation)
-        role.stop_on_signals(worker)
-        worker.serve()
+    role.serve_role("worker", conf, lambda cfg, session: Worker(cfg, session, worker_id, slot_index, run_dir,
+                                                                generation), run=run, log=log)
 
 
 app = typer.Typer(add_completion=False, help=__doc__)

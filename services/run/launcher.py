@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -32,7 +31,7 @@ from services.run import preflight, registry, rundir, runlock
 from services.run.audit import audit_transport
 from services.run.config import RunConfig, budget_warnings
 from services.run.progress import budget_text, command_name, done_text, follow, outcome_text
-from services.run.rundir import write_json
+from services.run.rundir import disk_free, free_bytes, last_line, write_json
 
 STOP_GRACE_S = 15.0
 EXIT_WRITE_ERROR = 75  # the learner could not write its checkpoint (services/roles/checkpoint.py, same value)
@@ -484,28 +483,3 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
         if verdict:
             console.print(f"[bold]{verdict}[/]", highlight=False)
     return summary
-
-
-def free_bytes(path: Path) -> int:
-    try:
-        return shutil.disk_usage(path).free
-    except OSError:
-        return 1 << 62
-
-
-def disk_free(path: Path) -> str:
-    n = free_bytes(path)
-    return f"{n / (1 << 20):.1f} MiB" if n >= 1 << 20 else f"{n / 1024:.1f} KiB"
-
-
-def last_line(path: Path, needle: str) -> str:
-    """The last line of a log holding `needle` ("" if none, or unreadable)."""
-    try:
-        with open(path, "rb") as f:
-            f.seek(max(f.seek(0, 2) - 65536, 0))
-            lines = [ln for ln in f.read().decode(errors="replace").splitlines() if needle in ln]
-    except OSError:
-        return ""
-    return lines[-1].strip()[-400:] if lines else ""
-
-

@@ -34,6 +34,7 @@ import json
 import logging
 import os
 import re
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -144,3 +145,26 @@ class JsonlWriter:
 
     def close(self) -> None:
         self._f.close()
+
+
+def free_bytes(path: Path) -> int:
+    try:
+        return shutil.disk_usage(path).free
+    except OSError:
+        return 1 << 62
+
+
+def disk_free(path: Path) -> str:
+    n = free_bytes(path)
+    return f"{n / (1 << 20):.1f} MiB" if n >= 1 << 20 else f"{n / 1024:.1f} KiB"
+
+
+def last_line(path: Path, needle: str) -> str:
+    """The last line of a log holding `needle` ("" if none, or unreadable)."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(max(f.seek(0, 2) - 65536, 0))
+            lines = [ln for ln in f.read().decode(errors="replace").splitlines() if needle in ln]
+    except OSError:
+        return ""
+    return lines[-1].strip()[-400:] if lines else ""

@@ -1,0 +1,117 @@
+"""What the learner writes and reads back (services/roles/learner.py): its checkpoints and
+the counters they carry, learner.jsonl rows, and the Eq. 17 rows of bias.jsonl."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from mam_core.evaluation import estimation_bias
+from mam_core.seeding import bias_seed
+from services.roles.checkpoint import save_checkpoint
+
+if TYPE_CHECKING:
+    from services.roles.learner import Learner
+
+log = logging.getLogger("mam.learner")
+
+
+def checkpoint(lr: Learner) -> None:
+    started = time.monotonic()
+    counters = {"env_steps": lr.env_steps, "per_worker": json.dumps(lr.intake.tracker.per_sender()),
+                "stream_rows": json.dumps(lr.intake.stream_rows),
+                "stream_skipped": json.dumps(lr.intake.stream_skipped), "referee_seen": int(lr.referee_seen),
+                "iteration": lr.iteration, "inexact": lr.inexact,
+                "wall_s": round(lr.wall_before + time.monotonic() - lr.started, 3)}
+    path = save_checkpoint(lr.run_dir, lr.agent, lr.buffer, counters, lr.cfg, lr.replay_log,
+                           survivor=lr.survivor)  # with policy.npz, in a verified generation
+    lr.checkpoints.mark(lr.agent.updates, lr.env_steps, time.monotonic())
+    if lr.replay_log is not None:  # only now on disk: workers may drop what the previous one holds
+        lr.acked, lr.acked_newest = lr.acked_newest, lr.intake.checkpointed_prefixes()
+    log.info("checkpoint %s at iteration %d, %d updates, %d transitions (%.2f s)", path, lr.iteration,
+             lr.agent.updates, lr.env_steps, time.monotonic() - started)
+
+
+
+def restore(lr: Learner, state: dict[str, Any]) -> None:
+    lr.agent.load_state_dict(state["agent"])
+    c = state["counters"]
+    lr.env_steps = int(c["env_steps"])
+    if "replay" in state:  # checkpoints written before the chunked replay log
+        lr.buffer.load_state_dict(state["replay"])
+    if "replay_log" in state and lr.replay_log is not None:
+        meta = state["replay_log"]
+        lr.replay_log.restore(lr.buffer, meta["manifest"], int(meta["inserted"]), json.loads(meta["rng"]))
+        if lr.buffer.inserted != lr.env_steps:
+            raise ValueError(f"checkpoint counts {lr.env_steps} transitions, its replay {lr.buffer.inserted}")
+    lr.intake.stream_rows = {k: int(v) for k, v in json.loads(c.get("stream_rows", "{}")).items()}
+    lr.intake.stream_skipped = {k: int(v) for k, v in json.loads(c.get("stream_skipped", "{}")).items()}
+    # The run had a referee: a learner resumed at its budget waits for it (its final evaluation).
+    lr.referee_seen = bool(int(c.get("referee_seen", 0)))
+    # Sequence numbers go on from the checkpoint: a gap then counts what died with the old
+    # learner, until the workers' resends fill it.
+    lr.intake.tracker.restore(json.loads(c.get("per_worker", "{}")))
+    if lr.replay_log is not None:  # just verified: its rows need not be kept twice
+        lr.acked = lr.acked_newest = lr.intake.checkpointed_prefixes()
+    lr.iteration = int(c["iteration"]) if "iteration" in c else lr.plan.iteration_at(lr.env_steps)
+    lr.wall_before = float(c.get("wall_s", 0.0))
+    lr.inexact = str(c.get("inexact", "")) or f"the learner restarted from its checkpoint at iteration " \
+                                                  f"{lr.iteration}"
+    live = lr.agent.live_actors
+    if sum(live) == 1 and lr.algo.actors > 1:
+        lr.survivor = lr.decided_survivor = live.index(True)
+    log.info("resumed at iteration %d: %d transitions, %d updates (replay rows: %d)", lr.iteration,
+             lr.env_steps, lr.agent.updates, len(lr.buffer))
+
+
+
+def write_log(lr: Learner, now: float | None = None) -> None:
+    """One learner.jsonl row; with `now`, the rates since the previous such row first."""
+    if now is not None:
+        steps, updates, t = lr._rate_base
+        dt = max(now - t, 1e-9)
+        lr.rates = ((lr.env_steps - steps) / dt, (lr.agent.updates - updates) / dt)
+        lr._rate_base = (lr.env_steps, lr.agent.updates, now)
+    tracker = lr.intake.tracker
+    row = {"t": round(time.monotonic() - lr.started, 3), "env_steps": lr.env_steps,
+           "iterations": lr.iterations, "updates": lr.agent.updates, "utd": lr.utd(),
+           "transitions_per_s": round(lr.rates[0], 2), "updates_per_s": round(lr.rates[1], 2),
+           "versions": list(lr.agent.versions), "live": lr.agent.live_actors,
+           "lost": tracker.lost, "duplicates": tracker.duplicates,
+           "rejected": lr.intake.rejects.total, "buffer": len(lr.buffer),
+           "received": {w: t.received for w, t in lr.intake.workers.items()},
+           "exact_wait_s": round(getattr(lr, "wait_s", 0.0), 3)}
+    row.update(lr.metrics)
+    if lr.intake.episode_returns:
+        row["train_return"] = float(np.mean(lr.intake.episode_returns))
+        lr.intake.episode_returns.clear()
+    lr.log_writer.write(row)
+
+
+
+def measure_bias(lr: Learner, point_index: int) -> None:
+    """Eq. 17 for every live actor k at bias point j: Q_k1(s0, π_k(s0)) of the current critic
+    against the discounted Monte-Carlo return of π_k from the same initial states
+    (`bias_rollouts` rollouts, `seeding.bias_seed`). Training pauses meanwhile."""
+    started = time.monotonic()
+    point = point_index * lr.cfg.bias_every
+    live = lr.agent.live_actors
+    for k in (k for k, alive in enumerate(live) if alive):
+        try:
+            result = estimation_bias(lambda obs, k=k: lr.agent.act(obs, k),
+                                     lambda obs, act, k=k: lr.agent.q_value(obs, act, k),
+                                     lr.cfg.env_id, lr.cfg.bias_rollouts, lr.algo.gamma,
+                                     bias_seed(lr.algo.seed, point_index), lr.cfg.env_kwargs,
+                                     horizon=lr.cfg.bias_horizon)
+        except Exception:  # a diagnostic never stops the training
+            log.exception("bias measurement at %d failed (actor %d)", point, k)
+            continue
+        lr.bias_writer.write({"env_steps": lr.env_steps, "iterations": lr.iterations, "point": point,
+                                "updates": lr.agent.updates, "live": list(live),
+                                "rollouts": lr.cfg.bias_rollouts, "bias": {"actor": k, **result}})
+    log.info("bias at %d transitions measured in %.1f s", lr.env_steps, time.monotonic() - started)
+

@@ -1,0 +1,160 @@
+"""The learner's outgoing messages: weights, the referee's snapshots, stats, config, done, and
+what is re-sent to a role that may have missed it (services/roles/learner.py).
+
+Weights go out when they change, every live actor on its latest-value key; the versions the
+slots act with in the next B+1 iterations are kept for a re-send. The referee's snapshots go
+once per version an evaluation judges (`snapshot_versions`), on a reliable key, and are kept
+until the referee reports the evaluations that judge them done (its role stats' `events`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import TYPE_CHECKING
+
+from services.messaging import bus, keys
+from services.messaging.codec import Done, LearnerStats, MessageError, Weights, decode, encode
+from services.roles.lockstep import snapshot_versions
+
+if TYPE_CHECKING:
+    from services.roles.learner import Learner
+
+log = logging.getLogger("mam.learner")
+
+# After done: how long to wait for a referee that is gone (a restart: `mam run`'s backoff is up to
+# 15 s, and a referee starting on a loaded box took more than 20 s in the chaos test) ...
+REFEREE_GRACE_S = 60.0
+REFEREE_WAIT_S = 240.0  # ... and at most, in all, for its final evaluation
+
+
+class Outbox:
+    def __init__(self, learner: Learner) -> None:
+        self.learner = learner
+        run, s, k = learner.cfg.run, learner.session, learner.algo.actors
+        self.config_pub = bus.declare_latest_publisher(s, keys.config(run), drop=True)  # heartbeats: never block
+        self.weights_pubs = [bus.declare_latest_publisher(s, keys.weights(run, a)) for a in range(k)]
+        self.stats_pub = bus.declare_latest_publisher(s, keys.learner_stats(run), drop=True)  # 10 Hz, latest only
+        self.done_pub = bus.declare_latest_publisher(s, keys.done(run))
+        self.snapshot_pubs = [bus.declare_reliable_publisher(s, keys.eval_weights(run, a)) for a in range(k)]
+        self.recent_weights: dict[int, list[tuple[int, bytes]]] = {}  # version -> (actor, message)
+        self.snapshots: dict[int, list[tuple[int, bytes]]] = {}
+        self.referee_events = 0  # evaluations the referee reports done
+        self.seq = 0
+
+    def next_seq(self) -> int:
+        self.seq += 1
+        return self.seq
+
+    def weights_message(self, k: int) -> bytes:
+        lr = self.learner
+        return Weights(k, lr.agent.versions[k], lr.agent.actor_params(k), lr.spec.obs_dim, lr.spec.act_dim,
+                       max(lr.spec.max_action), tuple(lr.algo.hidden), lr.incarnation).to_bytes(lr.id, self.next_seq())
+
+    def weights(self, all_actors: bool = False) -> None:
+        """The live actors' weights (all with `all_actors`), kept while a slot may act with them."""
+        lr, plan = self.learner, self.learner.plan
+        msgs = []
+        for k, alive in enumerate(lr.agent.live_actors):
+            if alive or all_actors:
+                msg = self.weights_message(k)
+                self.weights_pubs[k].put(msg)
+                msgs.append((k, msg))
+        self.recent_weights[plan.version_after(lr.iteration)] = msgs
+        needed = plan.version_for(min(lr.iteration + 1, plan.iterations))
+        for old in [v for v in self.recent_weights if v < needed]:
+            del self.recent_weights[old]
+
+    def snapshots_after(self, index: int) -> None:
+        """The versions the referee's next evaluations judge, once each (`snapshot_versions`)."""
+        lr = self.learner
+        for version in sorted(snapshot_versions(lr.plan, index) - set(self.snapshots)):
+            self.snapshots[version] = [(k, self.weights_message(k)) for k, alive in enumerate(lr.agent.live_actors)
+                                       if alive]
+            for k, msg in self.snapshots[version]:
+                self.snapshot_pubs[k].put(msg)
+
+    def resend(self) -> None:
+        """Once more what a late role may have missed: the weights of the versions the slots act
+        with next, and the snapshots of the evaluations the referee has not reported done.
+        Versions a role holds are not loaded again, so this changes nothing for a role that had them."""
+        plan = self.learner.plan
+        for version in sorted(self.recent_weights):
+            for k, msg in self.recent_weights[version]:
+                self.weights_pubs[k].put(msg)
+        for item in self.learner.referee_reports.snapshot().values():
+            try:
+                self.referee_events = max(self.referee_events, int(decode(item.payload).get("events", 0)))
+            except (MessageError, TypeError, ValueError):
+                continue
+        pending = {plan.judged_version(i, purpose) for i, purpose in plan.events()[self.referee_events:]}
+        for version in sorted(pending & set(self.snapshots)):
+            for k, msg in self.snapshots[version]:
+                self.snapshot_pubs[k].put(msg)
+        for old in [v for v in self.snapshots if v < min(pending, default=0)]:
+            del self.snapshots[old]
+
+    def config(self) -> None:
+        lr = self.learner
+        self.config_pub.put(encode("config", {"config": lr.cfg.to_dict()}, sender=lr.id, seq=self.next_seq()))
+
+    def stats(self, done: bool = False) -> None:
+        self.stats_pub.put(self.learner_stats(done).to_bytes(self.learner.id, self.next_seq()))
+
+    def done(self, msg: bytes) -> None:
+        self.done_pub.put(msg)
+
+    def learner_stats(self, done: bool = False) -> LearnerStats:
+        lr, now = self.learner, time.monotonic()
+        losses = {k.split("/", 1)[1]: v for k, v in lr.metrics.items() if k.startswith("loss/")}
+        q_means = [lr.metrics.get(f"q/actor{k}", float("nan")) for k in range(lr.algo.actors)]
+        return LearnerStats(
+            env_steps=lr.env_steps, updates=lr.agent.updates, accept_until=lr.schedule.budget,
+            utd=lr.utd(), losses=losses, q_means=tuple(q_means), versions=tuple(lr.agent.versions),
+            per_worker=lr.intake.counters(now, lr.acked), rejected=lr.rejected(), done=done,
+            live=tuple(lr.agent.live_actors), workers=max(len(lr.workers.live()), lr.intake.active(now)),
+            steps=lr.schedule.budget, incarnation=lr.incarnation, exact=not lr.inexact,
+            iteration=lr.iteration, inexact=lr.inexact, awaiting=lr.awaiting,
+            slots_next=tuple(lr.stage.end) if lr.stage is not None else ())
+
+    def wait_for_referee(self, msg: Done) -> None:
+        """Stay up (repeating done) until the referee has written its final evaluation.
+
+        A referee that dies now is restarted (`mam run`) and needs this learner's config,
+        done notice and snapshots. Waits while a referee was seen during the run and has not
+        reported `final`: up to REFEREE_GRACE_S without any referee alive, and at most
+        REFEREE_WAIT_S in all.
+        """
+        lr = self.learner
+        if not lr.referee_seen:
+            return
+        deadline = time.monotonic() + REFEREE_WAIT_S
+        gone_since: float | None = None
+        last_put = 0.0
+        while time.monotonic() < deadline and not lr.stop_requested:
+            if any(self._is_final(item) for item in lr.referee_reports.snapshot().values()):
+                return
+            now = time.monotonic()
+            if lr.referees.live():
+                gone_since = None
+            elif gone_since is None:
+                gone_since = now
+            elif now - gone_since > REFEREE_GRACE_S:
+                log.warning("no referee for %.0f s after done: not waiting for its final evaluation",
+                            REFEREE_GRACE_S)
+                return
+            if now - last_put >= 1.0:  # a restarted referee needs these (the caches serve them too)
+                self.done(msg.to_bytes(lr.id, self.next_seq()))
+                self.stats(done=True)
+                self.config()
+                self.resend()
+                last_put = now
+            time.sleep(0.1)
+        log.warning("the referee did not report its final evaluation within %.0f s", REFEREE_WAIT_S)
+
+    @staticmethod
+    def _is_final(item: bus.Received) -> bool:
+        try:
+            return decode(item.payload).get("final") is True
+        except MessageError:
+            return False
