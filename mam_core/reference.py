@@ -27,7 +27,7 @@ from mam_core.obsolescence import competition_returns, obsolescence_for
 from mam_core.policy import NumpyActors
 from mam_core.replay import ReplayBuffer
 from mam_core.seeding import evaluation_seed, stream
-from mam_core.slot import SlotStreams, explore, uniform
+from mam_core.slot import SlotStreams, act, uniform
 
 
 @dataclass
@@ -62,7 +62,7 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
                           cfg.seed)
     state = obsolescence_for(cfg, steps)
     rng = stream(cfg.seed, "allocation")
-    actors = NumpyActors(cfg.actors, spec, cfg.hidden)  # what the workers and the referee act with
+    actors = NumpyActors(cfg.actors, spec, cfg.hidden, cfg.stochastic)  # what workers and the referee act with
     for k in range(cfg.actors):
         actors.load_member(k, agent.actor_params(k))
     max_action = np.asarray(spec.max_action, np.float32)
@@ -109,7 +109,7 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
         for i in it.slots:
             k = allocation[i]
             action = uniform(envs[i]) if it.random else \
-                explore(actors.policy(k), obs[i], streams[i].noise, cfg.explore_noise, max_action)
+                act(actors.policy(k), obs[i], streams[i].noise, cfg, max_action)
             next_obs, reward, terminated, truncated, _ = envs[i].step(action)
             next_obs = np.asarray(next_obs, np.float32)
             rows.append((obs[i], action, float(reward), next_obs, bool(terminated), k,

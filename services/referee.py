@@ -48,7 +48,7 @@ class Referee:
         self.id = f"{socket.gethostname()}-{os.getpid()}"
         self.rejects = bus.RejectLog(log, "message")
         self.spec = EnvSpec.from_env_id(cfg.env_id, cfg.env_kwargs)
-        self.follower = role.WeightsFollower(self.algo.actors, self.spec, self.algo.hidden, self.rejects)
+        self.follower = role.WeightsFollower.for_algo(self.algo, self.spec, self.rejects)
         self.actors = self.follower.actors  # acting only: no torch
         self.versions = self.follower.versions
         self.schedule: Obsolescence = obsolescence_for(self.algo, cfg.steps)  # counts schedule steps (units)
@@ -154,7 +154,7 @@ class Referee:
         stopped; False when it stopped being exact (the caller goes on asynchronously)."""
         plan = self.plan
         history = WeightsHistory(self.algo.actors)
-        scratch = NumpyActors(self.algo.actors, self.spec, self.algo.hidden)
+        scratch = NumpyActors(self.algo.actors, self.spec, self.algo.hidden, self.algo.stochastic)
         self.exact_decision: tuple[int, dict[str, int]] | None = None
         self.publish_exact_allocation(0, "initial", None)
         for index, purpose in plan.events():

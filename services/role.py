@@ -171,13 +171,19 @@ class WeightsFollower:
     and versions implausibly far ahead of the learner's stats are rejected and counted.
     """
 
-    def __init__(self, n_actors: int, spec: Any, hidden: tuple[int, ...], rejects: bus.RejectLog) -> None:
-        self.actors = NumpyActors(n_actors, spec, hidden)
+    def __init__(self, n_actors: int, spec: Any, hidden: tuple[int, ...], rejects: bus.RejectLog,
+                 gaussian: bool = False) -> None:
+        self.actors = NumpyActors(n_actors, spec, hidden, gaussian)  # gaussian: SAC's actors (mean and log σ heads)
         self.shapes = self.actors.shapes
         self.n_actors = n_actors
         self.versions = [-1] * n_actors  # -1: no weights yet
         self.incarnations = [""] * n_actors  # the learner incarnation each copy came from
         self.rejects = rejects
+
+    @classmethod
+    def for_algo(cls, algo: Any, spec: Any, rejects: bus.RejectLog) -> "WeightsFollower":
+        """The follower of a run's K actors (an `AlgoConfig`): SAC's with their mean and log σ heads."""
+        return cls(algo.actors, spec, algo.hidden, rejects, algo.stochastic)
 
     def admits(self, item: bus.Received) -> bool:
         """The subscription's screen (`bus.Latest(screen=...)`): a message that does not decode

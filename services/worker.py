@@ -27,7 +27,7 @@ from mam_core.algorithm1 import Algorithm1
 from mam_core.envs import make_env  # registers AppleCollect-v0; imports `module:EnvId` modules
 from mam_core.policy import EnvSpec
 from mam_core.schedule import Schedule
-from mam_core.slot import SlotStreams, explore, uniform
+from mam_core.slot import SlotStreams, act, uniform
 from services import bus, keys, options, role, rundir
 from services.codec import Allocation, LearnerStats, MessageError, TransitionBatch
 from services.options import RunConfig, write_json
@@ -86,7 +86,7 @@ class Worker:
         self.batch_log = None
         # numpy forwards, no torch in a worker: a one-row torch forward costs ~100 µs of dispatch
         # between env steps, this ~14 µs, and importing torch ~3 s and ~180 MB (docs/PERFORMANCE.md)
-        self.follower = role.WeightsFollower(self.algo.actors, self.spec, self.algo.hidden, self.rejects)
+        self.follower = role.WeightsFollower.for_algo(self.algo, self.spec, self.rejects)
         self.actors = self.follower.actors
         self.policies = [self.actors.policy(k) for k in range(self.algo.actors)]
         self.versions = self.follower.versions  # -1: no weights yet
@@ -377,7 +377,7 @@ class Worker:
             action, actor, version = uniform(self.env), self.actor, -1
         else:
             actor, version = self.actor, self.versions[self.actor]
-            action = explore(self.policies[actor], self.obs, self.rng, self.algo.explore_noise, self.max_action)
+            action = act(self.policies[actor], self.obs, self.rng, self.algo, self.max_action)
         policy_from = self.follower.incarnations[actor] if version >= 0 else ""
         if self.p_n and (actor != self.p_actor or version != self.p_version or policy_from != self.p_from):
             self.flush()  # a batch carries one actor and one policy version (of one learner incarnation)
