@@ -38,7 +38,7 @@ def test_toml_file_then_flags(tmp_path: Path):
 @pytest.mark.parametrize("cli, message", [
     ({"env": "Nope-v0", "steps": 10}, "Nope"),
     ({"env": "AppleCollect-v0"}, "--steps"),
-    ({"env": "AppleCollect-v0", "steps": 10, "algo": "sac"}, "--algo"),
+    ({"env": "AppleCollect-v0", "steps": 10, "algo": "ppo"}, "--algo"),
     ({"env": "AppleCollect-v0", "steps": 10, "eta": 1.5}, "eta"),
     ({"env": "AppleCollect-v0", "steps": 10, "run": "a/b"}, "run name"),
     ({"steps": 10}, "--env"),
