@@ -93,7 +93,9 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
          "registers the env when imported; it must import on every host)", target=RUN, aliases=("env_id",)),
     _opt("env_kwargs", str, 'JSON object of keyword arguments for gym.make, e.g. \'{"ctrl_cost_weight": 0.05}\' '
          "(in TOML: a table)", target=RUN),
-    _opt("algo", str, f"one of {', '.join(ALGOS)}"),
+    _opt("algo", str, f"one of {', '.join(ALGOS)}; defaults: the paper's Table 3 (TD3 family) and Table 1 (DDPG "
+         "family); sac and ma-sac: SAC v2 (Haarnoja et al. 2018: lr 3e-4, batch 256, 256x256, τ 0.005, d = 1, "
+         "α tuned towards entropy −|A|) with MA-TD3's K, M, C, A, η for ma-sac"),
     _opt("steps", int, "budget in schedule steps: iterations (--schedule paper) or transitions (equal-data)",
          symbol="T", target=RUN),
     _opt("actors", int, "number of actors", symbol="K"),
