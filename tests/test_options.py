@@ -171,7 +171,7 @@ def test_help_snapshot_every_option_in_a_panel_with_its_default_at_80_columns():
         assert any(flag in b for b in blocks.values()), flag
     assert "…" not in " ".join(f for b in blocks.values() for f in b)  # no flag cut short
     algorithm = blocks["Algorithm (the paper's symbols)"]
-    assert "[default: ma-td3: 2; td3, ddpg: 1; ma-ddpg: 3]" in algorithm["--actors"]
+    assert "[default: ma-td3, ma-sac: 2; td3, ddpg, sac: 1; ma-ddpg: 3]" in algorithm["--actors"]
     assert algorithm["--eliminate-at"].startswith("--eliminate-at <int> [C] ")
 
 
