@@ -255,6 +255,33 @@ def test_fixed_alpha_stays_and_the_elimination_freezes_temperatures():
     assert agent.versions == [versions[0], versions[1] + 10, versions[2]]
 
 
+@pytest.mark.parametrize("after, moving_critics, eta", [
+    ("frozen", [2, 3], 0.1),  # only the survivor's critics train; the others serve Eq. 9 frozen
+    ("train-critics", [0, 1, 2, 3, 4, 5], 0.1),  # every critic keeps training on its own soft target
+    ("no-weighting", [2, 3], 0.0),  # the survivor's target becomes SAC's
+])
+def test_after_elimination_variants_work_as_for_ma_td3(after, moving_critics, eta):
+    spec = EnvSpec(4, 2, (1.0, 1.0))
+    agent = MultiActorAgent(resolve("ma-sac", actors=3, after_elimination=after, **SMALL), spec)
+    g = torch.Generator().manual_seed(4)
+
+    def batch():
+        return {"obs": torch.randn(3, 16, 4, generator=g), "action": torch.rand(3, 16, 2, generator=g) * 2 - 1,
+                "reward": torch.randn(3, 16, generator=g), "next_obs": torch.randn(3, 16, 4, generator=g),
+                "not_done": torch.ones(3, 16)}
+
+    for _ in range(3):
+        agent.update(batch())
+    agent.eliminate(1)
+    critic, log_alpha = agent.critic.net.weights[0].detach().clone(), agent.log_alpha.detach().clone()
+    for _ in range(5):
+        agent.update(batch())
+    moved = [i for i in range(6) if not torch.equal(critic[i], agent.critic.net.weights[0][i].detach())]
+    assert moved == moving_critics and agent.eta == eta
+    changed = (agent.log_alpha.detach() != log_alpha).tolist()
+    assert changed == [False, True, False]  # in every variant only the survivor's temperature moves
+
+
 def test_checkpoint_round_trip_continues_identically(tmp_path: Path):
     spec = EnvSpec(4, 2, (1.0, 1.0))
     cfg = resolve("ma-sac", **SMALL, seed=5)
