@@ -354,7 +354,7 @@ def test_ddpg_ablations_that_change_nothing_are_not_run_twice():
 
 def test_grid_errors():
     ok = dict(envs="Hopper-v5", algos="td3", steps=100)
-    for bad in (dict(algos="sac"), dict(envs=""), dict(steps=0), dict(steps=None), dict(ablations="no-xy"),
+    for bad in (dict(algos="ppo"), dict(envs=""), dict(steps=0), dict(steps=None), dict(ablations="no-xy"),
                 dict(etas="1.5"), dict(seeds="a"), dict(flags={"bogus": 1}), dict(flags={"seed": 3}),
                 dict(algos="td3,td3")):
         with pytest.raises(GridError):
