@@ -886,7 +886,7 @@ algo = "ma-td3"
 def test_named_variant_errors(tmp_path):
     base = 'envs = ["Hopper-v5"]\nsteps = 100\n'
     for body, match in (('[variant.x]\neliminate-at = 5\n', "algo"),
-                        ('[variant.x]\nalgo = "sac"\n', "algo"),
+                        ('[variant.x]\nalgo = "ppo"\n', "algo"),
                         ('[variant.x]\nalgo = "ma-td3"\nbogus = 1\n', "bogus"),
                         ('[variant."a b"]\nalgo = "td3"\n', "variant name"),
                         ('algos = ["td3"]\n[variant.td3]\nalgo = "td3"\nbatch-size = 8\n', "already"),
