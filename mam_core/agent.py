@@ -1,14 +1,18 @@
-"""The multi-actor update step: MA-TD3, MA-DDPG, TD3 and DDPG on one code path.
+"""The multi-actor update step: MA-TD3, MA-DDPG, MA-SAC, TD3, DDPG and SAC on one code path.
 
 K actors and n·K critics live in batched ensembles. One `update()` is one critic step for
 every live actor's critics (Eq. 5 with the Eq. 9 target) and, every d steps, one actor step
 (Eq. 7) followed by the soft target update (Eq. 4). TD3 is K=1, n=2; DDPG is K=1, n=1.
+SAC (K=1, n=2, d=1) and MA-SAC have squashed-Gaussian actors, no target actor, and Eq. 9 on
+soft values Q'_ji(s', ã_j) − α_j·log π_j(ã_j|s') with ã_j ~ π_j(·|s'); each actor k has its own
+temperature α_k (docs/DESIGN-DECISIONS.md, "MA-SAC").
 """
 
 from __future__ import annotations
 
 import copy
 import ctypes
+import math
 import sys
 from typing import Any
 
@@ -17,7 +21,7 @@ import torch
 
 from mam_core.accel import for_device
 from mam_core.config import AlgoConfig
-from mam_core.ensemble import ActorEnsemble, CriticEnsemble, soft_update
+from mam_core.ensemble import ActorEnsemble, CriticEnsemble, GaussianActorEnsemble, soft_update
 from mam_core.policy import EnvSpec  # noqa: F401  (re-exported: EnvSpec lives with the torch-free code)
 
 
@@ -53,6 +57,14 @@ def weighted_target_per_batch(q_next: torch.Tensor, eta: float, owners: torch.Te
     return (1.0 - eta) * own + (eta / (n * (k - 1))) * others
 
 
+def soft_values(q_next: torch.Tensor, entropy: torch.Tensor | None) -> torch.Tensor:
+    """SAC's soft values for Eq. 9: Q'_ji(s', ã_j) − α_j·log π_j(ã_j|s') for every critic i of actor
+    j; q_next [K, n, ...], entropy (α_j·log π_j) [K, ...] or None (TD3/DDPG: q_next as it is).
+    Subtracting before the weighting makes each term of Eq. 9 the soft value of its own actor:
+    min_i (Q'_ki − α_k·log π_k) = min_i Q'_ki − α_k·log π_k (docs/DESIGN-DECISIONS.md, "MA-SAC")."""
+    return q_next if entropy is None else q_next - entropy.unsqueeze(1)
+
+
 def critic_target(reward: torch.Tensor, not_done: torch.Tensor, q_next: torch.Tensor,
                   gamma: float, eta: float) -> torch.Tensor:
     """y_k = r + γ(1−d)·weighted_target: reward/not_done [B] (or [K, B], one batch per actor),
@@ -73,6 +85,22 @@ def critic_loss(q: torch.Tensor, y: torch.Tensor, live: torch.Tensor) -> torch.T
 def actor_loss(q1: torch.Tensor, live: torch.Tensor) -> torch.Tensor:
     """Eq. 7: actor k ascends Q_k1(s, π_k(s)); q1 [K, B], live [K] -> scalar (summed over k)."""
     return (-q1.mean(dim=-1) * live).sum()
+
+
+def soft_actor_loss(q: torch.Tensor, log_prob: torch.Tensor, alpha: torch.Tensor, live: torch.Tensor) -> torch.Tensor:
+    """SAC's Eq. 7: actor k minimises E[α_k·log π_k(a|s) − min_i Q_ki(s, a)], a ~ π_k(·|s);
+    q [K, n, B] of a, log_prob [K, B], alpha [K] (no gradient), live [K] -> scalar (summed over k)."""
+    per_actor = (alpha.unsqueeze(-1) * log_prob - q.min(dim=1).values).mean(dim=-1)
+    return (per_actor * live).sum()
+
+
+def temperature_loss(log_alpha: torch.Tensor, log_prob: torch.Tensor, target_entropy: float,
+                     live: torch.Tensor) -> torch.Tensor:
+    """SAC v2's temperature objective per actor, −log α_k·(log π_k(a|s) + H̄) averaged over the
+    batch (log π without gradient, H̄ = −|A|): α_k falls while π_k's entropy is above H̄ and rises
+    below it. log_alpha [K], log_prob [K, B], live [K] -> scalar (frozen actors contribute 0)."""
+    per_actor = -(log_alpha * (log_prob.detach() + target_entropy).mean(dim=-1))
+    return (per_actor * live).sum()
 
 
 def adam_step(opt: torch.optim.Optimizer, loss: torch.Tensor, params: list[torch.Tensor]) -> None:
@@ -150,13 +178,16 @@ class MultiActorAgent:
         self.eta = cfg.effective_eta
         k, n = cfg.actors, cfg.critics_per_actor
         gen = torch.Generator().manual_seed(cfg.seed)
-        self.actor = ActorEnsemble(k, spec.obs_dim, spec.act_dim, cfg.hidden, np.array(spec.max_action), gen)
+        self.stochastic = cfg.stochastic  # SAC family: squashed-Gaussian actors, no target actor
+        actors = GaussianActorEnsemble if self.stochastic else ActorEnsemble
+        self.actor = actors(k, spec.obs_dim, spec.act_dim, cfg.hidden, np.array(spec.max_action), gen)
         self.critic = CriticEnsemble(k, n, spec.obs_dim, spec.act_dim, cfg.hidden, gen)
         self.actor.to(self.device)
         self.critic.to(self.device)
         if cfg.precision == "bf16":  # mixed precision; the targets (deep copies) inherit it
             self.actor.net.low_precision = self.critic.net.low_precision = torch.bfloat16
-        self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
+        # SAC has no target actor: ã_j is sampled from the current π_j (Eq. 9 on soft values).
+        self.actor_target = None if self.stochastic else copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         self.actor_params_list = list(self.actor.parameters())
         self.critic_params_list = list(self.critic.parameters())
@@ -165,6 +196,13 @@ class MultiActorAgent:
         self.actor_opt = torch.optim.Adam(self.actor_params_list, **adam)
         self.critic_opt = torch.optim.Adam(self.critic_params_list, **adam)
         self.noise_gen = torch.Generator(device=self.device).manual_seed(cfg.seed + 1)
+        # SAC: log α_k per actor, learned from α = 1 towards the target entropy −|A| (SAC v2), or fixed.
+        fixed = cfg.alpha is not None
+        self.tune_alpha = self.stochastic and not fixed
+        self.target_entropy = -float(spec.act_dim)
+        self.log_alpha = torch.full((k,), math.log(cfg.alpha) if fixed else 0.0, device=self.device,
+                                    requires_grad=self.tune_alpha)
+        self.alpha_opt = torch.optim.Adam([self.log_alpha], **adam) if self.tune_alpha else None
         self.max_action = self.actor.max_action
         self.first_critics = torch.arange(k, device=self.device) * n
         self._first_critics = slice(0, k * n, n)  # the same members as a view: no weight copy
@@ -220,19 +258,62 @@ class MultiActorAgent:
 
     def update_actors(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
         """Algorithm 1, lines 21-24: actor k follows its first critic Q_k1 (Eq. 7), then the
-        soft target update (Eq. 4); eliminated members and their targets stay frozen."""
-        pi = self.actor(batch["obs"])
-        q1 = self.critic(batch["obs"], pi, members=self._first_critics)
-        loss_pi = actor_loss(q1, self.live)
-        adam_step(self.actor_opt, loss_pi, self.actor_params_list)  # actor params only
+        soft target update (Eq. 4); eliminated members and their targets stay frozen. SAC: actor
+        k follows min_i Q_ki with its entropy bonus, then α_k steps (`_update_soft_actors`)."""
+        if self.stochastic:
+            metrics = self._update_soft_actors(batch["obs"])
+        else:
+            pi = self.actor(batch["obs"])
+            q1 = self.critic(batch["obs"], pi, members=self._first_critics)
+            loss_pi = actor_loss(q1, self.live)
+            adam_step(self.actor_opt, loss_pi, self.actor_params_list)  # actor params only
+            per_actor = torch.cat([loss_pi.detach().reshape(1), -q1.detach().mean(dim=-1) * self.live]).tolist()
+            metrics = {"loss/actor": per_actor[0], **{f"loss/actor{j}": v for j, v in enumerate(per_actor[1:])}}
         self.actor_updates += 1
         for j, alive in enumerate(self._live_flags):  # a Python list: no device sync
             if alive:
                 self.versions[j] += 1
-        soft_update(self.actor_target, self.actor, self._tau_actor)
+        if self.actor_target is not None:
+            soft_update(self.actor_target, self.actor, self._tau_actor)
         soft_update(self.critic_target, self.critic, self._tau_critic)
-        per_actor = torch.cat([loss_pi.detach().reshape(1), -q1.detach().mean(dim=-1) * self.live]).tolist()
-        return {"loss/actor": per_actor[0], **{f"loss/actor{j}": v for j, v in enumerate(per_actor[1:])}}
+        return metrics
+
+    def _update_soft_actors(self, obs: torch.Tensor) -> dict[str, float]:
+        """SAC's actor phase: a ~ π_k(·|s) (reparameterised), actor k descends
+        E[α_k·log π_k(a|s) − min_i Q_ki(s, a)], then log α_k descends the temperature loss with the
+        same log π (as SAC v2's code does). Eliminated actors and their α_k stay frozen (masked)."""
+        k, n = self.cfg.actors, self.cfg.critics_per_actor
+        action, log_prob = self.actor.sample(obs, self._gaussian_noise(k, obs.shape[-2]))
+        critic_obs = obs.repeat_interleave(n, dim=0) if obs.dim() == 3 else obs
+        q = self.critic(critic_obs, self.critic.per_actor_actions(action)).view(k, n, -1)
+        loss_pi = soft_actor_loss(q, log_prob, self.alpha, self.live)
+        adam_step(self.actor_opt, loss_pi, self.actor_params_list)  # actor params only
+        out = {"loss/actor": float(loss_pi.detach())}
+        if self.alpha_opt is not None:
+            loss_alpha = temperature_loss(self.log_alpha, log_prob, self.target_entropy, self.live)
+            adam_step(self.alpha_opt, loss_alpha, [self.log_alpha])
+            out["loss/alpha"] = float(loss_alpha.detach())
+        out.update({f"alpha/actor{j}": a for j, a in enumerate(self.alpha.tolist())})
+        return out
+
+    @property
+    def alpha(self) -> torch.Tensor:
+        """The temperatures α_k [K] (no gradient)."""
+        return self.log_alpha.detach().exp()
+
+    def _gaussian_noise(self, k: int, rows: int) -> torch.Tensor:
+        """ε ~ N(0, I) [K, rows, A] from the agent's seeded stream (SAC's reparameterised draws)."""
+        return torch.randn((k, rows, self.spec.act_dim), generator=self.noise_gen, device=self.device)
+
+    def _next_actions(self, next_obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """ã_j of Eq. 9 for every actor j on `next_obs` ([rows, obs_dim] or [K, rows, obs_dim]):
+        TD3/DDPG: the target actors' (smoothed) actions, and None; SAC: ã_j ~ π_j(·|s') from the
+        current actors and α_j·log π_j(ã_j|s') [K, rows], the entropy term of the soft values."""
+        if not self.stochastic:
+            return self._smoothed(self.actor_target(next_obs)), None
+        k = self.cfg.actors
+        action, log_prob = self.actor.sample(next_obs, self._gaussian_noise(k, next_obs.shape[-2]))
+        return action, self.alpha.unsqueeze(-1) * log_prob
 
     def _smoothed(self, action: torch.Tensor) -> torch.Tensor:
         """Target policy smoothing: ã = clip(π'(s') + clip(N(0, σ̃), ±c), ±max_action)."""
@@ -248,15 +329,15 @@ class MultiActorAgent:
         """Eq. 9 targets y [K, B], one per actor (on its own batch when `per_actor`)."""
         cfg, k, n = self.cfg, self.cfg.actors, self.cfg.critics_per_actor
         if not per_actor:
-            next_action = self._smoothed(self.actor_target(next_obs))  # [K, B, A]
+            next_action, entropy = self._next_actions(next_obs)  # [K, B, A]
             q_next = self.critic_target(next_obs, self.critic.per_actor_actions(next_action))
-            return critic_target(reward, not_done, q_next.view(k, n, -1), cfg.gamma, self.eta)
+            return critic_target(reward, not_done, soft_values(q_next.view(k, n, -1), entropy), cfg.gamma, self.eta)
         b = next_obs.shape[1]
         if self.eta == 0.0:  # each actor's own critics on its own batch only
-            next_action = self._smoothed(self.actor_target(next_obs))  # actor k on batch k: [K, B, A]
+            next_action, entropy = self._next_actions(next_obs)  # actor k on batch k: [K, B, A]
             q_next = self.critic_target(next_obs.repeat_interleave(n, dim=0),
                                         self.critic.per_actor_actions(next_action))
-            return critic_target(reward, not_done, q_next.view(k, n, -1), cfg.gamma, 0.0)
+            return critic_target(reward, not_done, soft_values(q_next.view(k, n, -1), entropy), cfg.gamma, 0.0)
         # Eq. 9 needs every critic j on actor k's next states with actor j's target action there:
         # K·n critics on K·B rows. Only the batches of actors whose critics still train count
         # (after the elimination, usually the survivor's alone): the others' targets stay 0,
@@ -265,9 +346,10 @@ class MultiActorAgent:
         owners = len(index)
         rows = next_obs if owners == k else next_obs.index_select(0, index)
         flat = rows.reshape(owners * b, -1)
-        next_action = self._smoothed(self.actor_target(flat))  # actor j on the L batches: [K, L·B, A]
+        next_action, entropy = self._next_actions(flat)  # actor j on the L batches: [K, L·B, A]
         q_next = self.critic_target(flat, self.critic.per_actor_actions(next_action))  # [K·n, L·B]
-        weighted = weighted_target_per_batch(q_next.view(k, n, owners, b), self.eta, index)
+        q_next = soft_values(q_next.view(k, n, owners, b), None if entropy is None else entropy.view(k, owners, b))
+        weighted = weighted_target_per_batch(q_next, self.eta, index)
         if owners == k:
             return reward + cfg.gamma * not_done * weighted
         y = torch.zeros_like(reward)
@@ -314,7 +396,10 @@ class MultiActorAgent:
         self._tau_critic.copy_(self.critic_live.repeat_interleave(n).view(k * n, 1, 1) * self.cfg.tau)
         frozen_actor = self.live == 0
         frozen_critic = (self.critic_live == 0).repeat_interleave(n)
-        for opt, mask in ((self.actor_opt, frozen_actor), (self.critic_opt, frozen_critic)):
+        optimizers = [(self.actor_opt, frozen_actor), (self.critic_opt, frozen_critic)]
+        if self.alpha_opt is not None:  # an eliminated actor's temperature freezes with it
+            optimizers.append((self.alpha_opt, frozen_actor))
+        for opt, mask in optimizers:
             for group in opt.param_groups:
                 for p in group["params"]:
                     state = opt.state.get(p, {})
@@ -350,22 +435,35 @@ class MultiActorAgent:
 
     # -- checkpoints (tensors and plain containers only: loadable with weights_only=True) ----
     def state_dict(self) -> dict[str, Any]:
-        return {
+        state = {
             "actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
-            "actor_target": self.actor_target.state_dict(), "critic_target": self.critic_target.state_dict(),
+            "critic_target": self.critic_target.state_dict(),
             "actor_opt": self.actor_opt.state_dict(), "critic_opt": self.critic_opt.state_dict(),
             "noise_gen": self.noise_gen.get_state(),
             "live": self.live.clone(), "updates": self.updates, "actor_updates": self.actor_updates,
             "versions": list(self.versions),
         }
+        if self.actor_target is not None:
+            state["actor_target"] = self.actor_target.state_dict()
+        if self.stochastic:
+            state["log_alpha"] = self.log_alpha.detach().clone()
+        if self.alpha_opt is not None:
+            state["alpha_opt"] = self.alpha_opt.state_dict()
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.actor.load_state_dict(state["actor"])
         self.critic.load_state_dict(state["critic"])
-        self.actor_target.load_state_dict(state["actor_target"])
+        if self.actor_target is not None:
+            self.actor_target.load_state_dict(state["actor_target"])
         self.critic_target.load_state_dict(state["critic_target"])
         self.actor_opt.load_state_dict(state["actor_opt"])
         self.critic_opt.load_state_dict(state["critic_opt"])
+        if self.stochastic:
+            with torch.no_grad():
+                self.log_alpha.copy_(state["log_alpha"])
+        if self.alpha_opt is not None:
+            self.alpha_opt.load_state_dict(state["alpha_opt"])
         self.noise_gen.set_state(state["noise_gen"])
         live = state["live"].to(self.device)
         self.updates = int(state["updates"])

@@ -1,8 +1,9 @@
-"""Hyperparameters of MA-TD3 / MA-DDPG / TD3 / DDPG with the paper's defaults.
+"""Hyperparameters of MA-TD3 / MA-DDPG / MA-SAC / TD3 / DDPG / SAC with the paper's defaults.
 
 One flat, frozen dataclass (paper symbols in the help text). `defaults_for(algo)` gives
-Table 3 (TD3 family) or Table 1 (DDPG family); `resolve(algo, **overrides)` applies
-user flags on top and checks them.
+Table 3 (TD3 family), Table 1 (DDPG family), or SAC v2's hyperparameters (Haarnoja et al. 2018,
+"Soft Actor-Critic Algorithms and Applications", Table 1) with Table 3's mechanism (SAC family);
+`resolve(algo, **overrides)` applies user flags on top and checks them.
 """
 
 from __future__ import annotations
@@ -12,7 +13,8 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-ALGOS = ("ma-td3", "td3", "ma-ddpg", "ddpg")
+ALGOS = ("ma-td3", "td3", "ma-ddpg", "ddpg", "ma-sac", "sac")
+SAC_FAMILY = ("ma-sac", "sac")  # squashed-Gaussian actors, soft values, a temperature α_k per actor
 PRECISIONS = ("fp32", "bf16")
 SCHEDULES = ("paper", "equal-data")  # mam_core.schedule
 AFTER_ELIMINATION = ("frozen", "train-critics", "no-weighting")
@@ -36,6 +38,7 @@ class AlgoConfig:
     noise_clip: float = 0.5  # c: clip of the smoothing noise, times max_action
     target_smoothing: bool = True  # TD3's target policy smoothing; off for DDPG
     policy_delay: int = 2  # d: actor and target updates every d critic updates
+    alpha: float | None = None  # α: a fixed SAC temperature; None: α_k tuned per actor towards entropy −|A|
     start_steps: int = 25_000  # transitions collected with uniform random actions first
     hidden: tuple[int, ...] = (256, 256)
     buffer_size: int = 1_000_000
@@ -59,6 +62,11 @@ class AlgoConfig:
     def single_env(self) -> bool:
         """After the elimination the survivor runs one environment slot (I_e = 1)."""
         return self.single_env_after_elimination or self.schedule == "paper"
+
+    @property
+    def stochastic(self) -> bool:
+        """SAC family: squashed-Gaussian actors, sampled actions, no target actor, no exploration noise."""
+        return self.algo in SAC_FAMILY
 
     @property
     def effective_eta(self) -> float:
@@ -91,11 +99,18 @@ _DDPG_FAMILY = dict(
     critics_per_actor=1, target_smoothing=False, policy_delay=1, batch_size=100,
     start_steps=10_000, eliminate_at=24_000, compete_every=1_000, eta=0.0,
 )
+# SAC v2 (Haarnoja et al. 2018, Table 1): Adam at 3e-4 for actor, critics and α, batch 256, γ 0.99,
+# τ 0.005, two hidden layers of 256, one gradient step and one target update per step (d = 1),
+# target entropy −|A| with α learned. It fixes no random start phase: the TD3 family's 25,000 keeps
+# SAC and MA-SAC on grid b's data protocol. The mechanism (K, M, C, A, η) is Table 3's, as MA-TD3.
+_SAC_FAMILY = dict(_TD3_FAMILY, target_smoothing=False, policy_delay=1)
 _PER_ALGO: dict[str, dict[str, Any]] = {
     "ma-td3": dict(_TD3_FAMILY, actors=2, workers=3),
     "td3": dict(_TD3_FAMILY, actors=1, workers=1, eta=0.0),
     "ma-ddpg": dict(_DDPG_FAMILY, actors=3, workers=5),
     "ddpg": dict(_DDPG_FAMILY, actors=1, workers=1),
+    "ma-sac": dict(_SAC_FAMILY, actors=2, workers=3),
+    "sac": dict(_SAC_FAMILY, actors=1, workers=1, eta=0.0),
 }
 
 
@@ -142,6 +157,10 @@ def validate(cfg: AlgoConfig) -> AlgoConfig:
         problems.append("gamma must be in [0, 1]")
     if cfg.policy_delay < 1:
         problems.append("policy_delay (d) must be >= 1")
+    if cfg.alpha is not None and not cfg.alpha > 0.0:
+        problems.append("alpha (a fixed SAC temperature) must be > 0")
+    if cfg.alpha is not None and not cfg.stochastic:
+        problems.append("alpha is a SAC temperature: only for --algo sac or ma-sac")
     if cfg.utd <= 0:
         problems.append("utd must be > 0")
     if cfg.start_steps < 0 or cfg.eval_episodes < 1 or cfg.eval_every < 1:

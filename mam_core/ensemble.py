@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from mam_core.policy import member_shapes
+from mam_core.policy import LOG_STD_MAX, LOG_STD_MIN, member_shapes
 
 Members = slice | torch.Tensor | None
 
@@ -163,6 +163,53 @@ class ActorEnsemble(nn.Module):
     def forward(self, obs: torch.Tensor, members: Members = None) -> torch.Tensor:
         """obs: [B, obs_dim] shared by all members, or [E, B, obs_dim] -> actions [E, B, act_dim]."""
         return self.max_action * torch.tanh(self.net(obs, members))
+
+
+def squashed_gaussian_log_prob(u: torch.Tensor, eps: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
+    """log π(a|s) of a = tanh(u), u = μ + σ·ε ~ N(μ, σ²), summed over the action axis: [..., A] -> [...].
+
+    log N(u; μ, σ) = −ε²/2 − log σ − log(2π)/2 per dimension, minus the change of variables
+    log(1 − tanh²u) = 2·(log 2 − u − softplus(−2u)), exact and finite where tanh saturates in float32
+    (|u| ≳ 9; the SAC paper's Appendix C, Haarnoja et al. 2018a; this form is Spinning Up's). It is
+    the density of the action in the unit box: the max_action scale is a constant left out, as in
+    softlearning and Stable-Baselines3, so the target entropy −|A| does not depend on the bounds.
+    """
+    gaussian = -0.5 * eps.pow(2) - log_std - 0.5 * math.log(2.0 * math.pi)
+    squash = 2.0 * (math.log(2.0) - u - nn.functional.softplus(-2.0 * u))
+    return (gaussian - squash).sum(dim=-1)
+
+
+class GaussianActorEnsemble(nn.Module):
+    """K squashed-Gaussian policies (SAC): one MLP per actor whose last layer holds the μ and
+    log σ heads ([..., :A] and [..., A:], log σ clamped to [LOG_STD_MIN, LOG_STD_MAX]);
+    π_k(·|s) = max_action · tanh(N(μ_k(s), σ_k(s)²)). `forward` is the mean action
+    max_action · tanh(μ_k(s)) (evaluation); `sample` the reparameterised draw with its log π.
+    The numpy twin for workers and the referee is `mam_core.policy.SquashedGaussianPolicy`."""
+
+    def __init__(self, n_actors: int, obs_dim: int, act_dim: int, hidden: Sequence[int],
+                 max_action: np.ndarray | float, generator: torch.Generator | None = None) -> None:
+        super().__init__()
+        self.act_dim = act_dim
+        self.net = EnsembleMLP(n_actors, obs_dim, hidden, 2 * act_dim, generator)
+        max_action = torch.as_tensor(np.broadcast_to(max_action, (act_dim,)).copy(), dtype=torch.float32)
+        self.register_buffer("max_action", max_action)
+
+    def heads(self, obs: torch.Tensor, members: Members = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(μ, log σ), each [E, B, act_dim]."""
+        out = self.net(obs, members)
+        return out[..., :self.act_dim], out[..., self.act_dim:].clamp(LOG_STD_MIN, LOG_STD_MAX)
+
+    def forward(self, obs: torch.Tensor, members: Members = None) -> torch.Tensor:
+        """The mean action: obs [B, obs_dim] or [E, B, obs_dim] -> [E, B, act_dim]."""
+        return self.max_action * torch.tanh(self.heads(obs, members)[0])
+
+    def sample(self, obs: torch.Tensor, eps: torch.Tensor,
+               members: Members = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """a = max_action · tanh(μ + σ·ε) for the given ε [E, B, act_dim], differentiable in the
+        actors' parameters (the reparameterisation trick), and log π(a|s) [E, B]."""
+        mu, log_std = self.heads(obs, members)
+        u = mu + log_std.exp() * eps
+        return self.max_action * torch.tanh(u), squashed_gaussian_log_prob(u, eps, log_std)
 
 
 class CriticEnsemble(nn.Module):

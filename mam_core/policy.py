@@ -93,11 +93,13 @@ def member_shapes(in_dim: int, hidden: Sequence[int], out_dim: int) -> dict[str,
     return shapes
 
 
-def mlp_policy(layers: Sequence[tuple[np.ndarray, np.ndarray]], max_action: np.ndarray) -> Policy:
+def mlp_policy(layers: Sequence[tuple[np.ndarray, np.ndarray]], max_action: np.ndarray,
+               head: Callable[[np.ndarray], Any] | None = None) -> Policy:
     """obs [obs_dim] or [B, obs_dim] -> max_action · tanh(Linear-ReLU-...-Linear(obs)).
 
     `layers` are (w [in, out], b [out]) float32 arrays, read at every call: arrays updated in
-    place are seen at once.
+    place are seen at once. `head` replaces the final max_action · tanh(h) (SAC's Gaussian heads,
+    `SquashedGaussianPolicy`), so every numpy layer runs here.
     """
     last = len(layers) - 1
 
@@ -107,9 +109,46 @@ def mlp_policy(layers: Sequence[tuple[np.ndarray, np.ndarray]], max_action: np.n
             h = h @ w + b
             if i < last:
                 np.maximum(h, 0.0, out=h)
-        return max_action * np.tanh(h)
+        return max_action * np.tanh(h) if head is None else head(h)
 
     return policy
+
+
+# -- SAC's stochastic actors ----------------------------------------------------------------------
+LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0  # log σ clipped as in the SAC papers' code (softlearning, Spinning Up)
+GAUSSIAN_POLICY = "squashed-gaussian"  # policy.npz meta "policy" of a SAC run (absent: deterministic)
+
+
+def policy_out_dim(act_dim: int, gaussian: bool) -> int:
+    """Width of an actor's last layer: |A| (deterministic), or 2|A| for SAC's μ and log σ heads."""
+    return 2 * act_dim if gaussian else act_dim
+
+
+class SquashedGaussianPolicy:
+    """π_k(·|s) = max_action · tanh(N(μ(s), σ(s)²)) from one MLP whose last layer holds both heads:
+    outputs [:|A|] are μ, outputs [|A|:] are log σ, clipped to [LOG_STD_MIN, LOG_STD_MAX] (the
+    learner's `GaussianActorEnsemble`). Called, it is the mean action max_action · tanh(μ(s)),
+    with which evaluations and competitions act; `sample` draws an action."""
+
+    def __init__(self, layers: Sequence[tuple[np.ndarray, np.ndarray]], max_action: np.ndarray) -> None:
+        a = int(np.asarray(max_action).shape[-1])
+        self.max_action = max_action
+        self._mean = mlp_policy(layers, max_action, head=lambda h: max_action * np.tanh(h[..., :a]))
+        self._heads = mlp_policy(layers, max_action,
+                                 head=lambda h: (h[..., :a], np.clip(h[..., a:], LOG_STD_MIN, LOG_STD_MAX)))
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        return self._mean(obs)
+
+    def heads(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(μ, log σ) of the pre-squash Gaussian, each [..., |A|]."""
+        return self._heads(obs)
+
+    def sample(self, obs: np.ndarray, noise: np.random.Generator) -> np.ndarray:
+        """a = max_action · tanh(μ + σ·ε), ε ~ N(0, I) drawn from `noise` (a slot's seeded stream)."""
+        mu, log_std = self.heads(obs)
+        eps = noise.normal(0.0, 1.0, mu.shape).astype(np.float32)
+        return self.max_action * np.tanh(mu + np.exp(log_std) * eps)
 
 
 class NumpyActors:
@@ -119,15 +158,16 @@ class NumpyActors:
     only once its weights have arrived (workers and the referee track versions for that).
     """
 
-    def __init__(self, n_actors: int, spec: EnvSpec, hidden: Sequence[int]) -> None:
+    def __init__(self, n_actors: int, spec: EnvSpec, hidden: Sequence[int], gaussian: bool = False) -> None:
         self.n_actors = n_actors
-        self.shapes = member_shapes(spec.obs_dim, hidden, spec.act_dim)
+        self.shapes = member_shapes(spec.obs_dim, hidden, policy_out_dim(spec.act_dim, gaussian))
         self.max_action = np.asarray(spec.max_action, np.float32)
         self.params = [{name: np.zeros(shape, np.float32) for name, shape in self.shapes.items()}
                        for _ in range(n_actors)]
         n_layers = len(self.shapes) // 2
         # b{i}[0]: a [out] view of the [1, out] wire layout, so one observation gives one action
-        self._policies = [mlp_policy([(p[f"w{i}"], p[f"b{i}"][0]) for i in range(n_layers)], self.max_action)
+        kind = SquashedGaussianPolicy if gaussian else mlp_policy  # SAC: the mean action, and `sample`
+        self._policies = [kind([(p[f"w{i}"], p[f"b{i}"][0]) for i in range(n_layers)], self.max_action)
                           for p in self.params]
 
     def load_member(self, k: int, params: Mapping[str, np.ndarray]) -> None:
@@ -200,7 +240,8 @@ def read_policy_file(path: str | os.PathLike[str]) -> tuple[dict[str, Any], list
         obs_dim, act_dim, n = int(meta["obs_dim"]), int(meta["act_dim"]), int(meta["actors"])
         if len(meta["max_action"]) != act_dim or n < 1:
             raise PolicyFileError("max_action does not have act_dim entries, or no actors")
-        shapes = member_shapes(obs_dim, [int(h) for h in meta["hidden"]], act_dim)
+        gaussian = meta.get("policy") == GAUSSIAN_POLICY
+        shapes = member_shapes(obs_dim, [int(h) for h in meta["hidden"]], policy_out_dim(act_dim, gaussian))
         params = []
         for k in range(n):
             member = {}
@@ -224,7 +265,9 @@ class TrainedPolicy:
     """One actor of a finished (or running) run as a numpy function, with what it was trained on.
 
     `pi(obs)` maps [obs_dim] -> [act_dim] or [B, obs_dim] -> [B, act_dim] (float32,
-    deterministic: max_action · tanh(MLP(obs)), the function the learner's actor computes).
+    deterministic: max_action · tanh(MLP(obs)), the function the learner's actor computes; for a
+    SAC run the mean action max_action · tanh(μ(obs))). A SAC run's actor also samples:
+    `pi.sample(obs, np.random.default_rng(seed))` (`stochastic` is True).
     """
 
     def __init__(self, meta: Mapping[str, Any], params: Mapping[str, np.ndarray], actor: int,
@@ -240,14 +283,26 @@ class TrainedPolicy:
         n_layers = len(params) // 2
         self._layers = [(np.asarray(params[f"w{i}"], np.float32), np.asarray(params[f"b{i}"], np.float32).reshape(-1))
                         for i in range(n_layers)]
-        self._policy = mlp_policy(self._layers, self.max_action)
+        self.stochastic = self.meta.get("policy") == GAUSSIAN_POLICY
+        self._policy = SquashedGaussianPolicy(self._layers, self.max_action) if self.stochastic else \
+            mlp_policy(self._layers, self.max_action)
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
+        return self._policy(self._checked(obs))
+
+    def _checked(self, obs: np.ndarray) -> np.ndarray:
         obs = np.asarray(obs, np.float32)
         if obs.ndim not in (1, 2) or obs.shape[-1] != self.spec.obs_dim:
             raise ValueError(f"observation of shape {obs.shape}: this policy takes [{self.spec.obs_dim}] or "
                              f"[B, {self.spec.obs_dim}] ({self.env_id})")
-        return self._policy(obs)
+        return obs
+
+    def sample(self, obs: np.ndarray, noise: np.random.Generator) -> np.ndarray:
+        """A SAC actor's sampled action, max_action · tanh(μ + σ·ε), ε drawn from `noise`."""
+        if not isinstance(self._policy, SquashedGaussianPolicy):
+            raise ValueError(f"actor {self.actor} of this run is deterministic ({self.meta.get('algo')}): "
+                             "it has no distribution to sample")
+        return self._policy.sample(self._checked(obs), noise)
 
     def make_env(self, **make_kwargs: Any) -> Any:
         """A fresh env of the kind this policy was trained on: `gym.make(env_id, **env_kwargs,

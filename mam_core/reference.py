@@ -27,7 +27,7 @@ from mam_core.obsolescence import competition_returns, obsolescence_for
 from mam_core.policy import NumpyActors
 from mam_core.replay import ReplayBuffer
 from mam_core.seeding import evaluation_seed, stream
-from mam_core.slot import SlotStreams, explore, uniform
+from mam_core.slot import SlotStreams, act, uniform
 
 
 @dataclass
@@ -60,11 +60,11 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
     buffer = ReplayBuffer(plan.replay_capacity(cfg.buffer_size), spec.obs_dim, spec.act_dim, device, cfg.seed)
     state = obsolescence_for(cfg, steps)
     rng = stream(cfg.seed, "allocation")
-    actors = NumpyActors(cfg.actors, spec, cfg.hidden)  # the newest actors: what the referee judges
+    actors = NumpyActors(cfg.actors, spec, cfg.hidden, cfg.stochastic)  # the newest actors: what the referee judges
     for k in range(cfg.actors):
         actors.load_member(k, agent.actor_params(k))
     # What the slots act with: the actors after iteration t-1-B (B = cfg.lag), by version.
-    acting = NumpyActors(cfg.actors, spec, cfg.hidden)
+    acting = NumpyActors(cfg.actors, spec, cfg.hidden, cfg.stochastic)
     history: dict[int, list[dict[str, np.ndarray] | None]] = {0: [agent.actor_params(k) for k in range(cfg.actors)]}
     max_action = np.asarray(spec.max_action, np.float32)
     streams = [SlotStreams.for_slot(cfg.seed, i) for i in range(cfg.workers)]
@@ -124,7 +124,7 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
         for i in it.slots:
             k = allocation[i]
             action = uniform(envs[i]) if it.random else \
-                explore(acting.policy(k), obs[i], streams[i].noise, cfg.explore_noise, max_action)
+                act(acting.policy(k), obs[i], streams[i].noise, cfg, max_action)
             next_obs, reward, terminated, truncated, _ = envs[i].step(action)
             next_obs = np.asarray(next_obs, np.float32)
             rows.append((obs[i], action, float(reward), next_obs, bool(terminated), k,

@@ -1,8 +1,8 @@
 """One environment slot's acting rule, shared by the worker process and the reference driver.
 
 Both must produce the same transitions from the same seed, so both call these functions: the
-slot's random streams (mam_core.seeding, per slot and purpose), the exploratory action, and
-the conversions of what the env returns.
+slot's random streams (mam_core.seeding, per slot and purpose), the acting rule (`act`: the
+exploratory action, or SAC's sampled one), and the conversions of what the env returns.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from mam_core.config import AlgoConfig
 from mam_core.seeding import stream, stream_seed
 
 Policy = Callable[[np.ndarray], np.ndarray]
@@ -44,6 +45,16 @@ def explore(policy: Policy, obs: np.ndarray, noise: np.random.Generator, sigma: 
     action = policy(obs)
     eps = noise.normal(0.0, sigma, action.shape[-1]).astype(np.float32)
     return np.clip(action + eps * max_action, -max_action, max_action)
+
+
+def act(policy: Policy, obs: np.ndarray, noise: np.random.Generator, algo: AlgoConfig,
+        max_action: np.ndarray) -> np.ndarray:
+    """Algorithm 1, line 7 for every algorithm: TD3 and DDPG explore around π_k(s) (`explore`);
+    SAC samples a = max_action · tanh(μ + σ·ε) from π_k(·|s) with the slot's noise stream drawing
+    ε (a `SquashedGaussianPolicy`), so it has no exploration noise of its own."""
+    if algo.stochastic:
+        return policy.sample(obs, noise)
+    return explore(policy, obs, noise, algo.explore_noise, max_action)
 
 
 def uniform(env: Any) -> np.ndarray:

@@ -63,14 +63,15 @@ AXES = ("transitions", "iterations")
 
 
 # Which variant is compared with which (X, Y): P(X > Y).
-BASELINES = (("ma-td3", "td3"), ("ma-ddpg", "ddpg"))
+BASELINES = (("ma-td3", "td3"), ("ma-ddpg", "ddpg"), ("ma-sac", "sac"))
 
 
-_FAMILY_ORDER = ("ma-td3", "td3", "ma-ddpg", "ddpg")
+_FAMILY_ORDER = ("ma-td3", "td3", "ma-ddpg", "ddpg", "ma-sac", "sac")
 
 
 def variant_order(name: str, planned: Sequence[str] = ()) -> tuple:
-    """Plan order when known; else MA-TD3, its variants, TD3, MA-DDPG, its variants, DDPG, others."""
+    """Plan order when known; else MA-TD3, its variants, TD3, MA-DDPG, its variants, DDPG, MA-SAC, its
+    variants, SAC, others."""
     if name in planned:
         return (0, planned.index(name), name)
     for i, base in enumerate(_FAMILY_ORDER):
@@ -164,7 +165,7 @@ class Comparison:
     p: Interval
 
 
-SINGLE_ACTOR_BASELINE = {"ma-td3": "td3", "ma-ddpg": "ddpg"}
+SINGLE_ACTOR_BASELINE = {"ma-td3": "td3", "ma-ddpg": "ddpg", "ma-sac": "sac"}
 
 
 @dataclass(frozen=True)

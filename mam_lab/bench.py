@@ -56,6 +56,7 @@ from services.cli import options
 TARGETS: dict[str, tuple[str, float]] = {
     "learner_k2_vs_td3": ("ge", 0.8),  # 0.95 on CUDA, see target_for()
     "learner_k2_bf16_vs_td3": ("ge", 0.8),  # the same target, met with the opt-in mixed precision?
+    "learner_sac_k1_vs_sac": ("ge", 1.0),  # mam's SAC against a plain single-process SAC (issue 27)
     "e2e_vs_single_process": ("le", 0.7),
     "e2e_bf16_vs_single_process": ("le", 0.7),
     "transport_transitions_per_s": ("ge", 50_000.0),
@@ -188,6 +189,11 @@ ROWS: tuple[tuple[str, str], ...] = (
     ("learner_humanoid_k1_vs_td3", "K=1 ÷ TD3, Humanoid"),
     ("learner_humanoid_k2_vs_td3", "K=2 ÷ TD3, Humanoid"),
     ("learner_humanoid_k3_vs_td3", "K=3 ÷ TD3, Humanoid"),
+    ("learner_sac_k1_vs_sac", "SAC (K=1) ÷ plain SAC updates/s (HalfCheetah shapes)"),
+    ("learner_sac_k2_vs_sac", "MA-SAC K=2 ÷ plain SAC (goal: ≥ MA-TD3 K=2 ÷ TD3)"),
+    ("learner_halfcheetah_sac_updates_per_s", "plain SAC updates/s, HalfCheetah"),
+    ("learner_humanoid_sac_k1_vs_sac", "SAC (K=1) ÷ plain SAC, Humanoid"),
+    ("learner_humanoid_sac_k2_vs_sac", "MA-SAC K=2 ÷ plain SAC, Humanoid"),
     ("learner_halfcheetah_td3_updates_per_s", "TD3 reference updates/s, HalfCheetah"),
     ("learner_halfcheetah_k2_updates_per_s", "MA-TD3 K=2 updates/s, HalfCheetah"),
     ("learner_humanoid_td3_updates_per_s", "TD3 reference updates/s, Humanoid"),

@@ -1,6 +1,6 @@
-"""`mam bench` learner pieces: MA-TD3 updates/s against the reference TD3 on the same replay data
-(interleaved rounds), a profile of one update step, and the replay buffer's checkpoint costs.
-torch is imported by each function, not by the module."""
+"""`mam bench` learner pieces: MA-TD3 updates/s against the reference TD3 and SAC / MA-SAC
+against a plain SAC on the same replay data (interleaved rounds), a profile of one update step,
+and the replay buffer's checkpoint costs. torch is imported by each function, not by the module."""
 
 from __future__ import annotations
 
@@ -44,6 +44,71 @@ def reference_td3(obs_dim: int, act_dim: int, max_action: float, hidden: tuple[i
     for net in (td3.actor, td3.actor_target, td3.critic, td3.critic_target):
         net.to(device)  # same Parameter objects: the optimizers still hold them
     return td3
+
+
+def reference_sac(obs_dim: int, act_dim: int, max_action: float, hidden: tuple[int, ...], device: str, seed: int = 0):
+    """`benchmarks/sac_reference.SAC` on `device` (two hidden layers of one width), drawing its
+    Gaussian noise from a generator on that device."""
+    import torch
+
+    if len(hidden) != 2 or hidden[0] != hidden[1]:
+        raise ValueError(f"the reference SAC has two hidden layers of one width, not {hidden}")
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))
+    from benchmarks.sac_reference import SAC
+
+    sac = SAC(obs_dim, act_dim, max_action, hidden=hidden[0],
+              generator=torch.Generator(device=device).manual_seed(seed + 1))
+    for net in (sac.actor, sac.critic, sac.critic_target):
+        net.to(device)  # same Parameter objects: the optimizers still hold them
+    with torch.no_grad():  # log α moves in place: its optimizer keeps holding it
+        sac.log_alpha.data = sac.log_alpha.data.to(device)
+    sac.noise = lambda rows: torch.randn((rows, act_dim), generator=sac.generator, device=device)
+    return sac
+
+
+def sac_contenders(shape: str, sizes: BenchSizes, device: str, seed: int = 0) -> dict[str, Callable[[], Any]]:
+    """One update step of the plain SAC ("sac"), mam's SAC (K = 1, "sac_k1") and MA-SAC K = 2 (a
+    mini-batch per actor, "sac_k2"), sampling from the same replay buffer."""
+    from mam_core.agent import EnvSpec, MultiActorAgent
+    from mam_core.config import resolve
+
+    obs_dim, act_dim, max_action = SHAPES[shape]
+    buf = random_replay(obs_dim, act_dim, max_action, max(20 * sizes.batch_size, 5000), device, seed)
+    sac = reference_sac(obs_dim, act_dim, max_action, sizes.hidden, device, seed)
+    batch = sizes.batch_size
+
+    def sac_step() -> float:
+        b = buf.sample(batch)
+        return sac.train(b["obs"], b["action"], b["reward"].unsqueeze(1), b["next_obs"], b["not_done"].unsqueeze(1))
+
+    out: dict[str, Callable[[], Any]] = {"sac": sac_step}
+    spec = EnvSpec(obs_dim, act_dim, (max_action,) * act_dim)
+    for name, algo, k in (("sac_k1", "sac", 1), ("sac_k2", "ma-sac", 2)):
+        agent = MultiActorAgent(resolve(algo, actors=k, hidden=sizes.hidden, batch_size=batch, seed=seed), spec, device)
+        out[name] = (lambda a=agent: a.update(buf.sample(batch, a.batch_groups)))
+    return out
+
+
+def bench_sac(sizes: BenchSizes, device: str, log: Callable[[str], None], seed: int = 0,
+              sync: Callable[[], Any] | None = None) -> dict[str, Any]:
+    """SAC K = 1 and MA-SAC K = 2 against the plain SAC, per env shape, interleaved rounds:
+    `learner_<shape>_sac_updates_per_s` (the plain SAC), `learner_<shape>_sac_k<K>_updates_per_s`
+    and `learner_<shape>_sac_k<K>_vs_sac` (median over rounds of the within-round ratio)."""
+    out: dict[str, Any] = {}
+    for shape in sizes.learner_shapes:
+        steps = sac_contenders(shape, sizes, device, seed)
+        log(f"learner: {shape} shapes, {', '.join(steps)} ({sizes.learner_rounds} rounds x "
+            f"{sizes.learner_updates} updates, interleaved)")
+        wall = interleaved_rates(steps, sizes.learner_rounds, sizes.learner_updates, sync=sync)["wall"]
+        out[f"learner_{shape}_sac_updates_per_s"] = _median(wall["sac"])
+        for name in ("sac_k1", "sac_k2"):
+            out[f"learner_{shape}_{name}_updates_per_s"] = _median(wall[name])
+            out[f"learner_{shape}_{name}_vs_sac"] = ratio_of_medians_per_round(wall[name], wall["sac"])
+    first = sizes.learner_shapes[0]
+    out["learner_sac_k1_vs_sac"] = out[f"learner_{first}_sac_k1_vs_sac"]
+    out["learner_sac_k2_vs_sac"] = out[f"learner_{first}_sac_k2_vs_sac"]
+    return out
 
 
 VARIANTS = ("default", "all")  # which MA-TD3 variants the learner bench times beside the reference
@@ -200,6 +265,7 @@ def bench_learner(sizes: BenchSizes, device: str = "cpu", threads: int = 1, log:
                 ms, source = device_ms_per_update(step, device, max(sizes.learner_updates, 10))
                 out[f"learner_{shape}_{name}_device_ms_per_update"] = ms
                 out["learner_device_time_source"] = source
+    out.update(bench_sac(sizes, device, log, seed, sync))
     first = sizes.learner_shapes[0]
     if 2 in sizes.learner_ks:
         out["learner_k2_vs_td3"] = out[f"learner_{first}_k2_vs_td3"]

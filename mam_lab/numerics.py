@@ -1,13 +1,14 @@
 """A digest of Algorithm 1's numerics at the checkout that runs: does a code change alter results?
 
-    python -m mam_lab.numerics [--env HalfCheetah-v5] [--steps 1500] [--seed 7]
+    python -m mam_lab.numerics [--env HalfCheetah-v5] [--steps 1500] [--seed 7] [--algo ma-td3]
 
 Runs `mam_core.reference.run_reference` (one process, the same plan a distributed exact-mode run
-follows bit for bit, tests/test_exact.py) for MA-TD3 under both schedules on a small budget, with
-the default networks, and prints per schedule a sha256 over every evaluation's returns and every
-final actor parameter. Two checkouts that print the same digests compute the same runs from the
-same seed, so ledger records made at either commit can be pooled (docs/RESULTS.md). Run it from
-each checkout with `PYTHONPATH=<checkout>` so that checkout's code is imported.
+follows bit for bit, tests/test_exact.py) for MA-TD3 (or `--algo`, e.g. ma-sac) under both
+schedules on a small budget, with the default networks, and prints per schedule a sha256 over
+every evaluation's returns and every final actor parameter. Two checkouts that print the same
+digests compute the same runs from the same seed, so ledger records made at either commit can be
+pooled (docs/RESULTS.md). Run it from each checkout with `PYTHONPATH=<checkout>` so that
+checkout's code is imported.
 """
 
 from __future__ import annotations
@@ -38,15 +39,15 @@ def digest(result: ReferenceResult) -> str:
     return h.hexdigest()[:16]
 
 
-def numerics(env_id: str, steps: int, seed: int, **overrides: Any) -> dict[str, dict[str, Any]]:
-    """Per schedule: the digest, the survivor and the updates of a small MA-TD3 reference run."""
+def numerics(env_id: str, steps: int, seed: int, algo: str = "ma-td3", **overrides: Any) -> dict[str, dict[str, Any]]:
+    """Per schedule: the digest, the survivor and the updates of a small reference run of `algo`."""
     import torch
 
     torch.set_num_threads(1)
     start = max(steps // 5, 1)
     out = {}
     for schedule in SCHEDULES:
-        cfg = resolve("ma-td3", start_steps=start, compete_every=start, eliminate_at=3 * start, eval_episodes=2,
+        cfg = resolve(algo, start_steps=start, compete_every=start, eliminate_at=3 * start, eval_episodes=2,
                       eval_every=start, seed=seed, schedule=schedule, **overrides)
         result = run_reference(env_id, cfg, steps)
         out[schedule] = {"digest": digest(result), "survivor": result.survivor, "updates": result.updates}
@@ -55,9 +56,12 @@ def numerics(env_id: str, steps: int, seed: int, **overrides: Any) -> dict[str, 
 
 def main(env: str = typer.Option("HalfCheetah-v5", help="gymnasium env id"),
          steps: int = typer.Option(1500, help="schedule steps per run (start, A = steps / 5, C = 3A)"),
-         seed: int = typer.Option(7, help="the runs' --seed")) -> None:
-    """Print the numerics digest of this checkout as one JSON object."""
-    print(json.dumps({"env": env, "steps": steps, "seed": seed, **numerics(env, steps, seed)}))
+         seed: int = typer.Option(7, help="the runs' --seed"),
+         algo: str = typer.Option("ma-td3", help="the algorithm (a multi-actor one: ma-td3, ma-ddpg, ma-sac)")) -> None:
+    """Print the numerics digest of this checkout as one JSON object (the algo named only when not ma-td3,
+    so the default output stays what older checkouts print)."""
+    named = {} if algo == "ma-td3" else {"algo": algo}
+    print(json.dumps({"env": env, "steps": steps, "seed": seed, **named, **numerics(env, steps, seed, algo)}))
 
 
 if __name__ == "__main__":

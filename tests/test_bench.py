@@ -52,7 +52,8 @@ def test_learner_transport_and_weights_pieces() -> None:
         "learner_halfcheetah_td3_updates_per_s",
         "learner_halfcheetah_k2_updates_per_s", "learner_halfcheetah_k2_vs_td3_cpu_time",
         "learner_halfcheetah_k2_shared_vs_td3", "learner_halfcheetah_k2_per_actor_vs_shared",
-        "transport_transitions_per_s", "transport_bytes_per_transition",
+        "learner_sac_k1_vs_sac", "learner_sac_k2_vs_sac", "learner_halfcheetah_sac_updates_per_s",
+        "learner_halfcheetah_sac_k2_updates_per_s", "transport_transitions_per_s", "transport_bytes_per_transition",
         "weights_latency_p99_ms", "weights_latency_p50_ms", "weights_humanoid_p99_ms", "weights_halfcheetah_bytes"])
     assert result["transport_lost"] == 0 and result["transport_received"] == result["transport_expected"]
     # 17 + 17 obs floats, 6 action floats, a reward and a flag: at least 165 bytes per row on the wire.

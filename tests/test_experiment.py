@@ -354,7 +354,7 @@ def test_ddpg_ablations_that_change_nothing_are_not_run_twice():
 
 def test_grid_errors():
     ok = dict(envs="Hopper-v5", algos="td3", steps=100)
-    for bad in (dict(algos="sac"), dict(envs=""), dict(steps=0), dict(steps=None), dict(ablations="no-xy"),
+    for bad in (dict(algos="ppo"), dict(envs=""), dict(steps=0), dict(steps=None), dict(ablations="no-xy"),
                 dict(etas="1.5"), dict(seeds="a"), dict(flags={"bogus": 1}), dict(flags={"seed": 3}),
                 dict(algos="td3,td3")):
         with pytest.raises(GridError):
@@ -886,7 +886,7 @@ algo = "ma-td3"
 def test_named_variant_errors(tmp_path):
     base = 'envs = ["Hopper-v5"]\nsteps = 100\n'
     for body, match in (('[variant.x]\neliminate-at = 5\n', "algo"),
-                        ('[variant.x]\nalgo = "sac"\n', "algo"),
+                        ('[variant.x]\nalgo = "ppo"\n', "algo"),
                         ('[variant.x]\nalgo = "ma-td3"\nbogus = 1\n', "bogus"),
                         ('[variant."a b"]\nalgo = "td3"\n', "variant name"),
                         ('algos = ["td3"]\n[variant.td3]\nalgo = "td3"\nbatch-size = 8\n', "already"),

@@ -14,3 +14,9 @@ def test_the_digest_reproduces_and_tells_seeds_apart() -> None:
     b = numerics("Pendulum-v1", 100, 2, **TINY)
     assert all(a[s]["digest"] != b[s]["digest"] for s in a)
     assert a["paper"]["digest"] != a["equal-data"]["digest"]
+
+
+def test_the_digest_of_ma_sac_differs_from_ma_td3s() -> None:
+    sac = numerics("Pendulum-v1", 100, 1, algo="ma-sac", **TINY)
+    assert sac == numerics("Pendulum-v1", 100, 1, algo="ma-sac", **TINY)
+    assert all(sac[s]["digest"] != numerics("Pendulum-v1", 100, 1, **TINY)[s]["digest"] for s in sac)

@@ -39,7 +39,7 @@ def test_toml_file_then_flags(tmp_path: Path):
 @pytest.mark.parametrize("cli, message", [
     ({"env": "Nope-v0", "steps": 10}, "Nope"),
     ({"env": "AppleCollect-v0"}, "--steps"),
-    ({"env": "AppleCollect-v0", "steps": 10, "algo": "sac"}, "--algo"),
+    ({"env": "AppleCollect-v0", "steps": 10, "algo": "ppo"}, "--algo"),
     ({"env": "AppleCollect-v0", "steps": 10, "eta": 1.5}, "eta"),
     ({"env": "AppleCollect-v0", "steps": 10, "run": "a/b"}, "run name"),
     ({"steps": 10}, "--env"),
@@ -176,7 +176,7 @@ def test_help_snapshot_every_option_in_a_panel_with_its_default_at_80_columns():
         assert any(flag in b for b in blocks.values()), flag
     assert "…" not in " ".join(f for b in blocks.values() for f in b)  # no flag cut short
     algorithm = blocks["Algorithm (the paper's symbols)"]
-    assert "[default: ma-td3: 2; td3, ddpg: 1; ma-ddpg: 3]" in algorithm["--actors"]
+    assert "[default: ma-td3, ma-sac: 2; td3, ddpg, sac: 1; ma-ddpg: 3]" in algorithm["--actors"]
     assert algorithm["--eliminate-at"].startswith("--eliminate-at <int> [C] ")
 
 

@@ -73,7 +73,7 @@ def test_a_board_that_cannot_write_never_stops_the_role(tmp_path: Path):
 
 
 def test_the_referee_writes_event_files_without_importing_torch(tmp_path: Path):
-    code = ("import sys, services.roles.referee; from services import tb; "
+    code = ("import sys, services.roles.referee; from services.roles import tb; "
             f"b = tb.RunBoard({str(tmp_path)!r}, 'referee'); b.scalars(3, {{'eval/return/actor0': 1.0}}); b.close(); "
             "print(b.logdir.is_dir(), sorted(m for m in sys.modules if m.split('.')[0] == 'torch')[:3])")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)

@@ -69,8 +69,11 @@ def check_env_matches(pi: TrainedPolicy, env_id: str, env_kwargs: dict[str, Any]
 
 
 def with_noise(pi: TrainedPolicy, sigma: float, seed: int):
-    """The worker's exploration: a + N(0, σ·max_action), clipped to the bounds."""
+    """The worker's exploration: a + N(0, σ·max_action), clipped to the bounds; a SAC actor's
+    actions sampled from π(·|s) instead. Both draw from one generator seeded with `seed`."""
     rng = np.random.default_rng(seed)
+    if pi.stochastic:
+        return lambda obs: pi.sample(obs, rng)
     scale = np.float32(sigma) * pi.max_action
 
     def policy(obs: np.ndarray) -> np.ndarray:
@@ -141,7 +144,8 @@ def eval_command(
                                        "of the run's final evaluation)"),
     video: Optional[Path] = typer.Option(None, "--video", help="render the episodes to this MP4 file"),
     deterministic: bool = typer.Option(True, "--deterministic/--noise", help="deterministic actions (as the "
-                                       "referee evaluates), or with the workers' Gaussian exploration noise"),
+                                       "referee evaluates; SAC: the mean action), or with the workers' Gaussian "
+                                       "exploration noise (SAC: actions sampled from the policy, seeded from --seed)"),
     env: Optional[str] = typer.Option(None, "--env", help="evaluate on another env id (must match the policy's "
                                       "observation and action spaces)"),
     env_kwargs: Optional[str] = typer.Option(None, "--env-kwargs", help="JSON kwargs for gym.make (default: "
@@ -196,7 +200,8 @@ def eval_command(
     survivor = " (survivor)" if meta.get("survivor") == pi.actor else ""
     typer.echo(f"run {meta.get('run')}  env {env_id}  actor {pi.actor}{survivor}  weights at "
                f"{meta.get('env_steps')} transitions (version {result['version']})  "
-               f"{'deterministic' if deterministic else 'with exploration noise'}  seed {seed}")
+               f"{'deterministic' if deterministic else 'sampled' if pi.stochastic else 'with exploration noise'}  "
+               f"seed {seed}")
     for i, (ret, n) in enumerate(zip(returns, lengths)):
         typer.echo(f"  episode {i:3d}  return {ret:12.3f}  length {n:5d}")
     typer.echo(f"return {result['mean']:.3f} ± {result['std']:.3f} over {episodes} episode(s); lengths "

@@ -89,7 +89,9 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
          "registers the env when imported; it must import on every host)", target=RUN, aliases=("env_id",)),
     _opt("env_kwargs", str, 'JSON object of keyword arguments for gym.make, e.g. \'{"ctrl_cost_weight": 0.05}\' '
          "(in TOML: a table)", target=RUN),
-    _opt("algo", str, f"one of {', '.join(ALGOS)}"),
+    _opt("algo", str, f"one of {', '.join(ALGOS)}; defaults: the paper's Table 3 (TD3 family) and Table 1 (DDPG "
+         "family); sac and ma-sac: SAC v2 (Haarnoja et al. 2018: lr 3e-4, batch 256, 256x256, τ 0.005, d = 1, "
+         "α tuned towards entropy −|A|) with MA-TD3's K, M, C, A, η for ma-sac"),
     _opt("steps", int, "budget in schedule steps: iterations (--schedule paper) or transitions (equal-data)",
          symbol="T", target=RUN),
     _opt("actors", int, "number of actors", symbol="K"),
@@ -103,6 +105,8 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
     _opt("start_steps", int, "first schedule steps use uniform random actions (and no updates)"),
     _opt("batch_size", int, "mini-batch size"),
     _opt("utd", float, "gradient updates per schedule step (per iteration, or per transition)"),
+    _opt("alpha", float, "SAC temperature, fixed at this value (sac, ma-sac); left out, each actor's α_k is tuned "
+         "towards the target entropy −|A| from α = 1 (SAC v2)", symbol="α"),
     _opt("no_ot", bool, "ablation: uniform fixed allocation, no elimination", multi_actor=True),
     _opt("no_wt", bool, "ablation: no Q-value weighting (η = 0)", multi_actor=True),
     _opt("seed", int, "random seed"),
@@ -139,7 +143,7 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
     _opt("send_batch", int, "transitions per message from a worker", target=RUN, cli=False),
     _opt("learner_threads", int, "torch threads of the learner (0: torch's default)", target=RUN, cli=False),
     _opt("critics_per_actor", int, "critics per actor", symbol="n", cli=False),
-    _opt("lr", float, "actor and critic learning rate (Adam)", cli=False),
+    _opt("lr", float, "actor, critic (and SAC's α) learning rate (Adam)", cli=False),
     _opt("tau", float, "soft target update rate (Eq. 4)", symbol="τ", cli=False),
     _opt("gamma", float, "discount", symbol="γ", cli=False),
     _opt("explore_noise", float, "σ of the Gaussian exploration noise, times max_action", cli=False),
@@ -154,7 +158,7 @@ _KEYS = {alias: o.name for o in RUN_OPTIONS for alias in (o.name, *o.aliases)}
 
 # The `--help` panel of each run option without a `panel` of its own (an option in neither: RUN_PANEL).
 PANELS = {
-    **dict.fromkeys(("algo", "actors", "workers", "eliminate_at", "compete_every", "eta", "batch_size", "utd",
+    **dict.fromkeys(("algo", "actors", "workers", "eliminate_at", "compete_every", "eta", "alpha", "batch_size", "utd",
                      "no_ot", "no_wt", "hidden", "single_env_after_elimination", "shared_batch",
                      "after_elimination"), ALGORITHM_PANEL),
     **dict.fromkeys(("steps", "schedule", "start_steps", "eval_episodes", "eval_every", "skip_random_rounds",
@@ -166,6 +170,8 @@ PANELS = {
 
 
 def _shown(value: Any) -> str:
+    if value is None:  # AlgoConfig's one optional field, alpha: None is "tuned"
+        return "tuned"
     if isinstance(value, bool):
         return "on" if value else "off"
     if isinstance(value, (tuple, list)):

@@ -8,9 +8,10 @@ scalars. The x-axis (step) is env transitions received by the learner (`env_step
 
 Tags:
 - learner (learner.jsonl, every second): loss/critic, loss/actor (summed over the actors),
-  loss/actor{k}, q/actor{k} (mean Q of actor k's critics on the last batch), learner/updates_per_s,
-  learner/transitions_per_s, learner/utd, learner/replay_size, learner/updates, learner/iterations (when the row has
-  it), learner/train_return (mean return of the episodes workers finished);
+  loss/actor{k}, q/actor{k} (mean Q of actor k's critics on the last batch), for SAC loss/alpha
+  and alpha/actor{k} (the temperatures), learner/updates_per_s, learner/transitions_per_s,
+  learner/utd, learner/replay_size, learner/updates, learner/iterations (when the row has it),
+  learner/train_return (mean return of the episodes workers finished);
 - Eq. 17 bias (bias.jsonl, with --bias-every): bias/rate/actor{k}, bias/q_estimate/actor{k},
   bias/q_true/actor{k};
 - referee (eval.jsonl): eval/return/actor{k} (mean of the deterministic evaluation), and
@@ -54,7 +55,7 @@ def _put(out: Scalars, tag: str, value: Any) -> None:
 def learner_scalars(row: Row) -> Scalars:
     out: Scalars = {}
     for key, value in row.items():
-        if key.startswith(("loss/", "q/")):
+        if key.startswith(("loss/", "q/", "alpha/")):  # alpha/actor{k}: SAC's temperatures
             _put(out, key, value)
     for key, tag in (("updates_per_s", "learner/updates_per_s"), ("transitions_per_s", "learner/transitions_per_s"),
                      ("utd", "learner/utd"), ("buffer", "learner/replay_size"), ("updates", "learner/updates"),

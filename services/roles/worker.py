@@ -3,7 +3,7 @@
 The worker needs only `--run`, `--connect` and `--slot`: the env, K and the noise come from the
 learner's config topic. It steps iteration i once it holds the allocation and the actor version
 that apply to i (mam_core/algorithm1.py: with a lag B, up to B iterations ahead of the
-learner), explores with Gaussian noise (uniform random actions in the start phase), sends
+learner), explores (Gaussian noise, or SAC's sampled actions; uniform random actions in the start phase), sends
 transitions in small batches tagged with worker id, incarnation, slot, iteration, actor and
 policy version, and exits when the run is done.
 """
@@ -28,7 +28,7 @@ from mam_core.envs import make_env  # registers AppleCollect-v0; imports `module
 from mam_core.obsolescence import obsolescence_for
 from mam_core.policy import EnvSpec, NumpyActors
 from mam_core.seeding import stream
-from mam_core.slot import SlotStreams, explore, uniform
+from mam_core.slot import SlotStreams, act, uniform
 from services.cli import options
 from services.messaging import bus, keys
 from services.messaging.codec import Allocation, LearnerStats, MessageError, TransitionBatch, Weights
@@ -78,7 +78,7 @@ class Worker(GuardedSimulator):
         self.batch_log = None
         # numpy forwards, no torch in a worker: a one-row torch forward costs ~100 µs of dispatch
         # between env steps, this ~14 µs, and importing torch ~3 s and ~180 MB (docs/PERFORMANCE.md)
-        self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden)
+        self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden, self.algo.stochastic)
         self.shapes = self.actors.shapes
         self.policies = [self.actors.policy(k) for k in range(self.algo.actors)]
         self.history = WeightsHistory(self.algo.actors)  # the versions the next B+1 iterations act with
@@ -306,7 +306,7 @@ class Worker(GuardedSimulator):
             self.flush()  # a batch carries one actor and one policy version (of one learner incarnation)
         while True:
             action = uniform(self.env) if random_phase else \
-                explore(self.policies[actor], self.obs, self.rng, self.algo.explore_noise, self.max_action)
+                act(self.policies[actor], self.obs, self.rng, self.algo, self.max_action)
             try:
                 next_obs, reward, terminated, truncated = self.env_step(action)
                 break

@@ -2,7 +2,7 @@
 
 This package is the only one (with the services that call it) that imports zenoh. Its modules:
 `session` (configs, sessions, publishers), `receive` (Inbox, Latest), `alive` (liveliness) and
-`accounting` (sequence numbers, rejections; no zenoh). Callers use `from services import bus`.
+`accounting` (sequence numbers, rejections; no zenoh). Callers use `from services.messaging import bus`.
 
 Topology: a star. The learner (or a ``mode: router`` session) listens; workers, the
 referee and monitors connect to it as clients. On one box the launcher picks a free
