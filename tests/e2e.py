@@ -34,7 +34,7 @@ def mam(*args: str, timeout: float = 300, cwd: Path = ROOT) -> subprocess.Comple
 def spawn(module: str, *args: str, log: Path) -> subprocess.Popen:
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "ab") as out:
-        return subprocess.Popen([sys.executable, "-m", f"services.{module}", *args], cwd=ROOT, stdout=out,
+        return subprocess.Popen([sys.executable, "-m", f"services.roles.{module}", *args], cwd=ROOT, stdout=out,
                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
                                 env=dict(os.environ, PYTHONWARNINGS="ignore"))
 

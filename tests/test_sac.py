@@ -15,7 +15,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from services.cli.plot import read_jsonl
 
 from mam_core.agent import MultiActorAgent, critic_target, soft_values, weighted_target
 from mam_core.config import defaults_for, resolve
@@ -23,6 +22,7 @@ from mam_core.ensemble import GaussianActorEnsemble, squashed_gaussian_log_prob
 from mam_core.policy import EnvSpec, NumpyActors, load_policy, read_policy_file
 from mam_core.reference import run_reference
 from mam_core.slot import act
+from services.cli.plot import read_jsonl
 from tests.e2e import mam, unique_run
 
 SMALL = dict(hidden=(32, 32), batch_size=16)

@@ -143,7 +143,7 @@ def _role(name: str):
     def command(ctx: typer.Context) -> None:
         import importlib
 
-        module = importlib.import_module(f"services.{name}")
+        module = importlib.import_module(f"services.roles.{name}")
         module.app(ctx.args, prog_name=f"mam {name}", standalone_mode=True)
 
     command.__doc__ = ("A Zenoh router (star hub) for multi-host runs." if name == "router"

@@ -177,7 +177,7 @@ class LocalCluster:
         log_path.parent.mkdir(parents=True, exist_ok=True)
         env = dict(os.environ, **{runlock.LOCK_ENV: self.lock_token}) if self.lock_token else None
         with open(log_path, "ab") as out:
-            proc = subprocess.Popen([sys.executable, "-m", f"services.{role.split('-')[0]}", *args],
+            proc = subprocess.Popen([sys.executable, "-m", f"services.roles.{role.split('-')[0]}", *args],
                                     stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                     start_new_session=True, preexec_fn=_child_setup(role), env=env)
         child = Child(role, proc, log_path, list(args))
