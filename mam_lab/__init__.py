@@ -8,10 +8,9 @@ run in production (`services/`) and the pure algorithm (`mam_core/`).
                     scores), stats.py (IQM, bootstrap CIs, P(X > Y), Wilson, the verdict word),
                     analysis.py (the statistics of an experiment), tables.py, figures.py
     bench.py        `mam bench`: the command. bench_sizes.py, bench_learner.py, bench_runs.py,
-                    bench_transport.py (the pieces)
+                    bench_transport.py, bench_lag.py (the pieces)
     provenance.py   the commit and library versions behind a result
 
 The lab imports services (it starts runs, reads their files); no module under services/ imports the
-lab, except `mam`'s command registration (services/cli/app.py), and the three shims that keep the old
-module paths working (`python -m services.experiment`, `services.experiment_run`, `services.bench`).
+lab, except `mam`'s command registration (services/cli/app.py), lazily.
 """

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import signal
 import subprocess
@@ -173,20 +174,20 @@ def test_reference_driver_is_deterministic_and_k1_needs_no_referee_rounds():
     assert a.updates == 150 and a.survivor is None
 
 
-# -- slow: MuJoCo, a killed worker ---------------------------------------------------------------
+# -- slow: MuJoCo, a killed and a paused worker ---------------------------------------------------------------
 
 
 @pytest.mark.slow
-def test_mam_run_halfcheetah_ma_td3_equals_the_reference(tmp_path: Path) -> None:
+def test_mam_run_halfcheetah_ma_td3_at_lag_1_equals_the_reference(tmp_path: Path) -> None:
     torch.set_num_threads(1)
     run_dir = tmp_path / "cheetah"
-    mam("run", "--env", "HalfCheetah-v5", "--algo", "ma-td3", "--steps", "300", "--start-steps", "100",
+    mam("run", "--env", "HalfCheetah-v5", "--algo", "ma-td3", "--lag", "1", "--steps", "300", "--start-steps", "100",
         "--compete-every", "100", "--eliminate-at", "200", "--eval-episodes", "1", "--eval-every", "100",
         "--hidden", "32,32", "--batch-size", "32", "--seed", "5", "--run", unique_run("cheetah"),
         "--run-dir", str(run_dir), timeout=400)
     got = _record(run_dir)
     cfg = resolve("ma-td3", hidden=(32, 32), batch_size=32, start_steps=100, compete_every=100, eliminate_at=200,
-                  eval_episodes=1, eval_every=100, seed=5)
+                  eval_episodes=1, eval_every=100, seed=5, lag=1)
     ref = run_reference("HalfCheetah-v5", cfg, 300)
     assert got["summary"]["exact"] is True
     assert got["evals"] == [(e["iterations"], e["purpose"], e["returns"]) for e in ref.evaluations]
@@ -226,16 +227,51 @@ def test_a_killed_worker_ends_exactness_and_the_run_finishes(tmp_path: Path) -> 
                                                             compete_every=500, eliminate_at=2000), 3000).budget
 
 
-def test_bench_rates_count_the_training_part_only():
-    from mam_lab.bench_exact import training_rates
+def test_the_lag_bench_counts_the_learners_wait_over_its_training_part():
+    from mam_lab.bench_lag import wait_share
 
-    rows = [{"t": 1.0, "env_steps": 300, "updates": 0},  # the random phase: not counted
-            {"t": 2.0, "env_steps": 600, "updates": 10, "exact_wait_s": 0.5},
-            {"t": 6.0, "env_steps": 1000, "updates": 210, "exact_wait_s": 1.5}]
-    steps_s, updates_s, wait = training_rates(rows)
-    assert (steps_s, updates_s, wait) == (100.0, 50.0, 0.25)
-    with pytest.raises(ValueError, match="run longer"):
-        training_rates(rows[:2])
+    rows = [{"t": 1.0, "env_steps": 300, "updates": 0, "exact_wait_s": 0.9},  # the random phase: not counted
+            {"t": 2.0, "env_steps": 600, "updates": 10, "exact_wait_s": 1.0},
+            {"t": 6.0, "env_steps": 1000, "updates": 210, "exact_wait_s": 2.0}]
+    assert wait_share(rows) == 0.25
+    assert math.isnan(wait_share(rows[:2]))
+
+
+@pytest.mark.slow
+def test_a_paused_worker_is_not_a_fault_the_run_stays_exact(tmp_path: Path) -> None:
+    """A worker SIGSTOPped for 15 s (past its 10 s liveliness lease: to the others it is gone), then
+    resumed: it is still its slot's owner, the run waits for it and then goes on, and it equals the
+    one-process reference bit for bit."""
+    run_dir, name = tmp_path / "paused", unique_run("paused")
+    args = ["--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--steps", str(APPLE_STEPS), "--workers", "5",
+            "--actors", "3", "--start-steps", "100", "--compete-every", "100", "--eliminate-at", "300",
+            "--eval-episodes", "2", "--eval-every", "100", "--hidden", "16,16", "--batch-size", "16", "--seed", "3",
+            "--run", name, "--run-dir", str(run_dir), "--no-plot"]
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", *args], cwd=ROOT, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 120
+        victim = None
+        while time.monotonic() < deadline and victim is None:
+            time.sleep(0.2)
+            rows = read_jsonl(run_dir / "learner.jsonl") if (run_dir / "learner.jsonl").is_file() else []
+            out = subprocess.run(["pgrep", "-f", f"services.roles.worker --run {name} .*--id w1 "],
+                                 capture_output=True, text=True).stdout.split()
+            if out and rows and rows[-1]["iterations"] >= 50:
+                victim = int(out[0])
+        assert victim is not None, "no worker to pause"
+        os.kill(victim, signal.SIGSTOP)
+        time.sleep(15.0)
+        os.kill(victim, signal.SIGCONT)
+        out, _ = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, out
+    record = _record(run_dir)
+    assert record["summary"]["exact"] is True, record["summary"]
+    assert record["summary"]["restarts_total"] == 0
+    _equals_reference(record, run_reference("AppleCollect-v1", resolve("ma-ddpg", seed=3, **APPLE), APPLE_STEPS))
 
 
 @pytest.mark.slow
