@@ -15,3 +15,5 @@ The lab imports services (it starts runs, reads their files); no module under se
 lab, except `mam`'s command registration (services/cli.py), and the three shims that keep the old
 module paths working (`python -m services.experiment`, `services.experiment_run`, `services.bench`).
 """
+
+import mam_core  # noqa: F401, E402  (first: pins the arithmetic before numpy or torch load, mam_core/arithmetic.py)
