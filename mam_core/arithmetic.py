@@ -84,6 +84,7 @@ def pin() -> dict[str, Any]:
         why = f"not an x86-64 CPU with AVX2 and FMA ({platform.machine()}): nothing pinned"
     else:
         os.environ.update(PINS)
+        os.environ.pop("NPY_ENABLE_CPU_FEATURES", None)  # NumPy refuses to start with both set
         if late:
             why = (f"{' and '.join(late)} imported before mam pinned the arithmetic: this process keeps the "
                    "kernels it loaded (import mam_core before numpy and torch)")
