@@ -24,6 +24,7 @@ from typing import Annotated, Any, Optional
 import typer
 from typer.core import TyperCommand
 
+from mam_core import arithmetic as _arithmetic
 from mam_core import schedule as _schedule
 from mam_core.config import AFTER_ELIMINATION, ALGOS, SCHEDULES, AlgoConfig, defaults_for, resolve
 from services import keys
@@ -133,6 +134,10 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
          "B iterations after it is drawn: workers step up to B iterations ahead of the learner (0: Algorithm 1 as "
          "printed). Every B is one deterministic run of its seed, equal to mam_core.reference with the same B",
          symbol="B"),
+    _opt("arithmetic", str, "portable (default): kernels pinned, so the run reruns from --seed on any x86-64 CPU "
+         "with AVX2 (the learner's updates cost ~2x on a CPU, docs/PERFORMANCE.md); native: the fastest kernels "
+         "of this CPU, the run reruns only here (sets MAM_ARITHMETIC for the children; for roles started by hand "
+         "export MAM_ARITHMETIC=native)", target=RUN),
     _opt("run", str, "run name: the key-expression namespace mam/<run>/...", target=RUN),
     _opt("save_replay", bool, "persist the replay buffer beside the checkpoint as append-only chunks",
          target=RUN, flags=("--save-replay/--no-save-replay",)),
@@ -167,7 +172,7 @@ PANELS = {
                      "bias_every", "bias_rollouts", "bias_horizon"), SCHEDULE_PANEL),
     **dict.fromkeys(("save_replay", "checkpoint_every", "checkpoint_rows", "checkpoint_seconds", "stall_timeout",
                      "max_restarts", "restart_window"), SUPERVISION_PANEL),
-    **dict.fromkeys(("lag", "send_batch"), DISTRIBUTION_PANEL),
+    **dict.fromkeys(("lag", "arithmetic", "send_batch"), DISTRIBUTION_PANEL),
 }
 
 
@@ -310,6 +315,9 @@ class RunConfig:
     bias_rollouts: int = 20  # Monte-Carlo rollouts per bias point (the paper: 20)
     bias_horizon: str = "critic"  # critic: MC return + bootstrap tail at a time limit; episode: cut there
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # gym.make(env_id, **env_kwargs) everywhere
+    # portable: pinned kernels, the same run on any x86-64 CPU with AVX2; native: machine-bound
+    # (mam_core/arithmetic.py). Default: what this process was started with (MAM_ARITHMETIC).
+    arithmetic: str = field(default_factory=lambda: os.environ.get(_arithmetic.ARITHMETIC_ENV) or "portable")
 
     @property
     def resend_rows(self) -> int:
@@ -341,6 +349,8 @@ class RunConfig:
             raise ValueError("steps must be >= 1")
         if cfg.bias_every < 0 or cfg.bias_rollouts < 1:
             raise ValueError("bias_every must be >= 0 and bias_rollouts >= 1")
+        if cfg.arithmetic not in _arithmetic.ARITHMETICS:
+            raise ValueError(f"arithmetic must be one of {', '.join(_arithmetic.ARITHMETICS)}, not {cfg.arithmetic!r}")
         if cfg.bias_horizon not in BIAS_HORIZONS:
             raise ValueError(f"bias_horizon must be one of {', '.join(BIAS_HORIZONS)}")
         if cfg.checkpoint_every < 1 or cfg.checkpoint_rows < 1 or not cfg.checkpoint_seconds > 0:

@@ -112,7 +112,6 @@ def test_the_numerics_digest_is_the_committed_one_whatever_kernels_the_machine_w
 
 
 @AVX2
-@pytest.mark.slow
 def test_workers_with_other_kernels_than_the_learner_give_the_reference_run(tmp_path: Path) -> None:
     """A split-role exact run: the learner, the referee and each worker start with another
     machine's kernel choices (standing in for processes on other machines), and the run is
