@@ -29,6 +29,8 @@ from typing import Any
 
 import numpy as np
 
+from mam_core import arithmetic
+
 Policy = Callable[[np.ndarray], np.ndarray]
 
 
@@ -105,18 +107,25 @@ def dense(x: np.ndarray, w: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.einsum("...i,io->...o", x, w) + b
 
 
+def blas_dense(x: np.ndarray, w: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """`dense` through BLAS: ~2x faster, with the bits of this CPU's kernel (`--arithmetic native`)."""
+    return x @ w + b
+
+
 def mlp_policy(layers: Sequence[tuple[np.ndarray, np.ndarray]], max_action: np.ndarray) -> Policy:
     """obs [obs_dim] or [B, obs_dim] -> max_action · tanh(Linear-ReLU-...-Linear(obs)).
 
     `layers` are (w [in, out], b [out]) float32 arrays, read at every call: arrays updated in
-    place are seen at once. Every layer is `dense`: the same actions on every CPU.
+    place are seen at once. Every layer is `dense` (the same actions on every CPU), or
+    `blas_dense` in a process started with native arithmetic.
     """
     last = len(layers) - 1
+    layer = blas_dense if arithmetic.status()["arithmetic"] == "native" else dense
 
     def policy(obs: np.ndarray) -> np.ndarray:
         h = np.asarray(obs, np.float32)
         for i, (w, b) in enumerate(layers):
-            h = dense(h, w, b)
+            h = layer(h, w, b)
             if i < last:
                 np.maximum(h, 0.0, out=h)
         return max_action * np.tanh(h)
