@@ -145,3 +145,18 @@ def test_workers_with_other_kernels_than_the_learner_give_the_reference_run(tmp_
     assert got["evals"] == [(e["iterations"], e["purpose"], e["returns"]) for e in ref.evaluations]
     assert got["summary"]["survivor"] == ref.survivor
     assert _same_params(got["params"], ref.policy)
+
+
+def test_the_run_config_records_its_arithmetic(monkeypatch: pytest.MonkeyPatch) -> None:
+    """config.json says which arithmetic a run computed with: native runs are machine-bound."""
+    from services.options import RunConfig, build_run_config
+
+    base = {"env": "AppleCollect-v1", "algo": "ma-ddpg", "steps": 100}
+    monkeypatch.delenv(arithmetic.ARITHMETIC_ENV, raising=False)
+    assert build_run_config(base, None).to_dict()["arithmetic"] == "portable"
+    native = build_run_config(dict(base, arithmetic="native"), None)
+    assert RunConfig.from_dict(native.to_dict()).arithmetic == "native"
+    monkeypatch.setenv(arithmetic.ARITHMETIC_ENV, "native")  # a role started with native kernels says so
+    assert build_run_config(base, None).arithmetic == "native"
+    with pytest.raises(Exception, match="arithmetic must be one of portable, native"):
+        build_run_config(dict(base, arithmetic="fast"), None)
