@@ -51,6 +51,7 @@ PINS: dict[str, str] = {
 }
 
 _status: dict[str, Any] = {}
+_before: dict[str, str | None] = {}  # the pinned variables as they were before pin() set them
 
 
 def cpu_has_avx2() -> bool:
@@ -83,6 +84,7 @@ def pin() -> dict[str, Any]:
     elif not cpu_has_avx2():
         why = f"not an x86-64 CPU with AVX2 and FMA ({platform.machine()}): nothing pinned"
     else:
+        _before.update({k: os.environ.get(k) for k in (*PINS, "NPY_ENABLE_CPU_FEATURES")})
         os.environ.update(PINS)
         os.environ.pop("NPY_ENABLE_CPU_FEATURES", None)  # NumPy refuses to start with both set
         if late:
@@ -100,9 +102,17 @@ def status() -> dict[str, Any]:
     return pin()
 
 
-def child_env(arithmetic: str, env: dict[str, str] | None = None) -> dict[str, str]:
-    """The environment for a child process of a run with this arithmetic (a `mam run`'s roles)."""
+def for_children(arithmetic: str) -> None:
+    """Make the processes this one starts from now on compute with `arithmetic` (`mam run`'s
+    roles): MAM_ARITHMETIC for their `pin()`, and for native the variables as they were before
+    this process pinned them (the children must not inherit this process's pins)."""
     if arithmetic not in ARITHMETICS:
         raise ValueError(f"arithmetic must be one of {', '.join(ARITHMETICS)}, not {arithmetic!r}")
-    return dict(os.environ if env is None else env, **{ARITHMETIC_ENV: arithmetic})
-
+    pin()
+    os.environ[ARITHMETIC_ENV] = arithmetic
+    if arithmetic == "native":
+        for k, v in _before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v

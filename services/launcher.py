@@ -29,7 +29,7 @@ import zenoh
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from mam_core.arithmetic import ARITHMETIC_ENV
+from mam_core import arithmetic
 from mam_core.schedule import Schedule
 from services import bus, keys, preflight, registry, rundir, runlock
 from services.codec import Allocation, Eval, LearnerStats, MessageError
@@ -388,7 +388,7 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
 
     `outcome`, when given, gets "interrupted": whether SIGINT / SIGTERM stopped the run."""
     console = console or Console()
-    os.environ[ARITHMETIC_ENV] = cfg.arithmetic  # the children pin their kernels, or not, as they start
+    arithmetic.for_children(cfg.arithmetic)  # the children pin their kernels, or not, as they start
     try:  # one run per directory: refused before anything is written (services/runlock.py)
         lock = runlock.lock_run(run_dir, cfg.run)
     except runlock.RunInUse as e:

@@ -160,3 +160,25 @@ def test_the_run_config_records_its_arithmetic(monkeypatch: pytest.MonkeyPatch) 
     assert build_run_config(base, None).arithmetic == "native"
     with pytest.raises(Exception, match="arithmetic must be one of portable, native"):
         build_run_config(dict(base, arithmetic="fast"), None)
+
+
+@pytest.mark.slow
+def test_a_native_run_reruns_on_its_machine_with_its_own_kernels(tmp_path: Path) -> None:
+    """`mam run --arithmetic native`: the roles start without the pins `mam run` itself loaded
+    with, so the run equals the reference computed by a native process on this machine."""
+    from tests.test_exact import _mam_run
+
+    run_dir = _mam_run(tmp_path, "native", 3, "--arithmetic", "native")
+    assert json.loads((run_dir / "config.json").read_text())["arithmetic"] == "native"
+    code = ("import sys, json; import mam_core; import torch; torch.set_num_threads(1); sys.path.insert(0, '.')\n"
+            "from pathlib import Path\n"
+            "from mam_core.config import resolve\nfrom mam_core.reference import run_reference\n"
+            "from tests.test_exact import APPLE, APPLE_STEPS, _record, _same_params\n"
+            "ref = run_reference('AppleCollect-v1', resolve('ma-ddpg', seed=3, **APPLE), APPLE_STEPS)\n"
+            f"got = _record(Path({str(run_dir)!r}))\n"
+            "print(json.dumps([_same_params(got['params'], ref.policy), "
+            "got['evals'] == [(e['iterations'], e['purpose'], e['returns']) for e in ref.evaluations]]))")
+    env = {k: v for k, v in os.environ.items() if k not in arithmetic.PINS}
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300,
+                         env=dict(env, MAM_ARITHMETIC="native"), check=True)
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == [True, True]
