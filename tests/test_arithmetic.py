@@ -166,9 +166,14 @@ def test_the_run_config_records_its_arithmetic(monkeypatch: pytest.MonkeyPatch) 
 def test_a_native_run_reruns_on_its_machine_with_its_own_kernels(tmp_path: Path) -> None:
     """`mam run --arithmetic native`: the roles start without the pins `mam run` itself loaded
     with, so the run equals the reference computed by a native process on this machine."""
-    from tests.test_exact import _mam_run
-
-    run_dir = _mam_run(tmp_path, "native", 3, "--arithmetic", "native")
+    env = {k: v for k, v in os.environ.items() if k not in arithmetic.PINS}  # as a user's shell has them
+    run_dir = tmp_path / "native"
+    subprocess.run([sys.executable, "-m", "services.cli", "run", "--env", "AppleCollect-v1", "--algo", "ma-ddpg",
+                    "--steps", str(APPLE_STEPS), "--workers", "5", "--actors", "3", "--start-steps", "100",
+                    "--compete-every", "100", "--eliminate-at", "300", "--eval-episodes", "2", "--eval-every", "100",
+                    "--hidden", "16,16", "--batch-size", "16", "--seed", "3", "--run", unique_run("native"),
+                    "--run-dir", str(run_dir), "--no-plot", "--arithmetic", "native"], cwd=ROOT, env=env,
+                   capture_output=True, text=True, timeout=300, check=True)
     assert json.loads((run_dir / "config.json").read_text())["arithmetic"] == "native"
     code = ("import sys, json; import mam_core; import torch; torch.set_num_threads(1); sys.path.insert(0, '.')\n"
             "from pathlib import Path\n"
@@ -178,7 +183,53 @@ def test_a_native_run_reruns_on_its_machine_with_its_own_kernels(tmp_path: Path)
             f"got = _record(Path({str(run_dir)!r}))\n"
             "print(json.dumps([_same_params(got['params'], ref.policy), "
             "got['evals'] == [(e['iterations'], e['purpose'], e['returns']) for e in ref.evaluations]]))")
-    env = {k: v for k, v in os.environ.items() if k not in arithmetic.PINS}
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300,
                          env=dict(env, MAM_ARITHMETIC="native"), check=True)
     assert json.loads(out.stdout.strip().splitlines()[-1]) == [True, True]
+
+
+MUJOCO_STEPS = """
+import hashlib, json
+import mam_core
+import gymnasium as gym, numpy as np
+out = {}
+for env_id in ("HalfCheetah-v5", "Ant-v5", "Humanoid-v5"):
+    env, rng, h = gym.make(env_id), np.random.default_rng(0), hashlib.sha256()
+    env.reset(seed=0)
+    for t in range(100):
+        obs, _, term, trunc, _ = env.step(rng.uniform(-1, 1, env.action_space.shape) * env.action_space.high)
+        h.update(obs.tobytes())
+        if term or trunc:
+            env.reset(seed=t)
+    out[env_id] = h.hexdigest()
+print(json.dumps(out))
+"""
+
+
+def glibc_without(features: list[str]) -> str:
+    """GLIBC_TUNABLES that hide CPU features from glibc's choice of variants."""
+    return "glibc.cpu.hwcaps=" + ",".join(f"-{f}" for f in features)
+
+
+@AVX2
+def test_mujoco_steps_do_not_depend_on_avx512_but_do_on_fma() -> None:
+    """MuJoCo reads none of the pinned variables; what it takes from the CPU comes through glibc's
+    libm (sin, cos, exp), whose variants glibc picks by CPU. Masking AVX-512 from glibc (a CPU
+    with AVX2 only) leaves 100 random-action steps of three MuJoCo envs bit-identical; masking AVX2
+    and FMA too (a CPU the guarantee does not cover) changes them: the check can fail."""
+    pytest.importorskip("mujoco")
+
+    def steps(tunables: str | None) -> dict[str, str]:
+        env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
+        if tunables:
+            env["GLIBC_TUNABLES"] = tunables
+        r = subprocess.run([sys.executable, "-c", MUJOCO_STEPS], cwd=ROOT, capture_output=True, text=True,
+                           timeout=300, env=env, check=True)
+        return json.loads(r.stdout.strip().splitlines()[-1])
+
+    avx512 = ["AVX512F", "AVX512VL", "AVX512BW", "AVX512DQ", "AVX512CD"]
+    with ThreadPoolExecutor(2) as pool:
+        native, no_avx512, no_fma = pool.map(steps, [None, glibc_without(avx512),
+                                                     glibc_without(["AVX2", "FMA", *avx512])])
+    assert no_avx512 == native
+    assert any(no_fma[e] != native[e] for e in native), "masking AVX2 and FMA from glibc changed nothing"
