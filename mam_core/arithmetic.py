@@ -40,8 +40,7 @@ ARITHMETICS = ("portable", "native")
 
 # NumPy names its AVX-512 dispatch targets X86_V4, AVX512_ICL, AVX512_SPR (2.4 and later) or
 # AVX512F, AVX512_SKX, ... (earlier): names a NumPy does not know are ignored (an ImportWarning).
-_NUMPY_AVX512 = ("X86_V4 AVX512_ICL AVX512_SPR AVX512F AVX512CD AVX512_KNL AVX512_KNM AVX512_SKX AVX512_CLX "
-                 "AVX512_CNL AVX512_ICL")
+_NUMPY_AVX512 = "X86_V4 AVX512_ICL AVX512_SPR AVX512F AVX512CD AVX512_KNL AVX512_KNM AVX512_SKX AVX512_CLX AVX512_CNL"
 
 PINS: dict[str, str] = {
     "MKL_CBWR": "COMPATIBLE",
