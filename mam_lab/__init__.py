@@ -14,3 +14,5 @@ run in production (`services/`) and the pure algorithm (`mam_core/`).
 The lab imports services (it starts runs, reads their files); no module under services/ imports the
 lab, except `mam`'s command registration (services/cli/app.py), lazily.
 """
+
+import mam_core  # noqa: F401, E402  (first: pins the arithmetic before numpy or torch load, mam_core/arithmetic.py)

@@ -1,6 +1,7 @@
 """A digest of Algorithm 1's numerics at the checkout that runs: does a code change alter results?
 
     python -m mam_lab.numerics [--env HalfCheetah-v5] [--steps 1500] [--seed 7] [--algo ma-td3]
+                               [--hidden 256,256] [--batch-size 256]
 
 Runs `mam_core.reference.run_reference` (one process, the same plan a distributed exact-mode run
 follows bit for bit, tests/test_exact.py) for MA-TD3 (or `--algo`, e.g. ma-sac) under both
@@ -8,7 +9,9 @@ schedules on a small budget, with the default networks, and prints per schedule 
 every evaluation's returns and every final actor parameter. Two checkouts that print the same
 digests compute the same runs from the same seed, so ledger records made at either commit can be
 pooled (docs/RESULTS.md). Run it from each checkout with `PYTHONPATH=<checkout>` so that
-checkout's code is imported.
+checkout's code is imported. The arithmetic is pinned (mam_core/arithmetic.py): any x86-64
+machine with AVX2 prints the same digests, and the JSON says which arithmetic computed them
+(`MAM_ARITHMETIC=native` gives this machine's own).
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from typing import Any
 import numpy as np
 import typer
 
+from mam_core import arithmetic
 from mam_core.config import resolve
 from mam_core.reference import ReferenceResult, run_reference
 
@@ -57,11 +61,20 @@ def numerics(env_id: str, steps: int, seed: int, algo: str = "ma-td3", **overrid
 def main(env: str = typer.Option("HalfCheetah-v5", help="gymnasium env id"),
          steps: int = typer.Option(1500, help="schedule steps per run (start, A = steps / 5, C = 3A)"),
          seed: int = typer.Option(7, help="the runs' --seed"),
-         algo: str = typer.Option("ma-td3", help="the algorithm (a multi-actor one: ma-td3, ma-ddpg, ma-sac)")) -> None:
-    """Print the numerics digest of this checkout as one JSON object (the algo named only when not ma-td3,
-    so the default output stays what older checkouts print)."""
+         algo: str = typer.Option("ma-td3", help="the algorithm (a multi-actor one: ma-td3, ma-ddpg, ma-sac)"),
+         hidden: str = typer.Option("256,256", help="hidden layer widths (small ones for a quick check)"),
+         batch_size: int = typer.Option(256, help="mini-batch size")) -> None:
+    """Print the numerics digest of this checkout as one JSON object (the algo named only when not
+    ma-td3, so the default output stays what older checkouts print)."""
+    widths = tuple(int(h) for h in hidden.split(","))
+    overrides: dict[str, Any] = {}
+    if widths != (256, 256) or batch_size != 256:  # the defaults: the digests docs/RESULTS.md quotes
+        overrides = dict(hidden=widths, batch_size=batch_size)
     named = {} if algo == "ma-td3" else {"algo": algo}
-    print(json.dumps({"env": env, "steps": steps, "seed": seed, **named, **numerics(env, steps, seed, algo)}))
+    state = arithmetic.status()
+    label = "portable" if state["portable"] else f"{state['arithmetic']}, machine-bound: {state['machine_bound']}"
+    print(json.dumps({"env": env, "steps": steps, "seed": seed, **named, **overrides, "arithmetic": label,
+                      **numerics(env, steps, seed, algo, **overrides)}))
 
 
 if __name__ == "__main__":

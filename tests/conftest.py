@@ -6,6 +6,9 @@ import subprocess
 import uuid
 from pathlib import Path
 
+import mam_core  # noqa: F401  (before torch: the suite computes with the pinned arithmetic of a run)
+
+# isort: split
 import pytest
 import torch
 

@@ -31,12 +31,13 @@ def mam(*args: str, timeout: float = 300, cwd: Path = ROOT) -> subprocess.Comple
     return proc
 
 
-def spawn(module: str, *args: str, log: Path) -> subprocess.Popen:
+def spawn(module: str, *args: str, log: Path, env: dict[str, str] | None = None) -> subprocess.Popen:
+    """`python -m services.MODULE ARGS` in its own session, output to `log`; `env` adds variables."""
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "ab") as out:
         return subprocess.Popen([sys.executable, "-m", f"services.roles.{module}", *args], cwd=ROOT, stdout=out,
                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
-                                env=dict(os.environ, PYTHONWARNINGS="ignore"))
+                                env=dict(os.environ, PYTHONWARNINGS="ignore", **(env or {})))
 
 
 def stop(*procs: subprocess.Popen, timeout: float = 20.0) -> None:

@@ -131,6 +131,10 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
          "B iterations after it is drawn: workers step up to B iterations ahead of the learner (0: Algorithm 1 as "
          "printed). Every B is one deterministic run of its seed, equal to mam_core.reference with the same B",
          symbol="B"),
+    _opt("arithmetic", str, "portable (default): kernels pinned, so the run reruns from --seed on any x86-64 CPU "
+         "with AVX2 (the learner's updates run 2-3x slower, docs/PERFORMANCE.md); native: the fastest kernels "
+         "of this CPU, the run reruns only here (sets MAM_ARITHMETIC for the children; for roles started by hand "
+         "export MAM_ARITHMETIC=native)", target=RUN),
     _opt("run", str, "run name: the key-expression namespace mam/<run>/...", target=RUN),
     _opt("save_replay", bool, "persist the replay buffer beside the checkpoint as append-only chunks",
          target=RUN, flags=("--save-replay/--no-save-replay",)),
@@ -165,7 +169,7 @@ PANELS = {
                      "bias_every", "bias_rollouts", "bias_horizon"), SCHEDULE_PANEL),
     **dict.fromkeys(("save_replay", "checkpoint_every", "checkpoint_rows", "checkpoint_seconds", "stall_timeout",
                      "max_restarts", "restart_window"), SUPERVISION_PANEL),
-    **dict.fromkeys(("lag", "send_batch"), DISTRIBUTION_PANEL),
+    **dict.fromkeys(("lag", "arithmetic", "send_batch"), DISTRIBUTION_PANEL),
 }
 
 

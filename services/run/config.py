@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 from dataclasses import dataclass, field
 from typing import Any
 
+from mam_core import arithmetic as _arithmetic
 from mam_core import schedule as _schedule
 from mam_core.config import AlgoConfig
 from services.messaging import keys
@@ -45,6 +47,9 @@ class RunConfig:
     bias_rollouts: int = 20  # Monte-Carlo rollouts per bias point (the paper: 20)
     bias_horizon: str = "critic"  # critic: MC return + bootstrap tail at a time limit; episode: cut there
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # gym.make(env_id, **env_kwargs) everywhere
+    # portable: pinned kernels, the same run on any x86-64 CPU with AVX2; native: machine-bound
+    # (mam_core/arithmetic.py). Default: what this process was started with (MAM_ARITHMETIC).
+    arithmetic: str = field(default_factory=lambda: os.environ.get(_arithmetic.ARITHMETIC_ENV) or "portable")
 
     @property
     def resend_rows(self) -> int:
@@ -76,6 +81,8 @@ class RunConfig:
             raise ValueError("steps must be >= 1")
         if cfg.bias_every < 0 or cfg.bias_rollouts < 1:
             raise ValueError("bias_every must be >= 0 and bias_rollouts >= 1")
+        if cfg.arithmetic not in _arithmetic.ARITHMETICS:
+            raise ValueError(f"arithmetic must be one of {', '.join(_arithmetic.ARITHMETICS)}, not {cfg.arithmetic!r}")
         if cfg.bias_horizon not in BIAS_HORIZONS:
             raise ValueError(f"bias_horizon must be one of {', '.join(BIAS_HORIZONS)}")
         if cfg.checkpoint_every < 1 or cfg.checkpoint_rows < 1 or not cfg.checkpoint_seconds > 0:

@@ -25,6 +25,7 @@ from typing import Any
 
 from rich.console import Console
 
+from mam_core import arithmetic
 from services.messaging import bus
 from services.messaging.codec import LearnerStats
 from services.run import preflight, registry, rundir, runlock
@@ -386,6 +387,7 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
 
     `outcome`, when given, gets "interrupted": whether SIGINT / SIGTERM stopped the run."""
     console = console or Console()
+    arithmetic.for_children(cfg.arithmetic)  # the children pin their kernels, or not, as they start
     try:  # one run per directory: refused before anything is written (services/run/runlock.py)
         lock = runlock.lock_run(run_dir, cfg.run)
     except runlock.RunInUse as e:

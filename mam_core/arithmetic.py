@@ -1,0 +1,117 @@
+"""Portable arithmetic: the same seed gives the same run on any x86-64 CPU with AVX2.
+
+The libraries mam computes with pick their kernels by the CPU they find, and another kernel
+sums floats in another order:
+
+- torch's GEMMs, and its tanh, run in MKL, whose kernel depends on the CPU's instruction sets
+  and cache sizes. MKL's conditional numerical reproducibility (`MKL_CBWR`) fixes the branch;
+  COMPATIBLE is the one branch MKL honours on Intel and AMD CPUs alike (AVX2 and the others are
+  "available only for Intel processors": on AMD MKL falls back to AUTO without a word).
+- torch's own kernels are compiled for several instruction sets and chosen at import
+  (`ATEN_CPU_CAPABILITY`); `torch.randn` changes between the default and the AVX2 build.
+- NumPy dispatches some ufuncs by CPU: `np.exp` of float64 has other bits under AVX-512 than
+  under AVX2. `NPY_DISABLE_CPU_FEATURES` keeps it to its AVX2 (X86_V3) loops.
+- NumPy's OpenBLAS picks a kernel per CPU model: pinned to its Haswell (AVX2) kernels for what
+  calls BLAS outside the actors (AppleCollect's distances, an env's own numpy).
+- The workers' and the referee's actors call no BLAS at all: `mam_core.policy.dense` sums in a
+  fixed order.
+
+Each library reads its variable once, when it loads (MKL at its first call), so `pin()` runs
+before numpy or torch is imported: `mam_core/__init__.py` calls it, and `services` and
+`mam_lab` import `mam_core` first, so every command and `python -m` entry point (and the test
+suite, through tests/conftest.py) pins before anything else loads. A process that imported
+numpy or torch before mam is machine-bound: `status()` says so, with a warning.
+
+`MAM_ARITHMETIC=native` (`--arithmetic native`) leaves the libraries to choose, for speed;
+that run reruns only on the machine, and in the environment, where it ran. This module imports
+nothing but the standard library.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import sys
+import warnings
+from typing import Any
+
+ARITHMETIC_ENV = "MAM_ARITHMETIC"
+ARITHMETICS = ("portable", "native")
+
+# NumPy names its AVX-512 dispatch targets X86_V4, AVX512_ICL, AVX512_SPR (2.4 and later) or
+# AVX512F, AVX512_SKX, ... (earlier): names a NumPy does not know are ignored (an ImportWarning).
+_NUMPY_AVX512 = "X86_V4 AVX512_ICL AVX512_SPR AVX512F AVX512CD AVX512_KNL AVX512_KNM AVX512_SKX AVX512_CLX AVX512_CNL"
+
+PINS: dict[str, str] = {
+    "MKL_CBWR": "COMPATIBLE",
+    "ATEN_CPU_CAPABILITY": "avx2",
+    "NPY_DISABLE_CPU_FEATURES": _NUMPY_AVX512,
+    "OPENBLAS_CORETYPE": "Haswell",
+}
+
+_status: dict[str, Any] = {}
+_before: dict[str, str | None] = {}  # the pinned variables as they were before pin() set them
+
+
+def cpu_has_avx2() -> bool:
+    """An x86-64 CPU with AVX2 and FMA (Linux: /proc/cpuinfo), the machines the pins cover."""
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return False
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    flags = set(line.split(":", 1)[1].split())
+                    return {"avx2", "fma"} <= flags
+    except OSError:
+        pass
+    return False
+
+
+def pin() -> dict[str, Any]:
+    """Set the pins of `PINS` in os.environ (over any value already there) unless the
+    arithmetic is native; return `status()`. Idempotent: the first call decides."""
+    if _status:
+        return dict(_status)
+    mode = os.environ.get(ARITHMETIC_ENV, "portable") or "portable"
+    if mode not in ARITHMETICS:
+        raise ValueError(f"{ARITHMETIC_ENV}={mode!r}: choose one of {', '.join(ARITHMETICS)}")
+    late = [m for m in ("numpy", "torch") if m in sys.modules]
+    why = ""
+    if mode == "native":
+        why = "native arithmetic: the libraries choose their kernels for this CPU"
+    elif not cpu_has_avx2():
+        why = f"not an x86-64 CPU with AVX2 and FMA ({platform.machine()}): nothing pinned"
+    else:
+        _before.update({k: os.environ.get(k) for k in (*PINS, "NPY_ENABLE_CPU_FEATURES")})
+        os.environ.update(PINS)
+        os.environ.pop("NPY_ENABLE_CPU_FEATURES", None)  # NumPy refuses to start with both set
+        if late:
+            why = (f"{' and '.join(late)} imported before mam pinned the arithmetic: this process keeps the "
+                   "kernels it loaded (import mam_core before numpy and torch)")
+            warnings.warn(f"mam: {why}; results may differ from other machines", RuntimeWarning, stacklevel=2)
+    _status.update(arithmetic=mode, portable=not why, machine_bound=why,
+                   pins={k: os.environ.get(k, "") for k in PINS})
+    return dict(_status)
+
+
+def status() -> dict[str, Any]:
+    """{"arithmetic": "portable" | "native", "portable": bool, "machine_bound": "" or why not,
+    "pins": the variables as this process set them}."""
+    return pin()
+
+
+def for_children(arithmetic: str) -> None:
+    """Make the processes this one starts from now on compute with `arithmetic` (`mam run`'s
+    roles): MAM_ARITHMETIC for their `pin()`, and for native the variables as they were before
+    this process pinned them (the children must not inherit this process's pins)."""
+    if arithmetic not in ARITHMETICS:
+        raise ValueError(f"arithmetic must be one of {', '.join(ARITHMETICS)}, not {arithmetic!r}")
+    pin()
+    os.environ[ARITHMETIC_ENV] = arithmetic
+    if arithmetic == "native":
+        for k, v in _before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
