@@ -32,7 +32,7 @@ def mam(*args: str, timeout: float = 300, cwd: Path = ROOT) -> subprocess.Comple
 
 
 def spawn(module: str, *args: str, log: Path, env: dict[str, str] | None = None) -> subprocess.Popen:
-    """`python -m services.MODULE ARGS` in its own session, output to `log`; `env` adds variables."""
+    """`python -m services.roles.MODULE ARGS` in its own session, output to `log`; `env` adds variables."""
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "ab") as out:
         return subprocess.Popen([sys.executable, "-m", f"services.roles.{module}", *args], cwd=ROOT, stdout=out,

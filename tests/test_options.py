@@ -62,7 +62,7 @@ def _run_option_flags(app, name: str | None = None) -> dict[str, tuple[tuple[str
 
 
 def test_the_option_table_drives_mam_run_and_mam_learner():
-    from services.cli.app import app as cli
+    from services.cli import app as cli
     from services.cli.options import cli_options
     from services.roles import learner
 

@@ -166,7 +166,7 @@ def test_learner_plot_labels_updates_per_schedule_step(tmp_path):
     config["algo"] = {**config.pop("algo_config"), "schedule": "paper"}
     (run / "config.json").write_text(json.dumps(config))
     with matplotlib.rc_context({"svg.fonttype": "none"}):
-        from services.cli.app import plot
+        from services.cli import plot
 
         assert plot.plot_run(run)  # the paper schedule's run: the label comes from its config
     assert (run / "plots" / "learner.png").is_file()
@@ -215,7 +215,7 @@ def test_final_evaluation_at_the_last_step_draws_one_point(tmp_path):
 
 def _figure_of(monkeypatch, draw) -> "Figure":  # noqa: F821
     """The Figure a plot function saves (drawn and written as usual)."""
-    from services.cli.app import plot
+    from services.cli import plot
 
     captured = []
     real_save = plot._save

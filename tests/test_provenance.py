@@ -30,7 +30,7 @@ def test_a_grid_writing_its_ledger_leaves_the_code_clean_and_a_code_change_is_na
 
     (repo / "services" / "learner.py").write_text("x = 2\n")
     code = code_version(repo)
-    assert code["dirty"] and code["modified"] == ["services/roles/learner.py"]
+    assert code["dirty"] and code["modified"] == ["services/learner.py"]
     assert commit_label({"commit": head, **code}) == head[:12] + "+modified"
 
 

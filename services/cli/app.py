@@ -25,6 +25,10 @@ def run(
                                          rich_help_panel=options.SUPERVISION_PANEL),
     no_plot: bool = typer.Option(False, "--no-plot", help="skip the PNG plots at the end",
                                  show_default=False, rich_help_panel=options.RUN_PANEL),
+    resume: Optional[Path] = typer.Option(None, "--resume", metavar="RUN_DIR",
+                                          help="continue the stopped run in RUN_DIR (Ctrl-C, a killed `mam run`, "
+                                               "a reboot) to its budget, with the options it started with",
+                                          rich_help_panel=options.RUN_PANEL),
 ) -> None:
     """Train on this box: learner + referee + M workers over an embedded loopback Zenoh."""
     from services.run.launcher import RestartPolicy, run_local
@@ -32,7 +36,12 @@ def run(
     logging.basicConfig(level=logging.WARNING)
     from services.run import preflight
 
-    cfg = options.build_run_config(run_opts, config)
+    if resume is not None:
+        if run_dir is not None and run_dir.resolve() != resume.resolve():
+            raise typer.BadParameter(f"--run-dir {run_dir} contradicts --resume {resume}")
+        cfg, run_dir = options.resume_config(resume, run_opts, config), resume
+    else:
+        cfg = options.build_run_config(run_opts, config)
     cpu.check_precision(cfg)
     run_dir = run_dir or Path("runs") / cfg.run
     try:  # a configuration error stops here, before any process starts (services/run/preflight.py)

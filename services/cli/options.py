@@ -11,6 +11,7 @@ import dataclasses
 import difflib
 import functools
 import inspect
+import json
 import os
 import re
 import time
@@ -374,6 +375,46 @@ def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig
                                     **run_fields})
     except (TypeError, ValueError) as e:
         raise typer.BadParameter(str(e)) from e
+
+
+def resume_config(run_dir: Path, cli: dict[str, Any], config_file: Path | None) -> RunConfig:
+    """The config of the stopped run in `run_dir` (its config.json), for `mam run --resume`:
+    typer.BadParameter naming the file when there is nothing to continue (no run, a finished
+    run, no verified checkpoint) or when a given option contradicts the run's."""
+    from services.run import rundir
+
+    path = run_dir / rundir.CONFIG
+    if not path.is_file():
+        raise typer.BadParameter(f"--resume {run_dir}: no {path.name} there; not a run directory `mam run` wrote")
+    if (run_dir / rundir.SUMMARY).is_file():
+        raise typer.BadParameter(f"--resume {run_dir}: the run finished ({run_dir / rundir.SUMMARY}); "
+                                 "nothing to continue")
+    if not rundir.has_checkpoint(run_dir):
+        raise typer.BadParameter(f"--resume {run_dir}: no verified checkpoint in {run_dir / rundir.CHECKPOINTS} "
+                                 "(the run stopped before its first one, or they are damaged); start it again "
+                                 "without --resume")
+    try:
+        cfg = RunConfig.from_dict(json.loads(path.read_text()))
+    except (ValueError, TypeError, KeyError) as e:
+        raise typer.BadParameter(f"--resume {run_dir}: {path} is not a run config: {e}") from None
+    given = load_toml(config_file)
+    given.update({_canonical(k, "command line"): v for k, v in cli.items() if v is not None})
+    have = {**cfg.to_dict(), **cfg.algo.to_dict(), "env": cfg.env_id}
+    for name, value in given.items():
+        if isinstance(value, str) and isinstance(have.get(name), (list, tuple)):
+            value = [int(h) for h in value.split(",") if h.strip()]
+        if name not in have or _same(have[name], value):
+            continue
+        flag = "--" + name.replace("_", "-")
+        raise typer.BadParameter(f"--resume {run_dir}: {flag} {value} contradicts the run's {have[name]} ({path}); "
+                                 "a resumed run keeps the options it started with")
+    return cfg
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, (list, tuple)) or isinstance(b, (list, tuple)):
+        return list(a) == list(b)
+    return a == b or (isinstance(a, (int, float)) and isinstance(b, (int, float)) and float(a) == float(b))
 
 
 def check_env_id(env_id: str, env_kwargs: dict[str, Any] | None = None) -> None:

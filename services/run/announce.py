@@ -49,9 +49,10 @@ class WorkerCount:
             up = len(self.watch.live())
             full = full or up >= m
             if up < m and not warned:
-                self.log.warning("only %d of M = %d workers of run %r are up %s: the run waits on or runs without "
-                                 "the missing slots (slower, and not the M slots the schedule counts); start them "
-                                 "(mam-worker --run %s --connect ENDPOINT --id NAME) or run with --workers %d",
+                self.log.warning("only %d of M = %d workers of run %r are up %s: the run waits for the missing "
+                                 "slots (every iteration needs each of them); start them (mam-worker --run %s "
+                                 "--connect ENDPOINT --id NAME --slot I, for each missing slot I) or run with "
+                                 "--workers %d",
                                  up, m, run, "any more" if full else f"{self.grace_s:.0f} s after the start",
                                  run, max(up, 1))
                 warned = True

@@ -138,7 +138,7 @@ def learner_banner(cfg: RunConfig, listen: list[str] | None, connect: list[str] 
     endpoint = (connect or [])[:1] or [e.replace("0.0.0.0", "HOST") for e in (listen or [])[:1]] or ["ENDPOINT"]
     return (f"learner of run {run!r} {where or 'with the --zenoh-config endpoints'}; waiting for a referee "
             f"(mam-referee --run {run} --connect {endpoint[0]}) and M = {m} worker{'s' if m > 1 else ''} "
-            f"(mam-worker --run {run} --connect {endpoint[0]} --id NAME, one per slot)")
+            f"(mam-worker --run {run} --connect {endpoint[0]} --id NAME --slot I, one for each slot I = 0..{m - 1})")
 
 
 def check_run_name(name: str) -> str:

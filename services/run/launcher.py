@@ -419,6 +419,10 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
         console.print(f"[yellow]note:[/] {line}", highlight=False)
     registry.register(cfg.run, endpoint, run_dir)  # `mam watch --run NAME` finds it without --connect
     console.print(f"run dir {run_dir}   watch live: [cyan]{command_name()} watch --run {cfg.run}[/]")
+    before = rundir.earlier_parts(run_dir)  # a resumed run: what its earlier parts took and restarted
+    if rundir.has_checkpoint(run_dir):
+        console.print(f"[bold]resuming[/] the run in {run_dir} from its last checkpoint (part {before['parts'] + 1}; "
+                      f"the learner logs the iteration it resumes at)")
     started = time.monotonic()
     interrupted = False
     gave_up: RunStopped | None = None
@@ -436,6 +440,7 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
             if outcome is not None:
                 outcome["signal"] = e.signum if isinstance(e, Interrupted) else signal.SIGINT
             console.print("[yellow]interrupted: stopping all processes (the learner writes a checkpoint)[/]")
+            console.print(f"continue it with: [cyan]{command_name()} run --resume {run_dir}[/]", highlight=False)
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -449,12 +454,20 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
     for c in failed:
         console.print(f"[red]{c.role} exited with {describe_exit(c.proc.returncode)}[/]: see {c.log}")
     restarts = cluster.restart_counts()
+    restarts = {r: restarts.get(r, 0) + before["restarts"].get(r, 0) for r in {**before["restarts"], **restarts}}
+    wall = before["wall_s"] + time.monotonic() - started
+    try:  # the next part of a resumed run adds to these
+        write_json(run_dir / rundir.LAUNCHER_STATE, {"parts": before["parts"] + 1, "restarts": restarts,
+                                              "wall_s": round(wall, 2)})
+    except OSError:
+        pass
     summary_path = run_dir / rundir.SUMMARY
     summary: dict[str, Any] = {}
     finished = cluster.finished() and gave_up is None and not interrupted
     if summary_path.is_file() and finished:
         summary = json.loads(summary_path.read_text())
-        summary["launcher_wall_time_s"] = round(time.monotonic() - started, 2)
+        summary["launcher_wall_time_s"] = round(wall, 2)  # every part of the run
+        summary["parts"] = before["parts"] + 1
         summary["restarts"] = restarts
         summary["restarts_total"] = sum(restarts.values())
         summary["restarts_cancelled"] = dict(cluster.cancelled)  # died in their backoff as the run finished

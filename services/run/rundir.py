@@ -168,3 +168,16 @@ def last_line(path: Path, needle: str) -> str:
     except OSError:
         return ""
     return lines[-1].strip()[-400:] if lines else ""
+
+
+LAUNCHER_STATE = "launcher.json"  # RUN_DIR/launcher.json: parts, restarts and wall time so far
+
+
+def earlier_parts(run_dir: Path) -> dict[str, Any]:
+    """What the earlier parts of a resumed run took (RUN_DIR/launcher.json; none: a fresh run)."""
+    try:
+        data = json.loads((run_dir / LAUNCHER_STATE).read_text())
+        return {"parts": int(data["parts"]), "restarts": {str(r): int(n) for r, n in data["restarts"].items()},
+                "wall_s": float(data["wall_s"])}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {"parts": 0, "restarts": {}, "wall_s": 0.0}

@@ -1,0 +1,74 @@
+"""`mam run --resume RUN_DIR`: a stopped run continues to its budget with the options it started
+with; nothing to continue, or a flag that contradicts the run, is refused at once, naming the file."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from services.cli.plot import read_jsonl
+from tests.e2e import ROOT, processes_of, unique_run
+
+ARGS = ["--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--steps", "1500", "--workers", "3", "--actors", "2",
+        "--start-steps", "200", "--compete-every", "300", "--eliminate-at", "900", "--eval-episodes", "2",
+        "--eval-every", "300", "--hidden", "16,16", "--batch-size", "16", "--seed", "4", "--checkpoint-seconds", "2",
+        "--no-plot"]
+
+
+def mam_run(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "services.cli", "run", *args], cwd=ROOT, text=True,
+                          capture_output=True, timeout=timeout, env=dict(os.environ, COLUMNS="200"))
+
+
+def test_resume_refuses_a_directory_with_nothing_to_continue(tmp_path: Path) -> None:
+    got = mam_run("--resume", str(tmp_path / "nowhere"))
+    assert got.returncode == 2 and "no config.json there" in got.stderr, got.stderr
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "config.json").write_text("{}")
+    got = mam_run("--resume", str(run_dir))
+    assert got.returncode == 2 and "no verified checkpoint in" in got.stderr and str(run_dir) in got.stderr
+
+
+@pytest.mark.slow
+def test_a_killed_mam_run_continues_with_resume_to_its_budget(tmp_path: Path) -> None:
+    run, run_dir = unique_run("resume"), tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", *ARGS, "--run", run, "--run-dir",
+                             str(run_dir)], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
+                            start_new_session=True)
+    try:
+        deadline = time.monotonic() + 180
+        while not any(r.get("iterations", 0) >= 400 for r in read_jsonl(run_dir / "learner.jsonl")) \
+                or not list((run_dir / "checkpoints").glob("manifest-*.json")):
+            assert time.monotonic() < deadline and proc.poll() is None, "the run did not get going"
+            time.sleep(0.3)
+        time.sleep(2.5)  # a checkpoint past the start
+        os.killpg(proc.pid, signal.SIGKILL)  # `mam run` and every child, as a reboot would
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    time.sleep(1.0)
+    assert not (run_dir / "summary.json").exists()
+    got = mam_run("--resume", str(run_dir), "--seed", "5")  # contradicts the run's seed 4
+    assert got.returncode == 2 and "--seed 5 contradicts the run's 4" in got.stderr, got.stderr
+    got = mam_run("--resume", str(run_dir), "--seed", "4")  # agreeing flags are fine
+    assert got.returncode == 0, got.stdout + got.stderr
+    assert "resuming" in got.stdout and "part 2" in got.stdout
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["iterations"] == 1500  # the budget, in iterations (3 slots until C = 900, then 1)
+    assert summary["parts"] == 2 and summary["exact"] is False and "restarted" in summary["inexact"]
+    transport = json.loads((run_dir / "transport.json").read_text())
+    assert transport["duplicates"] == 0 and transport["env_steps"] == summary["env_steps"]
+    elimination = [a for a in read_jsonl(run_dir / "allocation.jsonl") if a["reason"] == "elimination"]
+    assert [a["iterations"] for a in elimination] == [900]  # exactly at C, across the two parts
+    got = mam_run("--resume", str(run_dir))
+    assert got.returncode == 2 and "the run finished" in got.stderr
+    assert processes_of(run) == []
