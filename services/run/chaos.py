@@ -46,7 +46,7 @@ RUN_FILES = (rundir.CONFIG, rundir.LEARNER_LOG, rundir.EVAL, rundir.ALLOCATION, 
 
 
 def children_of(pid: int) -> list[tuple[int, str]]:
-    """(pid, role) of the live `services.<role>` processes whose parent is `pid`."""
+    """(pid, role) of the live `services.roles.<role>` processes whose parent is `pid`."""
     out = []
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
@@ -62,8 +62,8 @@ def children_of(pid: int) -> list[tuple[int, str]]:
             continue
         for a in args:
             name = a.decode(errors="replace")
-            if name.startswith("services.") and name.split(".", 1)[1] in ROLES:
-                out.append((int(entry.name), name.split(".", 1)[1]))
+            if name.startswith("services.roles.") and name.rsplit(".", 1)[1] in ROLES:
+                out.append((int(entry.name), name.rsplit(".", 1)[1]))
     return out
 
 
