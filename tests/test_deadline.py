@@ -1,6 +1,6 @@
 """`mam experiment --stop-by TIME` (issue 18, item 5): the deadline rule, TIME's formats, the wall-time
 estimates from the ledger's records, and the scheduler with real child processes standing in for runs
-(tests/test_experiment.py's FakeLauncher): runs that would end after TIME are not started, a run in
+(tests/lab_fixtures.py's FakeLauncher): runs that would end after TIME are not started, a run in
 flight at TIME is allowed to finish and is recorded."""
 
 from __future__ import annotations
@@ -11,11 +11,12 @@ from datetime import datetime, timedelta, timezone
 
 import pytest
 
+from mam_lab.grid import plan
 from mam_lab.ledger import estimate_wall_s, record_wall_s, run_state, wall_estimates
 from mam_lab.scheduler import may_start, parse_stop_by, run_grid
 from mam_lab.view import estimate_text
 from services.run.rundir import write_json
-from tests.test_experiment import FakeLauncher, plan, quiet, small_grid
+from tests.lab_fixtures import FakeLauncher, quiet, small_grid
 
 
 def test_the_deadline_rule():

@@ -1,5 +1,5 @@
 """mam_lab.stats and mam_lab.scores (pure): each figure checked against a value computed by hand,
-the arithmetic written beside it. tests/test_experiment.py has the statistical checks (coverage,
+the arithmetic written beside it. tests/test_lab_stats.py has the statistical checks (coverage,
 seeding, stratification) and the report built from run directories."""
 
 from __future__ import annotations
