@@ -19,9 +19,6 @@ from mam_lab.ledger import (
     thin_jsonl,
 )
 from mam_lab.scheduler import run_grid
-from mam_lab.stats import (
-    stratified_bootstrap,
-)
 from tests.lab_fixtures import (
     ROOT,
     FakeLauncher,
@@ -30,19 +27,6 @@ from tests.lab_fixtures import (
     quiet,
     small_grid,
 )
-
-
-def test_stratified_bootstrap_resamples_within_each_stratum():
-    # Every replicate keeps 5 draws from each env: the pooled mean is always 5 when one env is all
-    # 0 and the other all 10 (a pooled, unstratified bootstrap would vary).
-    strata = [np.zeros(5), np.full(5, 10.0)]
-    reps = stratified_bootstrap([strata], lambda s: np.concatenate(s, axis=-1).mean(axis=-1), n_boot=500, seed=0)
-    assert reps.shape == (500,)
-    np.testing.assert_allclose(reps, 5.0)
-    # and resampling does vary within a stratum
-    reps = stratified_bootstrap([[np.arange(10.0)]], lambda s: s[0].mean(axis=-1), n_boot=500, seed=0)
-    assert reps.std() > 0.3
-
 
 
 def test_resume_skips_finished_runs_and_redoes_partial_ones(tmp_path):
