@@ -156,5 +156,6 @@ def test_workers_survive_simulator_faults_in_a_mam_run(tmp_path: Path) -> None:
     assert r["summary"]["restarts_total"] == 0
     faults = {k: sum(w["env_faults"][k] for w in r["workers"]) for k in r["workers"][0]["env_faults"]}
     assert all(n > 0 for n in faults.values()), faults
-    assert sum(w["dropped_episodes"] for w in r["workers"]) > 0
+    # lock-step: a faulty step is retried on a reset env (no row dropped); the run says it is not the seed's
+    assert r["summary"]["exact"] is False and "simulator faults" in r["summary"]["inexact"], r["summary"]
     assert processes_of(run) == []

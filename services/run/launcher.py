@@ -1,17 +1,17 @@
 """`mam run`: a whole run on one box — learner, referee and M workers as child processes.
 
 The learner listens on a free loopback port; the referee and workers connect to it as clients
-(multicast scouting off, a unique run name). The launcher itself is one more client: it shows
-a progress bar of env steps with the current allocation, supervises the children (one that
-dies is restarted with backoff, the learner with `--resume`; see RestartPolicy and
-docs/DESIGN-DECISIONS.md), stops every child on Ctrl-C or at the end of the budget, reconciles
-what the workers sent with what the replay holds (`audit_transport`), and draws the plots.
+(no multicast scouting, a unique run name). The launcher is one more client: it shows progress
+(services/run/progress.py), supervises the children (one that dies is restarted with backoff,
+the learner with `--resume`: RestartPolicy), stops them on Ctrl-C or at the end of the budget,
+reconciles what the workers sent with what the replay holds (`audit_transport`), draws plots.
 Children are started with `subprocess` (Zenoh sessions do not survive `fork`), each logging to
-RUN_DIR/logs/<role>.log (a restarted child appends to the same log).
+RUN_DIR/logs/<role>.log (a restarted child appends to it).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -420,6 +420,8 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
     registry.register(cfg.run, endpoint, run_dir)  # `mam watch --run NAME` finds it without --connect
     console.print(f"run dir {run_dir}   watch live: [cyan]{command_name()} watch --run {cfg.run}[/]")
     before = rundir.earlier_parts(run_dir)  # a resumed run: what its earlier parts took and restarted
+    with contextlib.suppress(OSError):  # this part counts even if it is killed (its restarts and time then do not)
+        write_json(run_dir / rundir.LAUNCHER_STATE, {**before, "parts": before["parts"] + 1})
     if rundir.has_checkpoint(run_dir):
         console.print(f"[bold]resuming[/] the run in {run_dir} from its last checkpoint (part {before['parts'] + 1}; "
                       f"the learner logs the iteration it resumes at)")
@@ -456,11 +458,9 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
     restarts = cluster.restart_counts()
     restarts = {r: restarts.get(r, 0) + before["restarts"].get(r, 0) for r in {**before["restarts"], **restarts}}
     wall = before["wall_s"] + time.monotonic() - started
-    try:  # the next part of a resumed run adds to these
+    with contextlib.suppress(OSError):  # the next part of a resumed run adds to these
         write_json(run_dir / rundir.LAUNCHER_STATE, {"parts": before["parts"] + 1, "restarts": restarts,
-                                              "wall_s": round(wall, 2)})
-    except OSError:
-        pass
+                                                     "wall_s": round(wall, 2)})
     summary_path = run_dir / rundir.SUMMARY
     summary: dict[str, Any] = {}
     finished = cluster.finished() and gave_up is None and not interrupted
