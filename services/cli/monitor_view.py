@@ -68,6 +68,20 @@ def _ints(values: Any) -> list[int | None]:
     return [_int(v) for v in values] if isinstance(values, list) else []
 
 
+def _plain(value: Any) -> Any:
+    if isinstance(value, tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    return value
+
+
+def message_body(obj: Any) -> dict[str, Any]:
+    """A validated message (services/messaging/codec) as the plain dict (lists, not tuples) the
+    state takes: what `mam watch` and `mam run`'s progress view feed it."""
+    return {name: _plain(getattr(obj, name)) for name in obj.__dataclass_fields__}
+
+
 class MonitorState:
     """Everything `mam watch` knows about a run, updated one message at a time."""
 

@@ -16,7 +16,7 @@ from rich.console import Console
 from rich.live import Live
 
 from services.cli import options
-from services.cli.monitor_view import MonitorState, PlainLines, render
+from services.cli.monitor_view import MonitorState, PlainLines, message_body, render
 from services.messaging import bus, keys
 from services.messaging.codec import Allocation, Done, Eval, LearnerStats, MessageError, decode
 from services.roles import role
@@ -24,19 +24,6 @@ from services.run import config, registry
 from services.run.config import RunConfig
 
 log = logging.getLogger("mam.monitor")
-
-
-def _plain(value: Any) -> Any:
-    if isinstance(value, tuple):
-        return [_plain(v) for v in value]
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
-    return value
-
-
-def _body(obj: Any) -> dict[str, Any]:
-    """A validated message as the plain dict (lists, not tuples) MonitorState takes."""
-    return {name: _plain(getattr(obj, name)) for name in obj.__dataclass_fields__}
 
 
 class NoRun(Exception):
@@ -142,13 +129,13 @@ def apply(state: MonitorState, name: str, payload: bytes) -> None:
             raise MessageError("config", str(e)[:200]) from None
         state.on_config(cfg.to_dict() | {"algo": cfg.algo.algo, "algo_config": cfg.algo.to_dict()})
     elif name == "allocation":
-        state.on_allocation(_body(Allocation.from_bytes(payload, k)))
+        state.on_allocation(message_body(Allocation.from_bytes(payload, k)))
     elif name == "eval":
-        state.on_eval(_body(Eval.from_bytes(payload, k)))
+        state.on_eval(message_body(Eval.from_bytes(payload, k)))
     elif name == "stats":
-        state.on_stats(_body(LearnerStats.from_bytes(payload)))
+        state.on_stats(message_body(LearnerStats.from_bytes(payload)))
     elif name == "done":
-        state.on_done(_body(Done.from_bytes(payload)))
+        state.on_done(message_body(Done.from_bytes(payload)))
 
 
 app = typer.Typer(add_completion=False, help=__doc__)

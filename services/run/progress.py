@@ -16,6 +16,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from mam_core.envs.apple_collect import best_apple_return
+from services.cli.monitor_view import MonitorState, message_body
 from services.run import rundir
 
 if TYPE_CHECKING:
@@ -73,25 +74,6 @@ def describe_allocation(alloc: Allocation | None) -> str:
         names = ", ".join(str(k) for k in tie)
         text += f"  (tie: actors {names} share the best return; the run's seeded generator picked {alloc.survivor})"
     return text
-
-
-class Rates:
-    """Env steps/s and updates/s of the learner's counters, over the last few seconds."""
-
-    def __init__(self, window_s: float = 3.0) -> None:
-        self.window_s = window_s
-        self.base: tuple[float, int, int] | None = None
-        self.rates: tuple[float, float] | None = None
-
-    def update(self, env_steps: int, updates: int, now: float | None = None) -> tuple[float, float] | None:
-        now = time.monotonic() if now is None else now
-        if self.base is None or env_steps < self.base[1] or updates < self.base[2]:  # a restarted learner
-            self.base = (now, env_steps, updates)
-        elif now - self.base[0] >= self.window_s:
-            dt = now - self.base[0]
-            self.rates = ((env_steps - self.base[1]) / dt, (updates - self.base[2]) / dt)
-            self.base = (now, env_steps, updates)
-        return self.rates
 
 
 def at_text(cfg: RunConfig, transitions: int) -> str:
@@ -196,8 +178,9 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                 time.sleep(0.1)
         roles.close()
         cluster.start_workers()
-        alloc: Allocation | None = None
-        last_eval = ""
+        # What is known of the run: `mam watch`'s own state (services/cli/monitor_view.py), fed the same messages
+        state = MonitorState(run=cfg.run, env_id=cfg.env_id, algo=cfg.algo.algo, steps=cfg.steps)
+        state.on_config(cfg.to_dict() | {"algo": cfg.algo.algo, "algo_config": cfg.algo.to_dict()})
         # the clock counts from the launcher's start and stops when the budget is reached, as the done line says
         columns = (TextColumn("[bold]transitions"), BarColumn(bar_width=16), MofNCompleteColumn(),
                    TextColumn("[yellow]{task.fields[clock]}"), TimeRemainingColumn(), TextColumn("{task.fields[info]}"))
@@ -207,7 +190,6 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                 budget = Schedule.for_run(cfg.algo, cfg.steps).budget  # in transitions, what the bar counts
                 task = progress.add_task("train", total=budget, info="starting",
                                          clock=clock_text(time.monotonic() - cluster.started_at))
-                speed = Rates()
                 while True:
                     cluster.supervise()
                     if cluster.finished():
@@ -219,17 +201,17 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                     if item is not None:
                         try:
                             new = Allocation.from_bytes(item.payload, cfg.algo.actors)
-                            if alloc is None or new.round != alloc.round or new.survivor != alloc.survivor:
+                            if state.last_allocation is None or (new.round, new.survivor) != (state.round,
+                                                                                               state.survivor):
                                 progress.console.print(f"[magenta]{new.reason}[/] at {at_text(cfg, new.env_steps)}: "
                                                        f"{describe_allocation(new)}", highlight=False)
-                            alloc = new
+                            state.on_allocation(message_body(new))
                         except MessageError:
                             pass
                     item = evals.fresh().get(keys.eval(cfg.run))
                     if item is not None:
                         try:
-                            ev = Eval.from_bytes(item.payload, cfg.algo.actors)
-                            last_eval = "R=[" + " ".join("—" if m is None else f"{m:.2f}" for m in ev.mean) + "]"
+                            state.on_eval(message_body(Eval.from_bytes(item.payload, cfg.algo.actors)))
                         except MessageError:
                             pass
                     item = stats.fresh().get(keys.learner_stats(cfg.run))
@@ -237,7 +219,9 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                         try:
                             st = LearnerStats.from_bytes(item.payload)
                             cluster.observe(st)  # the stall watchdog (supervise -> check_stall)
-                            rates = speed.update(st.env_steps, st.updates)
+                            state.on_stats(message_body(st))
+                            rates = None if state.steps_per_s is None else (state.steps_per_s,
+                                                                             state.updates_per_s or 0.0)
                             if st.done and not cluster.done:  # the budget is reached: the bar's last line
                                 cluster.done, cluster.done_at = True, time.monotonic()
                                 progress.update(task, completed=min(st.env_steps, budget),
@@ -245,6 +229,8 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                                                 info=f"{progress_text(cfg, st.env_steps, st.updates, None)}  "
                                                      "budget reached: final evaluation")
                             elif not cluster.done:  # after done the rates only fall to 0: not shown
+                                last_eval = "" if not state.last_mean else "R=[" + " ".join(
+                                    "—" if m is None else f"{m:.2f}" for m in state.last_mean) + "]"
                                 info = (f"{progress_text(cfg, st.env_steps, st.updates, rates)}  "
                                         f"{last_eval}")  # I_k: on the allocation lines above
                                 progress.update(task, completed=min(st.env_steps, budget), info=info)
