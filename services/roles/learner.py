@@ -160,11 +160,10 @@ class Learner:
             for batch, skipped in used:
                 if self.intake.admit(batch):
                     self.intake.count(batch, self.agent.versions, skipped)
-            self.mid_iteration = True  # a stop in the elimination's wait leaves this iteration half done
             self.metrics = plan.run_updates(it, self.agent, self.sample, self.apply_elimination) or self.metrics
-            if self.stop_requested:
+            if it.eliminate and self.survivor is None:  # stopped in the elimination's wait: half an iteration
+                self.mid_iteration = True
                 break
-            self.mid_iteration = False
             self.iteration = index
             if plan.weights_change(index):
                 self.out.weights()
