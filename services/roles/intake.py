@@ -60,6 +60,9 @@ class Intake:
         # Rows per worker/incarnation received but not inserted: iterations their slot already had
         # (a replacement worker starting behind, a predecessor's late batch). Sent = rows + skipped + lost.
         self.stream_skipped: dict[str, int] = {}
+        # per worker/incarnation: its batch the learner has used only in part, (seq, rows used): a resend
+        # of it to a restarted learner repeats those rows, which are in the replay already
+        self.stream_partial: dict[str, tuple[int, int]] = {}
         self.episode_returns: list[float] = []
         self.incarnation = ""  # the learner's (rows acted with another incarnation's weights are accepted)
 
@@ -117,17 +120,27 @@ class Intake:
             return False
         return True
 
-    def count(self, batch: TransitionBatch, versions: Sequence[int], skipped: int = 0) -> None:
-        """The per-worker counters of an admitted batch whose rows are in the buffer, but for the
-        first `skipped` (iterations its slot had from elsewhere: counted as redundant)."""
-        w = self._tally(batch)
-        rows = batch.rows - skipped
+    def insert_row(self, batch: TransitionBatch, used: int) -> None:
+        """A row of `batch` went into the replay, the `used`-th of it (the per-stream count the
+        audit holds against what the worker sent; kept in checkpoints row by row)."""
         stream = f"{batch.worker}/{batch.incarnation}"
-        self.stream_rows[stream] = self.stream_rows.get(stream, 0) + rows
-        w.received += rows
-        w.incarnation_rows += rows
-        if skipped and not batch.resend:  # a resend's first rows are in the replay already
-            self.skip(batch, skipped)
+        self.stream_rows[stream] = self.stream_rows.get(stream, 0) + 1
+        if used < batch.rows:
+            self.stream_partial[stream] = (batch.batch_seq, used)
+        else:
+            self.stream_partial.pop(stream, None)
+
+    def own_rows(self, batch: TransitionBatch) -> int:
+        """Rows of `batch` (from its first) that are in the replay already: a resend of the batch
+        this learner had used in part."""
+        seq, used = self.stream_partial.get(f"{batch.worker}/{batch.incarnation}", (-1, 0))
+        return used if seq == batch.batch_seq else 0
+
+    def count(self, batch: TransitionBatch, versions: Sequence[int]) -> None:
+        """The per-worker counters of an admitted batch whose rows are in the buffer (or skipped)."""
+        w = self._tally(batch)
+        w.received += batch.rows
+        w.incarnation_rows += batch.rows
         w.last_seq = max(w.last_seq, batch.batch_seq)
         w.actor = batch.actor
         w.lag = versions[batch.actor] - batch.version if batch.version >= 0 else 0

@@ -153,13 +153,15 @@ class Learner:
             self.wait_s += time.perf_counter() - waited
             if self.stop_requested:
                 break
-            rows, used = stage.take(index, it.slots)
+            rows, sources, used = stage.take(index, it.slots)
             self.buffer.add_batch(rows["obs"], rows["action"], rows["reward"], rows["next_obs"],
                                   rows["terminated"], actor=rows["actor"], version=rows["version"])
             self.env_steps += len(it.slots)
-            for batch, skipped in used:
+            for batch, used_rows in sources:
+                self.intake.insert_row(batch, used_rows)
+            for batch in used:
                 if self.intake.admit(batch):
-                    self.intake.count(batch, self.agent.versions, skipped)
+                    self.intake.count(batch, self.agent.versions)
             self.metrics = plan.run_updates(it, self.agent, self.sample, self.apply_elimination) or self.metrics
             if it.eliminate and self.survivor is None:  # stopped in the elimination's wait: half an iteration
                 self.mid_iteration = True
@@ -216,14 +218,19 @@ class Learner:
             batch = self.intake.validate(item, self.agent.versions)
             if batch is None:
                 continue
-            staged, why = stage.add(batch)
+            if stage.holds(batch):
+                continue  # a resend of a batch still staged: it is counted once, when it is used
+            staged, why, trimmed = stage.add(batch)
             if why:
                 self.break_exact(why)
             if batch.env_faults:
                 self.break_exact(f"worker {batch.worker} (slot {batch.slot}) met {batch.env_faults} simulator "
                                  f"faults in {self.cfg.env_id} by iteration {batch.iteration + batch.rows - 1}")
-            if not staged and self.intake.admit(batch) and not batch.resend:
-                self.intake.skip(batch, batch.rows)  # iterations its slot has from elsewhere
+            new = staged or self.intake.admit(batch)  # not staged: the tracker sees it now (redundant, or new)
+            if trimmed and new:  # rows of iterations the slot has: skipped, but for those in the replay already
+                rest = trimmed - min(trimmed, self.intake.own_rows(batch))
+                if rest:
+                    self.intake.skip(batch, rest)
         self.follow_allocation()
         if not self.referee_seen and self.referees.live():
             self.referee_seen = True  # finish() waits for its final evaluation

@@ -24,7 +24,8 @@ def checkpoint(lr: Learner) -> None:
     started = time.monotonic()
     counters = {"env_steps": lr.env_steps, "per_worker": json.dumps(lr.intake.tracker.per_sender()),
                 "stream_rows": json.dumps(lr.intake.stream_rows),
-                "stream_skipped": json.dumps(lr.intake.stream_skipped), "referee_seen": int(lr.referee_seen),
+                "stream_skipped": json.dumps(lr.intake.stream_skipped),
+                "stream_partial": json.dumps(lr.intake.stream_partial), "referee_seen": int(lr.referee_seen),
                 "iteration": lr.iteration, "inexact": lr.inexact,
                 "wall_s": round(lr.wall_before + time.monotonic() - lr.started, 3)}
     path = save_checkpoint(lr.run_dir, lr.agent, lr.buffer, counters, lr.cfg, lr.replay_log,
@@ -50,6 +51,7 @@ def restore(lr: Learner, state: dict[str, Any]) -> None:
             raise ValueError(f"checkpoint counts {lr.env_steps} transitions, its replay {lr.buffer.inserted}")
     lr.intake.stream_rows = {k: int(v) for k, v in json.loads(c.get("stream_rows", "{}")).items()}
     lr.intake.stream_skipped = {k: int(v) for k, v in json.loads(c.get("stream_skipped", "{}")).items()}
+    lr.intake.stream_partial = {k: (int(v[0]), int(v[1])) for k, v in json.loads(c.get("stream_partial", "{}")).items()}
     # The run had a referee: a learner resumed at its budget waits for it (its final evaluation).
     lr.referee_seen = bool(int(c.get("referee_seen", 0)))
     # Sequence numbers go on from the checkpoint: a gap then counts what died with the old

@@ -38,7 +38,6 @@ class _Staged:
     batch: TransitionBatch
     first: int  # the iteration of batch row `used`
     used: int = 0  # rows of the batch already inserted (or skipped: iterations the slot had already)
-    skipped: int = 0  # rows skipped (the first ones)
 
 
 class SlotStage:
@@ -57,14 +56,15 @@ class SlotStage:
         self.owner: list[tuple[str, str] | None] = [None] * slots
         self.retired: set[tuple[str, str]] = set()
 
-    def add(self, batch: TransitionBatch) -> tuple[bool, str]:
-        """Stage a batch: (staged, why exactness broke or ""). A batch not staged holds nothing new."""
+    def add(self, batch: TransitionBatch) -> tuple[bool, str, int]:
+        """Stage a batch: (staged, why exactness broke or "", its rows not staged: iterations the
+        slot had already, all of a predecessor's late batch). A batch not staged holds nothing new."""
         s, owner = batch.slot, (batch.worker, batch.incarnation)
         if batch.iteration < 1 or not 0 <= s < len(self.queues):
             return False, f"worker {batch.worker} sent iteration {batch.iteration} of slot {s} " \
-                          f"(of {len(self.queues)} slots)"
+                          f"(of {len(self.queues)} slots)", 0
         if owner in self.retired:
-            return False, ""  # a predecessor's late batch
+            return False, "", batch.rows  # a predecessor's late batch
         why = ""
         if self.owner[s] is None:
             self.owner[s] = owner
@@ -74,14 +74,20 @@ class SlotStage:
             self.owner[s] = owner
         skip = self.end[s] - batch.iteration
         if skip >= batch.rows:
-            return False, why
+            return False, why, batch.rows
         if skip < 0:
             why = why or f"slot {s} lost iterations {self.end[s]}..{batch.iteration - 1} (rows lost in flight)"
             skip = 0  # its rows stand in for the lost iterations
-        staged = _Staged(batch, self.end[s], used=skip, skipped=skip)
+        staged = _Staged(batch, self.end[s], used=skip)
         self.queues[s].append(staged)
         self.end[s] += batch.rows - skip
-        return True, why
+        return True, why, skip
+
+    def holds(self, batch: TransitionBatch) -> bool:
+        """This very batch (worker, incarnation, seq) is staged already (a resend of it came)."""
+        q = self.queues[batch.slot] if 0 <= batch.slot < len(self.queues) else ()
+        return any((st.batch.worker, st.batch.incarnation, st.batch.batch_seq) ==
+                   (batch.worker, batch.incarnation, batch.batch_seq) for st in q)
 
     def ready(self, index: int, slots: Sequence[int]) -> bool:
         return all(self.queues[s] and self.queues[s][0].first == index for s in slots)
@@ -89,23 +95,25 @@ class SlotStage:
     def missing(self, index: int, slots: Sequence[int]) -> list[int]:
         return [s for s in slots if not (self.queues[s] and self.queues[s][0].first == index)]
 
-    def take(self, index: int, slots: Sequence[int]) -> tuple[dict[str, np.ndarray], list[tuple[TransitionBatch, int]]]:
-        """Iteration `index`'s rows in slot order, and the batches this used up (with the rows
-        each skipped)."""
-        parts, done = [], []
+    def take(self, index: int, slots: Sequence[int]) -> tuple[dict[str, np.ndarray],
+                                                              list[tuple[TransitionBatch, int]], list[TransitionBatch]]:
+        """Iteration `index`'s rows in slot order, (batch, rows of it used so far) for each row,
+        and the batches this used up."""
+        parts, sources, done = [], [], []
         for s in slots:
             st = self.queues[s][0]
             b, r = st.batch, st.used
             parts.append((b.obs[r], b.action[r], b.reward[r], b.next_obs[r], b.terminated[r], b.actor, b.version))
             st.used += 1
+            sources.append((b, st.used))
             st.first += 1
             if st.used == b.rows:
-                done.append((b, self.queues[s].popleft().skipped))
+                done.append(self.queues[s].popleft().batch)
         obs, action, reward, next_obs, term, actor, version = zip(*parts)
         rows = {"obs": np.stack(obs), "action": np.stack(action), "reward": np.asarray(reward, np.float32),
                 "next_obs": np.stack(next_obs), "terminated": np.asarray(term, np.bool_),
                 "actor": np.asarray(actor, np.int64), "version": np.asarray(version, np.int64)}
-        return rows, done
+        return rows, sources, done
 
 
 def snapshot_versions(plan: Algorithm1, index: int) -> set[int]:
