@@ -43,7 +43,7 @@ log = logging.getLogger("mam.worker")
 
 MAX_BATCH_AGE_S = 0.05  # a partial batch is sent after this long
 STATUS_EVERY_S = 10.0
-RESYNC_S = 2.0  # waiting this long while the learner needs another iteration of this slot: go on from that one
+RESYNC_S = 2.0  # waiting this long while the learner needs another iteration of this slot: go on from there
 class Worker(GuardedSimulator):
     def __init__(self, cfg: RunConfig, session: Any, worker_id: str, slot_index: int = 0,
                  run_dir: Path | None = None, generation: int = 0) -> None:
@@ -88,7 +88,7 @@ class Worker(GuardedSimulator):
         self.batch_seq = 0
         self.sent_rows = 0
         self.learner_incarnation: str | None = None
-        self.stats_at = 0.0  # when the last stats arrived
+        self.stats_at = self.flushed_at = 0.0  # when the last stats arrived, when the last batch was put
         self.last_note = 0.0
         self.episode_return = 0.0
         self.finished_returns: list[float] = []
@@ -195,12 +195,11 @@ class Worker(GuardedSimulator):
 
     def out_of_step(self, index: int, waiting_since: float) -> bool:
         """This slot waits, and the learner's stats (newer than the wait) say it needs another
-        iteration of it next: the learner restarted from a checkpoint behind this slot (or lost
-        its rows), or a predecessor's rows already filled what this worker is at. The slot
-        then goes on from the learner's next iteration (weights and decisions for it are
-        re-sent while the learner waits)."""
-        st = self.stats
-        if st is None or self.slot >= len(st.slots_next) or st.slots_next[self.slot] == index:
+        iteration of it next (a learner restarted behind this slot, rows lost, or a predecessor's
+        rows filled what this worker is at): the slot goes on from the learner's next iteration."""
+        st = self.stats  # (rows still pending here, after a pause, or stats older than them: no resync)
+        if st is None or self.slot >= len(st.slots_next) or st.slots_next[self.slot] == index or self.p_n or \
+                self.stats_at - self.flushed_at < RESYNC_S / 2:
             return False
         return time.monotonic() - waiting_since > RESYNC_S and self.stats_at - waiting_since > RESYNC_S / 2
 
@@ -347,6 +346,7 @@ class Worker(GuardedSimulator):
         if self.batch_log is not None:
             self.batch_log.write(f"{self.batch_seq} {n}\n")
         self.pub.put(batch.to_bytes())
+        self.flushed_at = time.monotonic()
         if self.retain:
             self.unacked.append(batch)
             self.unacked_rows += n
