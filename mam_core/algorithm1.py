@@ -176,8 +176,7 @@ class Algorithm1:
         lo, hi = 0, self.iterations
         while lo < hi:
             mid = (lo + hi + 1) // 2
-            if self.transitions_before(mid + 1) <= transitions or (mid == self.iterations
-                                                                    and self.schedule.budget <= transitions):
+            if self.transitions_before(mid + 1) <= transitions:  # capped at the budget after the last
                 lo = mid
             else:
                 hi = mid - 1

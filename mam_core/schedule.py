@@ -15,11 +15,8 @@ Every option that counts steps — `--steps` (T), `--start-steps`, `--compete-ev
 For K = 1 (TD3, DDPG) with M = 1 both schedules are the same run.
 
 The distributed system counts transitions (what reaches the replay buffer); this class maps
-between the two, so the learner's rate limiter, the round barriers and the referee's rounds
-follow the paper's clock. Workers run asynchronously, so "one transition per slot" holds on
-average, not per iteration: the learner may ingest a slot's second transition of an iteration
-before another slot's first. The totals (budget, updates, round and elimination points) are
-exact up to the rate limiter's documented overrun.
+between the two. `mam_core/algorithm1.py` builds Algorithm 1's iterations on it, so every role
+follows the paper's clock exactly.
 """
 
 from __future__ import annotations

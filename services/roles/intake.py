@@ -66,19 +66,6 @@ class Intake:
         self.episode_returns: list[float] = []
         self.incarnation = ""  # the learner's (rows acted with another incarnation's weights are accepted)
 
-    def ingest(self, items: Sequence[bus.Received], versions: Sequence[int]) -> int:
-        """Add what is valid among `items` (`versions`: the learner's policy versions); rows added."""
-        added = 0
-        for item in items:
-            batch = self.validate(item, versions)
-            if batch is None or not self.admit(batch):
-                continue
-            self.buffer.add_batch(batch.obs, batch.action, batch.reward, batch.next_obs, batch.terminated,
-                                  actor=batch.actor, version=batch.version)
-            self.count(batch, versions)
-            added += batch.rows
-        return added
-
     def validate(self, item: bus.Received, versions: Sequence[int]) -> TransitionBatch | None:
         """The decoded batch, or None (rejected and counted; a decoded batch's rows are told back
         to its worker as `rejected_rows`, so it does not wait for them).
