@@ -43,7 +43,7 @@ log = logging.getLogger("mam.worker")
 
 MAX_BATCH_AGE_S = 0.05  # a partial batch is sent after this long
 STATUS_EVERY_S = 10.0
-RESYNC_S = 2.0  # waiting this long while the learner needs another iteration of this slot: go on from there
+RESYNC_S = 2.0  # waiting this long while a restarted learner needs another iteration of this slot: go there
 class Worker(GuardedSimulator):
     def __init__(self, cfg: RunConfig, session: Any, worker_id: str, slot_index: int = 0,
                  run_dir: Path | None = None, generation: int = 0) -> None:
@@ -61,10 +61,8 @@ class Worker(GuardedSimulator):
         # The slot's streams (mam_core.seeding): from --seed, the slot and the restart generation only.
         self.slot = slot_index
         self.streams = SlotStreams.for_slot(self.algo.seed, slot_index, generation)
-        self.rng = self.streams.noise
         # Simulator faults: the step is retried on a reset env, the fault counted (by kind).
-        self.faults = {kind: 0 for kind in FAULTS}
-        self.env_remade = 0
+        self.faults, self.env_remade = {kind: 0 for kind in FAULTS}, 0
         self.env.action_space.seed(self.streams.action_seed)
         self.obs = self.reset_env(seed=self.streams.reset_seed)
         # Exactly once across a learner restart: batches the learner has not yet checkpointed
@@ -89,6 +87,7 @@ class Worker(GuardedSimulator):
         self.sent_rows = 0
         self.learner_incarnation: str | None = None
         self.stats_at = self.flushed_at = 0.0  # when the last stats arrived, when the last batch was put
+        self.synced_with = ""  # the learner incarnation this slot's position was taken from (out_of_step)
         self.last_note = 0.0
         self.episode_return = 0.0
         self.finished_returns: list[float] = []
@@ -158,15 +157,17 @@ class Worker(GuardedSimulator):
                 return
             self.refresh(decisions, index)
             if index is not None and self.out_of_step(index, waiting_since):
-                log.info("iteration %d: the learner needs iteration %d of slot %d next; going on from there", index,
-                         self.stats.slots_next[self.slot], self.slot)
-                index, waiting_since = self.stats.slots_next[self.slot], time.monotonic()
+                log.info("iteration %d: the restarted learner needs iteration %d of slot %d next; going on from "
+                         "there", index, self.stats.slots_next[self.slot], self.slot)
+                index, waiting_since, self.synced_with = self.stats.slots_next[self.slot], time.monotonic(), \
+                    self.stats.incarnation
             if index is None:  # where the run stands: the learner's stats
                 if self.stats is None:
                     self.stats_sub.wait_fresh(timeout=0.1)
                     continue
                 st = self.stats
                 index = st.slots_next[self.slot] if self.slot < len(st.slots_next) else st.iteration + 1
+                self.synced_with = st.incarnation
                 if index > 1:
                     log.info("taking slot %d over at iteration %d", self.slot, index)
             it = plan.iteration(index) if index <= plan.iterations else None
@@ -194,13 +195,12 @@ class Worker(GuardedSimulator):
             index += 1
 
     def out_of_step(self, index: int, waiting_since: float) -> bool:
-        """This slot waits, and the learner's stats (newer than the wait) say it needs another
-        iteration of it next (a learner restarted behind this slot, rows lost, or a predecessor's
-        rows filled what this worker is at): the slot goes on from the learner's next iteration."""
+        """This slot waits, and a learner restarted since (stats newer than the wait) needs another
+        iteration of it next: the slot goes on from the learner's next iteration."""
         st = self.stats  # (rows still pending here, after a pause, or stats older than them: no resync)
         if st is None or self.slot >= len(st.slots_next) or st.slots_next[self.slot] == index or self.p_n or \
-                self.stats_at - self.flushed_at < RESYNC_S / 2:
-            return False
+                self.stats_at - self.flushed_at < RESYNC_S / 2 or st.incarnation == self.synced_with:
+            return False  # only a learner restarted since this slot's position was set can be behind it
         return time.monotonic() - waiting_since > RESYNC_S and self.stats_at - waiting_since > RESYNC_S / 2
 
     def take_weights(self, item: bus.Received | None, index: int | None) -> None:
@@ -305,7 +305,7 @@ class Worker(GuardedSimulator):
             self.flush()  # a batch carries one actor and one policy version (of one learner incarnation)
         while True:
             action = uniform(self.env) if random_phase else \
-                act(self.policies[actor], self.obs, self.rng, self.algo, self.max_action)
+                act(self.policies[actor], self.obs, self.streams.noise, self.algo, self.max_action)
             try:
                 next_obs, reward, terminated, truncated = self.env_step(action)
                 break
