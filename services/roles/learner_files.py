@@ -61,8 +61,9 @@ def restore(lr: Learner, state: dict[str, Any]) -> None:
         lr.acked = lr.acked_newest = lr.intake.checkpointed_prefixes()
     lr.iteration = int(c["iteration"]) if "iteration" in c else lr.plan.iteration_at(lr.env_steps)
     lr.wall_before = float(c.get("wall_s", 0.0))
-    lr.inexact = str(c.get("inexact", "")) or f"the learner restarted from its checkpoint at iteration " \
-                                                  f"{lr.iteration}"
+    # Every stream and the staging point are in the checkpoint; the workers resend the rows after
+    # it: the resumed learner recomputes the same updates (exact unless the run was inexact already).
+    lr.inexact = str(c.get("inexact", ""))
     live = lr.agent.live_actors
     if sum(live) == 1 and lr.algo.actors > 1:
         lr.survivor = lr.decided_survivor = live.index(True)

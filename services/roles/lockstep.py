@@ -73,6 +73,9 @@ class SlotStage:
             why = f"slot {s} changed hands ({self.owner[s][0]} -> {batch.worker}): a worker restarted"
             self.owner[s] = owner
         skip = self.end[s] - batch.iteration
+        if skip > 0 and not batch.resend and not why:
+            why = f"slot {s} stepped iterations {batch.iteration}..{self.end[s] - 1} again ({batch.worker} went " \
+                  f"back to where a restarted learner stood)"
         if skip >= batch.rows:
             return False, why, batch.rows
         if skip < 0:

@@ -86,6 +86,7 @@ class Worker(GuardedSimulator):
         self.batch_seq = 0
         self.sent_rows = 0
         self.learner_incarnation: str | None = None
+        self.learner_seen_at = 0.0  # when that incarnation was first seen (and the kept batches resent to it)
         self.stats_at = self.flushed_at = 0.0  # when the last stats arrived, when the last batch was put
         self.synced_with = ""  # the learner incarnation this slot's position was taken from (out_of_step)
         self.last_note = 0.0
@@ -96,14 +97,10 @@ class Worker(GuardedSimulator):
 
     def _reset_pending(self) -> None:
         n, o, a = self.cfg.send_batch, self.spec.obs_dim, self.spec.act_dim
-        self.p_obs = np.empty((n, o), np.float32)
-        self.p_action = np.empty((n, a), np.float32)
-        self.p_reward = np.empty(n, np.float32)
-        self.p_next = np.empty((n, o), np.float32)
-        self.p_term = np.empty(n, np.bool_)
-        self.p_n = 0
-        self.p_actor = -1
-        self.p_version = -1
+        self.p_obs, self.p_action, self.p_next = np.empty((n, o), np.float32), np.empty((n, a), np.float32), \
+            np.empty((n, o), np.float32)
+        self.p_reward, self.p_term = np.empty(n, np.float32), np.empty(n, np.bool_)
+        self.p_n, self.p_actor, self.p_version = 0, -1, -1
         self.p_iteration = -1  # the iteration of the first pending row
         self.p_from = ""  # the learner incarnation of the pending rows' weights
         self.p_started = time.monotonic()
@@ -195,13 +192,15 @@ class Worker(GuardedSimulator):
             index += 1
 
     def out_of_step(self, index: int, waiting_since: float) -> bool:
-        """This slot waits, and a learner restarted since (stats newer than the wait) needs another
-        iteration of it next: the slot goes on from the learner's next iteration."""
-        st = self.stats  # (rows still pending here, after a pause, or stats older than them: no resync)
+        """This slot waits, and a learner restarted since its position was set still needs another
+        iteration of it well after this worker's resends: the slot goes on from there (a step
+        back the learner records as the end of exactness)."""
+        st = self.stats  # (rows still pending here, after a pause: no resync)
         if st is None or self.slot >= len(st.slots_next) or st.slots_next[self.slot] == index or self.p_n or \
-                self.stats_at - self.flushed_at < RESYNC_S / 2 or st.incarnation == self.synced_with:
-            return False  # only a learner restarted since this slot's position was set can be behind it
-        return time.monotonic() - waiting_since > RESYNC_S and self.stats_at - waiting_since > RESYNC_S / 2
+                st.incarnation == self.synced_with:
+            return False
+        since = max(waiting_since, self.flushed_at, self.learner_seen_at)  # stats must be newer than all three
+        return time.monotonic() - since > RESYNC_S and self.stats_at - since > RESYNC_S / 2
 
     def take_weights(self, item: bus.Received | None, index: int | None) -> None:
         """Keep the versions this slot may still act with (none below iteration `index`'s)."""
@@ -267,7 +266,7 @@ class Worker(GuardedSimulator):
         self.trim_acked(st)
         if st.incarnation != self.learner_incarnation:
             first = self.learner_incarnation is None
-            self.learner_incarnation = st.incarnation
+            self.learner_incarnation, self.learner_seen_at = st.incarnation, time.monotonic()
             if self.unacked and not first:
                 self.resend()
             log.info("learner %s is up at iteration %d", self.learner_incarnation or "?", st.iteration)
