@@ -134,6 +134,26 @@ class Algorithm1:
                 hi = mid - 1
         return lo
 
+    def slot_steps(self, slot: int, index: int) -> tuple[int, int]:
+        """Slot `slot`'s steps in iterations 1..index-1: (start-phase steps, steps with an actor).
+        A slot steps in a prefix of the iterations (every slot until C, slot 0 after it; only the
+        last iteration may be cut short), and the start phase is a prefix too."""
+        n = max(min(index - 1, self._last_step(slot)), 0)
+        random = min(n, self._random_iterations)
+        return random, n - random
+
+    def _last_step(self, slot: int) -> int:
+        """The last iteration in which `slot` steps (0: none)."""
+        def steps(i: int) -> bool:
+            after = self.transitions_before(i + 1) if i < self.iterations else self.schedule.budget
+            return slot < min(self.width(i), after - self.transitions_before(i))
+        return _last_true(steps, self.iterations)
+
+    @cached_property
+    def _random_iterations(self) -> int:
+        """Iterations of the start phase (uniform random actions)."""
+        return _last_true(lambda i: self.transitions_before(i) < self.schedule.random_until, self.iterations)
+
     def replay_capacity(self, buffer_size: int) -> int:
         """Rows the replay buffer holds: the run's transitions, at most `buffer_size`."""
         return min(buffer_size, max(self.schedule.budget, self.batch_size))
@@ -306,3 +326,15 @@ class Algorithm1:
 def _crossed(before: int, after: int, every: int) -> int | None:
     """j if (before, after] holds a multiple of `every` (the largest), else None."""
     return after // every if after // every > before // every else None
+
+
+def _last_true(predicate: Callable[[int], bool], hi: int) -> int:
+    """The largest i in 1..hi with predicate(i), for a predicate true on a prefix (0: none)."""
+    lo = 0
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if predicate(mid):
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo

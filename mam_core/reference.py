@@ -129,7 +129,7 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
             next_obs = np.asarray(next_obs, np.float32)
             rows.append((obs[i], action, float(reward), next_obs, bool(terminated), k,
                          -1 if it.random else min(acting_version, agent.versions[k])))
-            obs[i] = np.asarray(envs[i].reset()[0], np.float32) if terminated or truncated else next_obs
+            obs[i] = streams[i].reset(envs[i], index + 1) if terminated or truncated else next_obs
         add_rows(buffer, rows)
         # Lines 11-24: the updates, with the round and the elimination between critic and actor phases.
         if it.competes:

@@ -9,7 +9,7 @@ half of why the two compute the same run (docs/DESIGN-DECISIONS.md, "Exact Algor
 
 | purpose | who draws it | index |
 |---|---|---|
-| `env` | a slot's environment: the seed of its first reset | slot (and generation) |
+| `env` | (unused since episodes are seeded one by one: kept so the other purposes keep their words) | - |
 | `random-actions` | a slot's uniform actions of the start phase (`action_space.seed`) | slot (and generation) |
 | `noise` | a slot's Gaussian exploration noise | slot (and generation) |
 | `allocation` | the referee: slot -> actor draws and the tie-break at C | - |
@@ -18,19 +18,24 @@ half of why the two compute the same run (docs/DESIGN-DECISIONS.md, "Exact Algor
 | `final` | the episodes of the final evaluation when T is not a curve point | 0 |
 | `elimination` | the episodes of the evaluation at C | 0 |
 | `bias` | the learner's Eq. 17 rollouts at bias point j (at j·bias-every) | j (`bias_seed`) |
+| `episode` | the reset of a slot's episode that starts at iteration t (`episode_seed`) | slot, t |
 
 The replay buffer's sampling, the target-policy noise and the network initialisation take
 the run seed directly (mam_core.replay, mam_core.agent), as they always did.
 
-A restarted worker gets the next *generation* of its slot's streams (the launcher counts
-restarts), so it does not replay its predecessor's episodes.
+Every episode of a slot is reset with its own seed, from the iteration its first step belongs
+to, and the slot's two sequential streams (random actions, noise) draw a fixed amount per
+iteration: so a slot's state at any iteration follows from the seed, the plan and the actions
+of its current episode, which is how a replacement worker continues a slot exactly
+(mam_core.slot). The *generation* index is kept for streams that must differ between
+incarnations; no slot stream uses it today.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-PURPOSES = ("env", "random-actions", "noise", "allocation", "round", "curve", "final", "elimination")
+PURPOSES = ("env", "random-actions", "noise", "allocation", "round", "curve", "final", "elimination", "episode")
 
 
 def _words(seed: int, purpose: str, index: int, generation: int) -> list[int]:
@@ -51,6 +56,14 @@ def stream_seed(seed: int, purpose: str, index: int = 0, generation: int = 0) ->
     evaluation episodes: episode e is reset with this + e)."""
     state = np.random.SeedSequence(_words(seed, purpose, index, generation)).generate_state(1, np.uint32)
     return int(state[0]) & 0x3FFF_FFFF  # leaves room for + episode under 2**31
+
+
+def episode_seed(seed: int, slot: int, iteration: int) -> int:
+    """The reset seed of slot `slot`'s episode whose first step is iteration `iteration`."""
+    if iteration < 1:
+        raise ValueError(f"iteration must be >= 1, got {iteration}")
+    words = _words(seed, "episode", slot, 0) + [int(iteration)]
+    return int(np.random.SeedSequence(words).generate_state(1, np.uint32)[0]) & 0x7FFF_FFFF
 
 
 def evaluation_seed(seed: int, purpose: str, index: int | None = None) -> int:

@@ -11,6 +11,7 @@ other's messages::
     mam/<run>/stats/learner           learner -> *        env steps, updates, credit
     mam/<run>/config                  learner -> *        the resolved run config
     mam/<run>/done                    learner -> *        end of the run
+    mam/<run>/episode/w<i>            query to the learner  slot i's current episode (a takeover)
     mam/<run>/alive/<role>/<id>       liveliness tokens   who is up right now
 
 Names (run, worker, role, id) are single key chunks: non-empty, at most 128
@@ -81,6 +82,15 @@ def transitions(run: str, worker: str) -> str:
 
 def transitions_all(run: str) -> str:
     return f"{_base(run)}/transitions/*"
+
+
+def episode(run: str, slot: int) -> str:
+    """Queryable (learner): slot `slot`'s current episode, for a worker taking the slot over."""
+    return f"{_base(run)}/episode/{slot_name(slot)}"
+
+
+def episode_all(run: str) -> str:
+    return f"{_base(run)}/episode/*"
 
 
 def allocation(run: str) -> str:

@@ -33,7 +33,7 @@ from services.messaging.codec import (
     MessageError,
     TransitionSpec,
 )
-from services.roles import learner_files, role, tb
+from services.roles import episodes, learner_files, role, tb
 from services.roles.checkpoint import (
     EXIT_CORRUPT,
     CheckpointCorrupt,
@@ -41,6 +41,7 @@ from services.roles.checkpoint import (
     load_checkpoint,
     replay_dir,
 )
+from services.roles.episodes import SlotEpisodes
 from services.roles.intake import Intake
 from services.roles.lockstep import SlotStage
 from services.roles.outbox import Outbox
@@ -97,6 +98,7 @@ class Learner:
         self.stop_requested = False
         self.mid_iteration = False
         self.stage: SlotStage | None = None
+        self.episodes = SlotEpisodes(self.plan)  # per slot, where its current episode began (a takeover's replay)
         self.awaiting: tuple[int, ...] = ()  # slots whose rows the loop waits for; -1: the referee's decision
         if resume is not None:
             learner_files.restore(self, resume)
@@ -109,6 +111,7 @@ class Learner:
         self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
         self.referee_reports = bus.Latest(late_join=False).subscribe(s, keys.role_stats_all(run, "referee"))
         self.inbox = bus.Inbox(maxsize=8192).subscribe(s, keys.transitions_all(run))
+        self.episode_queries = bus.Answers(s, keys.episode_all(run))
         self.out = Outbox(self)
         self.board = tb.RunBoard(self.run_dir, "learner")  # RUN_DIR/tb/learner: the JSONL rows' scalars
         self.log_writer = self.board.tee(JsonlWriter(self.run_dir / rundir.LEARNER_LOG), tb.learner_scalars)
@@ -120,8 +123,8 @@ class Learner:
             self._loop()
         finally:
             workers.close()
-            for closable in (self.inbox, self.allocation, self.referee_reports, self.workers, self.referees,
-                             self.log_writer, self.bias_writer, self.board):
+            for closable in (self.inbox, self.episode_queries, self.allocation, self.referee_reports, self.workers,
+                             self.referees, self.log_writer, self.bias_writer, self.board):
                 if closable is not None:
                     closable.close()
 
@@ -159,6 +162,7 @@ class Learner:
             self.env_steps += len(it.slots)
             for batch, used_rows in sources:
                 self.intake.insert_row(batch, used_rows)
+            self.episodes.inserted(index, it.slots, sources)
             for batch in used:
                 if self.intake.admit(batch):
                     self.intake.count(batch, self.agent.versions)
@@ -223,6 +227,8 @@ class Learner:
             staged, why, trimmed = stage.add(batch)
             if why:
                 self.break_exact(why)
+            if batch.inexact:
+                self.break_exact(f"worker {batch.worker} (slot {batch.slot}): {batch.inexact}")
             if batch.env_faults:
                 self.break_exact(f"worker {batch.worker} (slot {batch.slot}) met {batch.env_faults} simulator "
                                  f"faults in {self.cfg.env_id} by iteration {batch.iteration + batch.rows - 1}")
@@ -231,6 +237,7 @@ class Learner:
                 rest = trimmed - min(trimmed, self.intake.own_rows(batch))
                 if rest:
                     self.intake.skip(batch, rest)
+        self.episode_queries.poll(lambda key, _payload: episodes.answer_query(self, key))
         self.follow_allocation()
         if not self.referee_seen and self.referees.live():
             self.referee_seen = True  # finish() waits for its final evaluation

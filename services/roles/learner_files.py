@@ -26,7 +26,7 @@ def checkpoint(lr: Learner) -> None:
                 "stream_rows": json.dumps(lr.intake.stream_rows),
                 "stream_skipped": json.dumps(lr.intake.stream_skipped),
                 "stream_partial": json.dumps(lr.intake.stream_partial), "referee_seen": int(lr.referee_seen),
-                "iteration": lr.iteration, "inexact": lr.inexact,
+                "iteration": lr.iteration, "inexact": lr.inexact, "episodes": lr.episodes.to_json(),
                 "wall_s": round(lr.wall_before + time.monotonic() - lr.started, 3)}
     path = save_checkpoint(lr.run_dir, lr.agent, lr.buffer, counters, lr.cfg, lr.replay_log,
                            survivor=lr.survivor)  # with policy.npz, in a verified generation
@@ -61,6 +61,9 @@ def restore(lr: Learner, state: dict[str, Any]) -> None:
         lr.acked = lr.acked_newest = lr.intake.checkpointed_prefixes()
     lr.iteration = int(c["iteration"]) if "iteration" in c else lr.plan.iteration_at(lr.env_steps)
     lr.wall_before = float(c.get("wall_s", 0.0))
+    lr.episodes.inserted_through = lr.iteration
+    if "episodes" in c:
+        lr.episodes.restore(str(c["episodes"]))
     # Every stream and the staging point are in the checkpoint; the workers resend the rows after
     # it: the resumed learner recomputes the same updates (exact unless the run was inexact already).
     lr.inexact = str(c.get("inexact", ""))

@@ -16,13 +16,16 @@ config and follows it (docs/DESIGN-DECISIONS.md, "Exact Algorithm 1" and "The la
   decision with its iteration.
 
 A fault does not change this order. A restarted referee continues from its saved state (its
-allocation stream included) and stays exact; a restarted worker (fresh random streams) or
-learner (from its checkpoint) continues in the same lock-step order, and the run records
-`exact: false` with the reason.
+allocation stream included), a restarted learner from its checkpoint with the rows the workers
+resend, and a restarted or replacement worker rebuilds its slot from the slot's current episode
+(services/roles/episodes.py, mam_core/slot.py): each stays exact. What cannot be rebuilt (an
+env that replays differently, rows lost for good) continues in the same lock-step order, and
+the run records `exact: false` with the reason.
 """
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -31,6 +34,8 @@ import numpy as np
 
 from mam_core.algorithm1 import Algorithm1
 from services.messaging.codec import TransitionBatch
+
+log = logging.getLogger("mam.learner")
 
 
 @dataclass
@@ -44,10 +49,11 @@ class SlotStage:
     """The learner's staging of transition batches per slot, until their iteration comes.
 
     Each slot has an owner, the (worker, incarnation) whose rows it takes. A batch of another
-    incarnation takes the slot over (a restarted or replacement worker); its predecessor's
-    late batches are dropped from then on. Rows of iterations the slot already has are
-    skipped (resends to a restarted learner, a replacement starting behind); a batch that
-    starts past the slot's next iteration fills the gap (rows were lost) and says so.
+    incarnation takes the slot over (a restarted or replacement worker, which rebuilt the slot
+    from its current episode); its predecessor's late batches are dropped from then on. Rows of
+    iterations the slot already has are skipped (resends to a restarted learner, a replacement
+    starting behind); a batch that starts past the slot's next iteration fills the gap (rows
+    were lost) and says so, and so does the slot's owner stepping iterations again.
     """
 
     def __init__(self, slots: int, start: int = 1) -> None:
@@ -65,15 +71,17 @@ class SlotStage:
                           f"(of {len(self.queues)} slots)", 0
         if owner in self.retired:
             return False, "", batch.rows  # a predecessor's late batch
-        why = ""
+        why, changed = "", False
         if self.owner[s] is None:
             self.owner[s] = owner
-        elif self.owner[s] != owner:
+        elif self.owner[s] != owner:  # a replacement: it rebuilt the slot (its batches say if it could not)
+            log.info("slot %d changed hands (%s -> %s) at iteration %d", s, self.owner[s][0], batch.worker,
+                     batch.iteration)
             self.retired.add(self.owner[s])
-            why = f"slot {s} changed hands ({self.owner[s][0]} -> {batch.worker}): a worker restarted"
             self.owner[s] = owner
+            changed = True
         skip = self.end[s] - batch.iteration
-        if skip > 0 and not batch.resend and not why:
+        if skip > 0 and not batch.resend and not changed:
             why = f"slot {s} stepped iterations {batch.iteration}..{self.end[s] - 1} again ({batch.worker} went " \
                   f"back to where a restarted learner stood)"
         if skip >= batch.rows:

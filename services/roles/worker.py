@@ -32,7 +32,7 @@ from mam_core.slot import SlotStreams, act, uniform
 from services.cli import options
 from services.messaging import bus, keys
 from services.messaging.codec import Allocation, LearnerStats, MessageError, TransitionBatch, Weights
-from services.roles import role
+from services.roles import role, takeover
 from services.roles.lockstep import WeightsHistory
 from services.roles.simulator import FAULTS, EnvFault, GuardedSimulator
 from services.run import config, rundir
@@ -46,33 +46,29 @@ STATUS_EVERY_S = 10.0
 RESYNC_S = 2.0  # waiting this long while a restarted learner needs another iteration of this slot: go there
 class Worker(GuardedSimulator):
     def __init__(self, cfg: RunConfig, session: Any, worker_id: str, slot_index: int = 0,
-                 run_dir: Path | None = None, generation: int = 0) -> None:
-        self.run_dir = run_dir
-        self.cfg = cfg
-        self.algo = cfg.algo
-        self.session = session
-        self.id = worker_id
+                 run_dir: Path | None = None) -> None:
+        self.run_dir, self.cfg, self.algo, self.session, self.id = run_dir, cfg, cfg.algo, session, worker_id
         self.incarnation = uuid.uuid4().hex[:12]
         self.rejects = bus.RejectLog(log, "message")
         self.env = make_env(cfg.env_id, cfg.env_kwargs)
         self.spec = EnvSpec.from_env(self.env)
         self.max_action = np.asarray(self.spec.max_action, np.float32)
         self.plan = Algorithm1.for_run(self.algo, cfg.steps)
-        # The slot's streams (mam_core.seeding): from --seed, the slot and the restart generation only.
+        # The slot's streams (mam_core.slot): from --seed and the slot only. A worker taking the slot
+        # over mid-run rebuilds them and the env from the slot's current episode (takeover.py).
         self.slot = slot_index
-        self.streams = SlotStreams.for_slot(self.algo.seed, slot_index, generation)
+        self.streams = SlotStreams.for_slot(self.algo.seed, slot_index)
         # Simulator faults: the step is retried on a reset env, the fault counted (by kind).
         self.faults, self.env_remade = {kind: 0 for kind in FAULTS}, 0
         self.env.action_space.seed(self.streams.action_seed)
-        self.obs = self.reset_env(seed=self.streams.reset_seed)
+        self.obs = self.reset_env(seed=self.streams.episode_seed(1))
+        self.first_row = True  # the next step is an episode's first (batches flag it: episode_starts)
+        self.inexact = ""  # why this slot is no longer the seed's (a failed rebuild): every batch says it
         # Exactly once across a learner restart: batches the learner has not yet checkpointed
         # are kept and resent to its next incarnation (bounded by cfg.resend_rows).
-        self.retain = cfg.save_replay
-        self.unacked: deque[TransitionBatch] = deque()
-        self.unacked_rows = 0
+        self.retain, self.unacked = cfg.save_replay, deque()
+        self.unacked_rows = self.resent_rows = self.resends = 0
         self.unacked_dropped_rows = 0  # over the bound: not kept (if then lost, a counted gap)
-        self.resent_rows = 0
-        self.resends = 0
         self.batch_log = None
         # numpy forwards, no torch in a worker: a one-row torch forward costs ~100 µs of dispatch
         # between env steps, this ~14 µs, and importing torch ~3 s and ~180 MB (docs/PERFORMANCE.md)
@@ -83,8 +79,7 @@ class Worker(GuardedSimulator):
         self.loaded: list[tuple[int, str] | None] = [None] * self.algo.actors  # (version, incarnation) in `actors`
         self.actor = slot_index % self.algo.actors
         self.stats: LearnerStats | None = None
-        self.batch_seq = 0
-        self.sent_rows = 0
+        self.batch_seq = self.sent_rows = 0
         self.learner_incarnation: str | None = None
         self.learner_seen_at = 0.0  # when that incarnation was first seen (and the kept batches resent to it)
         self.stats_at = self.flushed_at = 0.0  # when the last stats arrived, when the last batch was put
@@ -102,6 +97,7 @@ class Worker(GuardedSimulator):
         self.p_reward, self.p_term = np.empty(n, np.float32), np.empty(n, np.bool_)
         self.p_n, self.p_actor, self.p_version = 0, -1, -1
         self.p_iteration = -1  # the iteration of the first pending row
+        self.p_starts: list[int] = []  # pending rows that begin an episode
         self.p_from = ""  # the learner incarnation of the pending rows' weights
         self.p_started = time.monotonic()
 
@@ -167,6 +163,7 @@ class Worker(GuardedSimulator):
                 self.synced_with = st.incarnation
                 if index > 1:
                     log.info("taking slot %d over at iteration %d", self.slot, index)
+                    index = takeover.take_over(self, index)
             it = plan.iteration(index) if index <= plan.iterations else None
             if it is None or self.slot not in it.slots:
                 self.flush()  # this slot's part of the run is over (the survivor runs slot 0 after C)
@@ -310,12 +307,15 @@ class Worker(GuardedSimulator):
                 break
             except EnvFault as fault:
                 self.count_fault(fault)
-                self.episode_return = 0.0
+                self.episode_return, self.first_row = 0.0, True
                 self.obs = self.reset_env()
         i = self.p_n
         if i == 0:
             self.p_iteration, self.p_started = index, time.monotonic()
         self.p_obs[i] = self.obs
+        if self.first_row:
+            self.p_starts.append(i)
+            self.first_row = False
         self.p_action[i] = action
         self.p_reward[i] = reward
         self.p_next[i] = next_obs
@@ -325,8 +325,8 @@ class Worker(GuardedSimulator):
         self.episode_return += reward
         if terminated or truncated:
             self.finished_returns.append(self.episode_return)
-            self.episode_return = 0.0
-            self.obs = self.reset_env()
+            self.episode_return, self.first_row = 0.0, True
+            self.obs = self.reset_env(seed=self.streams.episode_seed(index + 1))  # the next episode's own seed
         else:
             self.obs = next_obs
         if self.p_n >= self.cfg.send_batch or time.monotonic() - self.p_started > MAX_BATCH_AGE_S:
@@ -341,7 +341,8 @@ class Worker(GuardedSimulator):
             rows = tuple(a.copy() for a in rows)
         batch = TransitionBatch(self.id, self.incarnation, self.batch_seq, self.p_actor, self.p_version,
                                 *rows, tuple(self.finished_returns) or None, iteration=self.p_iteration,
-                                slot=self.slot, policy_from=self.p_from, env_faults=sum(self.faults.values()))
+                                slot=self.slot, policy_from=self.p_from, env_faults=sum(self.faults.values()),
+                                episode_starts=tuple(self.p_starts), inexact=self.inexact)
         if self.batch_log is not None:
             self.batch_log.write(f"{self.batch_seq} {n}\n")
         self.pub.put(batch.to_bytes())
@@ -356,13 +357,12 @@ class Worker(GuardedSimulator):
         self.batch_seq += 1
         self.sent_rows += n
         self.finished_returns = []
-        self.p_n = 0
+        self.p_n, self.p_starts = 0, []
 
 
-def main(run: str, conf: Any, worker_id: str, slot_index: int = 0, run_dir: Path | None = None,
-         generation: int = 0) -> None:
-    role.serve_role("worker", conf, lambda cfg, session: Worker(cfg, session, worker_id, slot_index, run_dir,
-                                                                generation), run=run, log=log)
+def main(run: str, conf: Any, worker_id: str, slot_index: int = 0, run_dir: Path | None = None) -> None:
+    role.serve_role("worker", conf, lambda cfg, session: Worker(cfg, session, worker_id, slot_index, run_dir),
+                    run=run, log=log)
 
 
 app = typer.Typer(add_completion=False, help=__doc__)
@@ -375,8 +375,6 @@ def worker_command(
     id: str = typer.Option(None, "--id", help="worker id (slot name); default HOST-PID"),  # noqa: A002
     slot: int = typer.Option(0, help="slot index (0..M-1): the slot's random streams (from --seed) and its "
                              "place in each iteration"),
-    generation: int = typer.Option(0, help="restarts of this slot so far (the launcher counts them): a restarted "
-                                   "worker draws fresh streams (the run is then not exact)"),
     run_dir: Optional[Path] = typer.Option(None, "--run-dir", help="the run directory for this worker's batch log "
                                            "(workers/ID-INCARNATION.batches) and report; default: none, neither is "
                                            "kept", rich_help_panel=options.RUN_PANEL),
@@ -389,7 +387,7 @@ def worker_command(
     config.check_run_name(run)
     worker_id = id or f"{socket.gethostname()}-{os.getpid()}"
     keys.check_name(worker_id, "worker id")
-    main(run, role.client_config(connect, listen, zenoh_config), worker_id, slot, run_dir, generation)
+    main(run, role.client_config(connect, listen, zenoh_config), worker_id, slot, run_dir)
 
 
 cli = app  # the `mam-worker` entry point

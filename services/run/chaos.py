@@ -9,8 +9,11 @@ child is back from the previous kill and the learner has logged transitions sinc
 checks what `mam run` promises (docs/RELIABILITY.md): exit status 0, the budget reached,
 every transition a worker sent in the replay exactly once over all incarnations (transport.json's
 `audit`: lost and duplicated rows), the run directory complete, the final checkpoint and its
-replay loadable. Prints the figures as JSON and writes them to RUN_DIR/chaos.json (or --out).
-Exit status 0 if every check passed.
+replay loadable, and the run still the seed's: `summary.json` says `exact: true` and every
+array of the final policy equals the fault-free run's with the same seed (the one-process
+reference, which a fault-free `mam run` equals bit for bit; `--no-compare` skips it). Prints
+the figures as JSON and writes them to RUN_DIR/chaos.json (or --out). Exit status 0 if every
+check passed.
 
 `--kill-learner-early` adds four learner kills at fixed moments (EARLY_MOMENTS, reported in
 `early_kills`): before its first checkpoint is on disk, at its first transitions, when the random
@@ -123,6 +126,39 @@ def verify(run_dir: Path, returncode: int) -> dict[str, Any]:
     return figures
 
 
+def compare_with_fault_free(run_dir: Path, figures: dict[str, Any]) -> None:
+    """`exact` and `equal_to_fault_free` (with its wall time): the final policy against the
+    one-process reference with the run's config and seed; a difference is a problem."""
+    import numpy as np
+    import torch
+
+    from mam_core.policy import read_policy_file
+    from mam_core.reference import run_reference
+    from services.run.config import RunConfig
+
+    summary = json.loads((run_dir / rundir.SUMMARY).read_text()) if (run_dir / rundir.SUMMARY).is_file() else {}
+    figures["exact"], figures["inexact"] = summary.get("exact"), summary.get("inexact", "")
+    if summary.get("exact") is not True:
+        figures["problems"].append(f"the run is not exact: {summary.get('inexact') or 'summary.json says nothing'}")
+    started = time.monotonic()
+    try:
+        cfg = RunConfig.from_dict(json.loads((run_dir / rundir.CONFIG).read_text()))
+        if cfg.learner_threads > 0:  # the learner's arithmetic (docs/DESIGN-DECISIONS.md, "Exact Algorithm 1")
+            torch.set_num_threads(cfg.learner_threads)
+        ref = run_reference(cfg.env_id, cfg.algo, cfg.steps, cfg.env_kwargs)
+        _, params = read_policy_file(run_dir / rundir.CHECKPOINTS / "policy.npz")
+    except Exception as e:  # noqa: BLE001 - a comparison that cannot be made is a finding
+        figures["equal_to_fault_free"] = None
+        figures["problems"].append(f"no comparison with the fault-free run: {type(e).__name__}: {e}")
+        return
+    equal = len(params) == len(ref.policy) and all(
+        set(a) == set(b) and all(np.array_equal(a[n], b[n]) for n in a) for a, b in zip(params, ref.policy))
+    figures["equal_to_fault_free"] = equal
+    figures["fault_free_wall_time_s"] = round(time.monotonic() - started, 1)
+    if not equal:
+        figures["problems"].append("the final policy differs from the fault-free run's with the same seed")
+
+
 def _early_thresholds(run_dir: Path) -> list[int | None]:
     """The transitions of EARLY_MOMENTS for the run in `run_dir` (its config.json)."""
     from mam_core.schedule import Schedule
@@ -165,7 +201,7 @@ def _early_kill(proc: subprocess.Popen, run_dir: Path, moments: list[int | None]
 
 def chaos(run_args: list[str], run_dir: Path, kill_every: tuple[float, float] = (20.0, 40.0), seed: int = 0,
           roles: tuple[str, ...] = ROLES, log=print, timeout: float = 7200.0,
-          kill_learner_early: bool = False) -> dict[str, Any]:
+          kill_learner_early: bool = False, compare: bool = True) -> dict[str, Any]:
     """Run `mam run` with kills; returns the figures (see `verify`) with the kills made."""
     rng = random.Random(seed)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -223,6 +259,9 @@ def chaos(run_args: list[str], run_dir: Path, kill_every: tuple[float, float] = 
             proc.send_signal(signal.SIGINT)
             proc.wait(120)
     figures = verify(run_dir, proc.returncode)
+    if compare:
+        log("comparing the final policy with the fault-free run's (the one-process reference) ...")
+        compare_with_fault_free(run_dir, figures)
     by_role: dict[str, int] = {}
     for k in kills:
         by_role[k["role"]] = by_role.get(k["role"], 0) + 1
@@ -261,6 +300,9 @@ def chaos_command(
     kill_learner_early: bool = typer.Option(False, "--kill-learner-early",
                                             help="first kill the learner before its first checkpoint, at its first "
                                                  "transitions, at the end of the random phase and half way"),
+    compare: bool = typer.Option(True, "--compare/--no-compare",
+                                 help="check the final policy against the fault-free run with the same seed (the "
+                                      "one-process reference: as long again as a one-process run)"),
 ) -> None:
     """Kill random children of a `mam run` with SIGKILL and check that the run still finishes.
 
@@ -273,7 +315,7 @@ def chaos_command(
     del args[i:i + 2]
     lo, hi = (float(x) for x in kill_every.split(","))
     figures = chaos(args, run_dir, (lo, hi), seed, tuple(r.strip() for r in roles.split(",") if r.strip()),
-                    kill_learner_early=kill_learner_early)
+                    kill_learner_early=kill_learner_early, compare=compare)
     path = out or run_dir / rundir.CHAOS
     path.write_text(json.dumps(figures, indent=2))
     print(json.dumps({k: v for k, v in figures.items() if k != "kill_log"}, indent=2))

@@ -260,9 +260,6 @@ class LocalCluster:
             except OSError as e:  # a full disk: say so, do not crash
                 self._print(f"[red]cannot write to {dead.log}: {e.strerror or e} ({disk_free(self.run_dir)} free)[/]")
             args = self.learner_args() if role == "learner" else dead.args
-            if role.startswith("worker-"):  # a restarted slot draws the next generation of its streams
-                args = [a for a in args if not a.startswith("--generation=")] + \
-                    [f"--generation={len(self.restarts[role])}"]
             try:
                 new = self.spawn(role, args)
             except OSError as e:

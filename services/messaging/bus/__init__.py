@@ -2,7 +2,8 @@
 
 This package is the only one (with the services that call it) that imports zenoh. Its modules:
 `session` (configs, sessions, publishers), `receive` (Inbox, Latest), `alive` (liveliness) and
-`accounting` (sequence numbers, rejections; no zenoh). Callers use `from services.messaging import bus`.
+`accounting` (sequence numbers, rejections; no zenoh), `query` (a queryable answered from a
+role's loop, and asking). Callers use `from services.messaging import bus`.
 
 Topology: a star. The learner (or a ``mode: router`` session) listens; workers, the
 referee and monitors connect to it as clients. On one box the launcher picks a free
@@ -43,6 +44,7 @@ from services.messaging.bus.accounting import (
                                      run_is_done,
 )
 from services.messaging.bus.alive import AliveWatch, declare_alive, watch_alive
+from services.messaging.bus.query import Answers, ask
 from services.messaging.bus.receive import Inbox, Latest, Received
 from services.messaging.bus.session import (
                                      MODES,
@@ -56,7 +58,7 @@ from services.messaging.bus.session import (
                                      session_scope,
 )
 
-__all__ = ["DUPLICATE", "GAP", "IN_ORDER", "MAX_HOLES", "MODES", "RECOVERED", "REDUNDANT", "AliveWatch", "Inbox",
-           "Latest", "Received", "RejectLog", "SequenceTracker", "declare_alive", "declare_latest_publisher",
-           "declare_reliable_publisher", "free_tcp_port", "init_zenoh_log", "loopback_endpoint", "make_config",
-           "open_session", "run_is_done", "session_scope", "watch_alive"]
+__all__ = ["DUPLICATE", "GAP", "IN_ORDER", "MAX_HOLES", "MODES", "RECOVERED", "REDUNDANT", "AliveWatch", "Answers",
+           "Inbox", "Latest", "Received", "RejectLog", "SequenceTracker", "ask", "declare_alive",
+           "declare_latest_publisher", "declare_reliable_publisher", "free_tcp_port", "init_zenoh_log",
+           "loopback_endpoint", "make_config", "open_session", "run_is_done", "session_scope", "watch_alive"]

@@ -6,7 +6,7 @@ weights; `control` allocation, evaluation and done; `stats` the learner's counte
 """
 
 from services.messaging.codec.control import Allocation, Done, Eval
-from services.messaging.codec.data import TransitionBatch, TransitionSpec, Weights
+from services.messaging.codec.data import SlotEpisode, TransitionBatch, TransitionSpec, Weights
 from services.messaging.codec.stats import LearnerStats, WorkerCounters
 from services.messaging.codec.wire import (
                                  DTYPES,
@@ -29,5 +29,5 @@ from services.messaging.codec.wire import (
 
 __all__ = ["DTYPES", "HEADER_KEYS", "MAX_ARRAY_LEN", "MAX_DIM", "MAX_MAP_LEN", "MAX_MESSAGE_BYTES", "MAX_NDIM",
            "MAX_STR_LEN", "MAX_TEXT_LEN", "NDARRAY_EXT", "SCHEMA_VERSION", "Allocation", "Done", "Eval",
-           "LearnerStats", "MessageError", "TransitionBatch", "TransitionSpec", "Weights", "WorkerCounters",
-           "_default", "_ext_hook", "decode", "encode"]
+           "LearnerStats", "MessageError", "SlotEpisode", "TransitionBatch", "TransitionSpec", "Weights",
+           "WorkerCounters", "_default", "_ext_hook", "decode", "encode"]

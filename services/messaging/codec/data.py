@@ -66,6 +66,8 @@ class TransitionBatch:
     slot: int = -1  # exact mode: the environment slot that collected the rows
     policy_from: str = ""  # the learner incarnation whose weights `version` counts (empty: unknown)
     env_faults: int = 0  # simulator faults this worker incarnation has met so far (its run is then not the seed's)
+    episode_starts: tuple[int, ...] = ()  # rows that are the first step of an episode (after a reset)
+    inexact: str = ""  # why this worker's slot is no longer the seed's (its recovery failed), or ""
 
     @property
     def rows(self) -> int:
@@ -96,6 +98,10 @@ class TransitionBatch:
             body["policy_from"] = self.policy_from
         if self.env_faults:
             body["env_faults"] = self.env_faults
+        if self.episode_starts:
+            body["episode_starts"] = [int(r) for r in self.episode_starts]
+        if self.inexact:
+            body["inexact"] = self.inexact
         return encode(
             self.KIND,
             body,
@@ -145,14 +151,57 @@ class TransitionBatch:
         slot = _int(msg, "slot", lo=0, hi=1 << 20) if iteration >= 0 else -1
         policy_from = _id(msg, "policy_from") if "policy_from" in msg else ""
         env_faults = _int(msg, "env_faults", lo=0) if "env_faults" in msg else 0
+        starts = _ints(msg, "episode_starts", lo=0) if "episode_starts" in msg else ()
+        if any(r >= n for r in starts) or list(starts) != sorted(set(starts)):
+            raise MessageError("range:episode_starts", f"episode starts must be distinct rows in order, < {n}")
+        inexact = _text(msg, "inexact") if "inexact" in msg else ""
         return cls(worker, incarnation, batch_seq, actor, version, obs, action, reward,
                    next_obs, term, episode_return, resend, iteration, slot, policy_from,
-                   env_faults)
+                   env_faults, starts, inexact)
 
     @classmethod
     def from_bytes(cls, payload: bytes, spec: TransitionSpec, *,
                    max_bytes: int = MAX_MESSAGE_BYTES) -> "TransitionBatch":
         return cls.from_message(decode(payload, max_bytes=max_bytes), spec)
+
+
+@dataclass(frozen=True)
+class SlotEpisode:
+    """The learner's answer to a worker taking slot `slot` over: the rows of the slot's current
+    episode (from iteration `start`, its first step, to `next` - 1) as the replay and the stage
+    hold them, so the worker can rebuild the slot's env at iteration `next` (mam_core.slot.
+    replay_episode). `why` says why there are no rows to give (the episode left the replay)."""
+
+    KIND: ClassVar[str] = "slot-episode"
+    MAX_ROWS: ClassVar[int] = 100_000
+
+    slot: int
+    start: int
+    next: int
+    obs: np.ndarray
+    action: np.ndarray
+    next_obs: np.ndarray
+    why: str = ""
+
+    def to_bytes(self, sender: str, seq: int) -> bytes:
+        return encode(self.KIND, {"slot": self.slot, "start": self.start, "next": self.next, "obs": _f32(self.obs),
+                                  "action": _f32(self.action), "next_obs": _f32(self.next_obs), "why": self.why},
+                      sender=sender, seq=seq)
+
+    @classmethod
+    def from_bytes(cls, payload: bytes, obs_dim: int, act_dim: int) -> "SlotEpisode":
+        msg = decode(payload)
+        _check_kind(msg, cls.KIND)
+        slot = _int(msg, "slot", lo=0, hi=1 << 20)
+        start = _int(msg, "start", lo=1)
+        nxt = _int(msg, "next", lo=start)
+        n = nxt - start
+        if n > cls.MAX_ROWS:
+            raise MessageError("range:rows", f"{n} rows > {cls.MAX_ROWS}")
+        why = _text(msg, "why")
+        rows = 0 if why else n
+        return cls(slot, start, nxt, _array(msg, "obs", (rows, obs_dim)), _array(msg, "action", (rows, act_dim)),
+                   _array(msg, "next_obs", (rows, obs_dim)), why)
 
 
 @dataclass(frozen=True)

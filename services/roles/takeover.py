@@ -1,0 +1,75 @@
+"""A worker taking its slot over mid-run rebuilds the slot exactly (docs/DESIGN-DECISIONS.md,
+"Faults keep the order"): it asks the learner for the slot's current episode
+(services/roles/episodes.py), resets the env with that episode's seed, steps the recorded
+actions checking every observation bit for bit, and puts the slot's random streams where the
+plan says they stand (mam_core.slot). The slot then continues as if nothing had happened.
+
+Where that cannot be done (the env replays differently, the episode has left the replay) the
+worker goes on in lock-step from a freshly seeded episode and every batch it sends says why the
+slot is no longer the seed's: the learner records it as the end of exactness.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import TYPE_CHECKING
+
+from mam_core.slot import SlotStreams, replay_episode
+from services.messaging import bus, keys
+from services.messaging.codec import MessageError, SlotEpisode
+
+if TYPE_CHECKING:
+    from services.roles.worker import Worker
+
+log = logging.getLogger("mam.worker")
+
+ASK_TIMEOUT_S = 5.0
+
+
+def ask_episode(w: Worker) -> SlotEpisode | None:
+    """The learner's answer for this worker's slot (asked until one comes; None: stopping)."""
+    key = keys.episode(w.cfg.run, w.slot)
+    while not w.stop_requested:
+        payload = bus.ask(w.session, key, ASK_TIMEOUT_S)
+        if payload is None:
+            log.info("no answer from the learner on %s yet; asking again", key)
+            continue
+        try:
+            episode = SlotEpisode.from_bytes(payload, w.spec.obs_dim, w.spec.act_dim)
+        except MessageError as e:
+            w.rejects.reject("learner", e)
+            time.sleep(0.5)
+            continue
+        if episode.slot == w.slot:
+            return episode
+    return None
+
+
+def take_over(w: Worker, index: int) -> int:
+    """Rebuild slot `w.slot` where the learner needs it next; that iteration."""
+    episode = ask_episode(w)
+    if episode is None:
+        return index
+    w.streams = SlotStreams.for_slot(w.algo.seed, w.slot)
+    why = episode.why
+    if not why:
+        try:
+            replayed = replay_episode(w.env, w.streams, episode.start, episode.next, episode.obs, episode.action,
+                                      episode.next_obs)
+            why = replayed.mismatch and f"{w.cfg.env_id} replayed slot {w.slot}'s episode differently: " \
+                                        f"{replayed.mismatch} (the env is not deterministic)"
+        except Exception as e:  # the simulator failed on the recorded actions: the same outcome as a mismatch
+            why = f"{w.cfg.env_id} failed replaying slot {w.slot}'s episode: {type(e).__name__}: {e}"
+    if why:
+        log.warning("slot %d cannot be rebuilt exactly: %s; it goes on from a fresh episode at iteration %d",
+                    w.slot, why, episode.next)
+        w.inexact = why[:1000]
+        w.obs, w.episode_return, w.first_row = w.reset_env(seed=w.streams.episode_seed(episode.next)), 0.0, True
+    else:
+        w.obs, w.episode_return, w.first_row = replayed.obs, replayed.episode_return, replayed.fresh
+        log.info("slot %d rebuilt at iteration %d: its episode from iteration %d replayed (%d steps, every "
+                 "observation equal)", w.slot, episode.next, episode.start, len(episode.action))
+    random_steps, policy_steps = w.plan.slot_steps(w.slot, episode.next)
+    w.streams.fast_forward(w.env, random_steps, policy_steps)
+    return episode.next
