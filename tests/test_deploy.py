@@ -30,6 +30,8 @@ from mam_core.config import resolve
 from mam_core.policy import read_policy_file
 from mam_core.reference import run_reference
 from services.messaging import bus, keys
+from services.messaging.codec import decode
+from services.roles import role
 from tests.e2e import ROOT, assert_exactly_once, load, stop, unique_run
 
 DEPLOY = ROOT / "deploy"
@@ -152,6 +154,7 @@ def test_systemd_units_use_the_environment_file() -> None:
         assert "/etc/mam/mam.env" in service["EnvironmentFile"], name
         (command,) = service["ExecStart"]
         role = name.removeprefix("mam-").split("@")[0].split(".")[0]
+        role = {"spare": "worker"}.get(role, role)  # mam-spare.service: `mam-worker --spare`
         assert (f"mam-{role}" in command) or (f"mam {role}" in command), command
         assert "--zenoh-config" in command and ("--connect" in command or "--listen" in command)
         used = set(re.findall(r"\$\{?([A-Z_]+)\}?", command))
@@ -334,6 +337,35 @@ def test_liveliness_tokens_and_late_joiner_caches_follow_the_roles(role_sessions
             t.undeclare()
         real.undeclare()
         fake.undeclare()
+
+
+def test_a_spare_with_the_worker_certificate_sees_the_workers_and_the_other_spares(tls_router) -> None:
+    """`mam-worker --spare` runs with the worker's certificate: it may announce itself under
+    alive/spare/* and read the workers' tokens and reports (which slot each live worker holds)."""
+    certs, endpoint, tmp = tls_router
+    run = unique_run("acl-spare")
+    with bus.session_scope(client_config(certs, "worker", endpoint, tmp), retry_for=10) as worker, \
+            bus.session_scope(client_config(certs, "worker", endpoint, tmp), retry_for=10) as spare, \
+            bus.session_scope(client_config(certs, "worker", endpoint, tmp), retry_for=10) as other:
+        tokens = [bus.declare_alive(worker, run, "worker", "w0"), bus.declare_alive(other, run, keys.SPARE, "s1")]
+        reports = bus.Latest(late_join=False).subscribe(spare, keys.role_stats_all(run, "worker"))
+        workers, spares = bus.watch_alive(spare, run, "worker"), bus.watch_alive(spare, run, keys.SPARE)
+        report = role.RoleReport(worker, run, "worker", "w0", every_s=0.0)
+        try:
+            assert workers.wait_for(lambda live: live == {"w0"}, timeout=10), workers.members()
+            assert spares.wait_for(lambda live: live == {"s1"}, timeout=10), spares.members()
+            deadline = time.monotonic() + 10
+            while reports.get(keys.role_stats(run, "worker", "w0")) is None and time.monotonic() < deadline:
+                report.publish({"slot": 0}, seq=0)
+                time.sleep(0.1)
+            item = reports.get(keys.role_stats(run, "worker", "w0"))
+            assert item is not None, "a worker's report never reached the spare"
+            assert decode(item.payload)["slot"] == 0
+        finally:
+            for closable in (reports, workers, spares):
+                closable.close()
+            for t in tokens:
+                t.undeclare()
 
 
 # --------------------------------------------------------------------------- across hosts

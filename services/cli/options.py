@@ -293,6 +293,13 @@ ZenohConfig = Annotated[Optional[Path], typer.Option("--zenoh-config", help="Zen
 RunDir = Annotated[Optional[Path], typer.Option("--run-dir", help="directory for this process's logs and outputs "
                                                 "(default runs/RUN)", rich_help_panel=RUN_PANEL)]
 
+# -- `mam-worker --spare` (services/roles/spare.py) ---------------------------------------------
+Spare = Annotated[bool, typer.Option("--spare", help="hold no slot: wait, and take over a slot whose worker is gone "
+                                     "(not with --slot; docs/DEPLOY.md)")]
+TakeOver = Annotated[Optional[float], typer.Option(
+    "--take-over-after", metavar="SECONDS", help="with --spare: take a slot over once the learner has awaited its rows "
+    "with no live worker on it for this long (default: the run's --stall-timeout, from the learner; at least 2)")]
+
 
 def default_run_name(env_id: str, algo: str) -> str:
     env = re.sub(r"[^A-Za-z0-9]+", "", env_id.split(":")[-1].split("-")[0]).lower()

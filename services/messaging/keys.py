@@ -13,6 +13,7 @@ other's messages::
     mam/<run>/done                    learner -> *        end of the run
     mam/<run>/episode/w<i>            query to the learner  slot i's current episode (a takeover)
     mam/<run>/alive/<role>/<id>       liveliness tokens   who is up right now
+    mam/<run>/alive/spare/<id>        a waiting spare     `mam-worker --spare` (services/roles/spare.py)
 
 Names (run, worker, role, id) are single key chunks: non-empty, at most 128
 characters of ``[A-Za-z0-9_.-]``. Anything else (``/``, ``*``, ``$``, ``?``, ``#``,
@@ -26,6 +27,7 @@ import re
 
 ROOT = "mam"
 ROLES = ("learner", "worker", "referee", "monitor")
+SPARE = "spare"  # the liveliness role of a waiting `mam-worker --spare`; it is a "worker" once it holds a slot
 MAX_NAME_LEN = 128
 
 _NAME = re.compile(r"[A-Za-z0-9_.\-]+")

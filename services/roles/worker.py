@@ -371,10 +371,10 @@ app = typer.Typer(add_completion=False, help=__doc__)
 @app.command(cls=options.PlainFlags)
 def worker_command(
     run: options.Run = None, connect: options.Connect = None, listen: options.Listen = None,
-    zenoh_config: options.ZenohConfig = None,
+    zenoh_config: options.ZenohConfig = None, spare: options.Spare = False, take_over_after: options.TakeOver = None,
     id: str = typer.Option(None, "--id", help="worker id (slot name); default HOST-PID"),  # noqa: A002
-    slot: int = typer.Option(0, help="slot index (0..M-1): the slot's random streams (from --seed) and its "
-                             "place in each iteration"),
+    slot: Optional[int] = typer.Option(None, help="slot index (0..M-1; default 0): the slot's random streams "
+                                       "(from --seed) and its place in each iteration"),
     run_dir: Optional[Path] = typer.Option(None, "--run-dir", help="the run directory for this worker's batch log "
                                            "(workers/ID-INCARNATION.batches) and report; default: none, neither is "
                                            "kept", rich_help_panel=options.RUN_PANEL),
@@ -385,9 +385,10 @@ def worker_command(
     if not run:
         raise typer.BadParameter("--run NAME is required (the learner prints it and writes it to config.json)")
     config.check_run_name(run)
-    worker_id = id or f"{socket.gethostname()}-{os.getpid()}"
-    keys.check_name(worker_id, "worker id")
-    main(run, role.client_config(connect, listen, zenoh_config), worker_id, slot, run_dir)
+    worker_id = keys.check_name(id or f"{socket.gethostname()}-{os.getpid()}", "worker id")
+    from services.roles import spare as spares  # --spare: services/roles/spare.py (it refuses --slot)
+    if not spares.served(spare, slot, take_over_after, run, worker_id, run_dir, Worker, connect, listen, zenoh_config):
+        main(run, role.client_config(connect, listen, zenoh_config), worker_id, slot or 0, run_dir)
 
 
 cli = app  # the `mam-worker` entry point
