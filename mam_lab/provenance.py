@@ -47,6 +47,24 @@ def code_version(root: Path | None = None) -> dict[str, Any]:
     return out
 
 
+def code_fingerprint(root: Path | None = None) -> str:
+    """The commit and, for a tree with modified code, a hash of its diff against the commit: two
+    equal fingerprints ran the same code ("" when it cannot be told: no git)."""
+    import hashlib
+
+    code = code_version(root)
+    if not code["commit"]:
+        return ""
+    if not code["dirty"]:
+        return code["commit"]
+    try:
+        diff = subprocess.run(["git", "diff", "HEAD", "--", *code["modified"]], cwd=root or ROOT, capture_output=True,
+                              timeout=20).stdout
+    except (OSError, subprocess.SubprocessError):
+        return ""
+    return f"{code['commit']}+{hashlib.sha256(diff).hexdigest()[:16]}"
+
+
 def commit_label(record: Mapping[str, Any]) -> str:
     """"abc1234" or "abc1234+modified" (a dirty tree) or "unknown"."""
     commit = record.get("commit")

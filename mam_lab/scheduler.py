@@ -15,8 +15,15 @@ median of the finished runs of the same env and variant in the experiment direct
 ledger, mam_lab.ledger.wall_estimates, updated as runs finish) ends by TIME; a run with no
 estimate yet (its variant has never finished) starts while TIME is still ahead, since finishing
 one is how its estimate is made; after TIME nothing starts. A run still in flight at TIME is
-allowed to finish and is recorded when it does (Ctrl-C stops it as always: not recorded, redone on
-resume). Runs not started are reported (`GridResult.deferred`) and left for the next invocation.
+allowed to finish and is recorded when it does. Runs not started are reported
+(`GridResult.deferred`) and left for the next invocation.
+
+A run that was stopped (Ctrl-C, SIGTERM, a SIGKILL of everything at a session's end, a reboot)
+continues from its checkpoint when the grid runs again (`continuable`): the same code (commit),
+the same config but for the run's name, a verified checkpoint and no summary.json. The launcher
+resumes it as `mam run --resume` does, and a resumed run is the uninterrupted one bit for bit
+(docs/RELIABILITY.md). Anything else about a partial run directory (a failed attempt, other code,
+another config) redoes the run from the start.
 """
 
 from __future__ import annotations
@@ -41,7 +48,7 @@ from rich.console import Console
 
 from mam_lab.grid import RunSpec
 from mam_lab.ledger import RECORD, backfill_ledger, estimate_wall_s, make_record, run_state, write_ledger_record
-from mam_lab.provenance import ROOT, code_version
+from mam_lab.provenance import ROOT, code_fingerprint, code_version
 from mam_lab.view import GridView, hms
 from services.run import config, rundir
 from services.run.config import RunConfig
@@ -60,6 +67,7 @@ class Launch:
     cores: tuple[int, ...]  # CPU affinity of the run (empty: not pinned)
     plot: bool
     log: IO[bytes]  # the run's launcher.log: the process's stdout and stderr
+    code: str = ""  # mam_lab.provenance.code_fingerprint of the grid's code
 
 
 Launcher = Callable[[Launch], subprocess.Popen]
@@ -73,7 +81,7 @@ def start_run_process(job: Launch) -> subprocess.Popen:
     from services.run.launcher import _die_with_parent
 
     write_json(job.run_dir / rundir.LAUNCH, {"config": job.cfg.to_dict(), "cores": list(job.cores) or None,
-                                           "plot": job.plot})
+                                           "plot": job.plot, "code": job.code})
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH")) if p)
     return subprocess.Popen([sys.executable, "-m", "mam_lab.experiment_run", str(job.run_dir.resolve())],
@@ -155,6 +163,26 @@ def parse_stop_by(text: str, now: datetime | None = None) -> datetime:
     if when <= now:
         raise ValueError(f"--stop-by {text!r}: {when.isoformat(timespec='minutes')} has already passed")
     return when
+
+
+def continuable(run_dir: Path, cfg: RunConfig, code: str) -> RunConfig | None:
+    """The config to continue a stopped run in `run_dir` with (its own, run name included), or
+    None when it must be redone: it finished or failed, has no checkpoint, ran other code than
+    `code` (mam_lab.provenance.code_fingerprint) or another config than `cfg`."""
+    launch, saved = read_json(run_dir / rundir.LAUNCH), read_json(run_dir / rundir.CONFIG)
+    if not launch or not saved or (run_dir / rundir.SUMMARY).exists() or not rundir.has_checkpoint(run_dir):
+        return None
+    if launch.get("failed") or not code or launch.get("code") != code:
+        return None
+    try:
+        have = RunConfig.from_dict(saved)
+    except (ValueError, TypeError, KeyError):
+        return None
+    mine, want = have.to_dict(), cfg.to_dict()
+    for key in ("run", "endpoint"):  # its own name and port: the resumed learner comes back where it was
+        mine.pop(key, None)
+        want.pop(key, None)
+    return have if mine == want else None
 
 
 def _keep_failure(exp_dir: Path, spec: RunSpec, run_dir: Path, attempt: int) -> Path | None:
@@ -241,15 +269,19 @@ def run_grid(specs: Sequence[RunSpec], exp_dir: Path, console: Console, *, plot_
     def start(spec: RunSpec, attempt: int, slot: int) -> None:
         index = index_of.setdefault(spec, len(result.skipped) + len(index_of) + 1)
         run_dir = exp_dir / spec.path
-        if run_dir.exists():  # a partial run (interrupted, or a failed attempt): redo it
+        code, fingerprint = code_version(ROOT), code_fingerprint(ROOT)
+        cfg = spec.run_config(run_name_for(spec, tag))
+        resumed = continuable(run_dir, cfg, fingerprint) if run_dir.exists() and attempt == 1 else None
+        if resumed is not None:  # stopped, with a checkpoint: it goes on from there, exactly
+            cfg = resumed
+            console.print(f"continuing {spec.label} from its checkpoint ({run_dir})", highlight=False)
+        elif run_dir.exists():  # a partial run that cannot go on (failed, other code or config): redo it
             shutil.rmtree(run_dir)
-        run_dir.mkdir(parents=True)
-        log = open(run_dir / rundir.LAUNCHER_LOG, "wb")
-        code = code_version(ROOT)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        log = open(run_dir / rundir.LAUNCHER_LOG, "ab" if resumed is not None else "wb")
         view.start_run(spec, run_dir, index, slot, slots[slot], estimate_s=estimate_of(spec))
         try:
-            proc = launch(Launch(spec, spec.run_config(run_name_for(spec, tag)), run_dir, slots[slot], plot_runs,
-                                 log))
+            proc = launch(Launch(spec, cfg, run_dir, slots[slot], plot_runs, log, fingerprint))
         except Exception:  # could not even start: a failed attempt
             log.write(traceback.format_exc().encode())
             log.close()
@@ -263,8 +295,8 @@ def run_grid(specs: Sequence[RunSpec], exp_dir: Path, console: Console, *, plot_
         a.log.close()
         free.append(a.slot)
         free.sort()
-        took = time.monotonic() - a.started
         summary = read_json(a.run_dir / rundir.SUMMARY)
+        took = max(time.monotonic() - a.started, float((summary or {}).get("launcher_wall_time_s") or 0.0))
         if status == 0 and summary:
             record = make_record(a.spec, a.run_dir, code=a.code, exit_status=status, run_wall_s=took,
                                  experiment=experiment, attempt=a.attempt, cores=list(a.cores), parallel=parallel)
@@ -289,9 +321,13 @@ def run_grid(specs: Sequence[RunSpec], exp_dir: Path, console: Console, *, plot_
         if status in INTERRUPTED_STATUS or (result.interrupted and status == -signal.SIGKILL):
             result.interrupted = True
             stopping = True
-            view.end_run(a.spec, False, f"[yellow]interrupted[/] {a.spec.label} (it is redone on resume)",
+            view.end_run(a.spec, False, f"[yellow]interrupted[/] {a.spec.label} (it continues from its checkpoint "
+                                        "when the grid runs again)",
                          count_failure=False, slot=a.slot)
             return
+        launch = read_json(a.run_dir / rundir.LAUNCH)
+        if launch:  # a failed run is redone, never continued
+            write_json(a.run_dir / rundir.LAUNCH, {**launch, "failed": True})
         kept = _keep_failure(exp_dir, a.spec, a.run_dir, a.attempt)
         last = a.attempt > max(retries, 0)
         view.end_run(a.spec, False, f"[red]✗[/] {a.spec.label} failed (exit status {status}, attempt {a.attempt}"

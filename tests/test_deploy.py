@@ -29,6 +29,7 @@ import zenoh
 from mam_core.config import resolve
 from mam_core.policy import read_policy_file
 from mam_core.reference import run_reference
+from services.cli.plot import read_jsonl
 from services.messaging import bus, keys
 from services.messaging.codec import decode
 from services.roles import role
@@ -445,11 +446,17 @@ RUN_FLAGS = ["--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--schedule", "equ
 ACL_TRACE = {"RUST_LOG": "warn,zenoh::net::routing::interceptor=trace"}
 
 
+def _iterations(run_dir: Path) -> int:
+    rows = read_jsonl(run_dir / "learner.jsonl") if (run_dir / "learner.jsonl").is_file() else []
+    return rows[-1]["iterations"] if rows else 0
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("transport,lag", [("tcp", 2), ("tls", 0)])
 def test_a_run_across_two_hosts_through_a_router(two_hosts: Netns, tmp_path: Path, transport: str, lag: int) -> None:
     """Host A: `mam router` + learner + referee; host B: two workers that reach A over the veth.
-    Over tcp with `--lag 2` (workers two iterations ahead), over TLS at lag 0."""
+    Over tcp with `--lag 2` (workers two iterations ahead), over TLS at lag 0. Over tcp, worker b1
+    is SIGKILLed mid-run and a replacement `mam-worker --slot 1` on host A takes slot 1 over."""
     hosts, run, run_dir = two_hosts, unique_run(f"netns-{transport}"), tmp_path / "run"
     suffix = "-tls" if transport == "tls" else ""
     certs = make_certs(tmp_path / "certs", hosts.addr_a) if transport == "tls" else tmp_path
@@ -473,6 +480,16 @@ def test_a_run_across_two_hosts_through_a_router(two_hosts: Netns, tmp_path: Pat
                           "--id", f"b{i}", "--slot", str(i), "--run-dir", str(run_dir)], logs / f"worker-b{i}.log",
                          netns=hosts.b) for i in range(WORKERS)]
         procs += [learner, referee, *workers]
+        if transport == "tcp":  # b1 dies on host B; a1 takes its slot over from host A
+            deadline = time.monotonic() + 120
+            while _iterations(run_dir) < 200 and time.monotonic() < deadline:
+                time.sleep(0.2)
+            workers[1].kill()
+            workers[1].wait()
+            workers[1] = spawn(["services.roles.worker", "--run", run, "--connect", on_a, "--zenoh-config",
+                                conf["worker"], "--id", "a1", "--slot", "1", "--run-dir", str(run_dir)],
+                               logs / "worker-a1.log", netns=hosts.a)
+            procs.append(workers[1])
         try:
             assert learner.wait(timeout=300) == 0, (logs / "learner.log").read_text()[-3000:]
             for p in (*workers, referee):
@@ -483,10 +500,15 @@ def test_a_run_across_two_hosts_through_a_router(two_hosts: Netns, tmp_path: Pat
     finally:
         stop(*reversed(procs))
     result = load(run_dir)
-    assert_exactly_once(result)
     t = result["transport"]
-    assert t["lost"] == 0 and t["duplicates"] == 0 and t["env_steps"] == STEPS
-    assert {w["worker"] for w in result["workers"]} == {f"b{i}" for i in range(WORKERS)}
+    if transport == "tcp":  # b1 was killed (it wrote no report); a1 rebuilt slot 1 (services/roles/takeover.py)
+        assert {w["worker"] for w in result["workers"]} == {"b0", "a1"}
+        assert t["duplicates"] == 0 and t["rejected"] == {} and sum(t["rows_per_stream"].values()) == STEPS
+        assert "every observation equal" in (logs / "worker-a1.log").read_text()
+    else:
+        assert_exactly_once(result)
+        assert t["lost"] == 0 and {w["worker"] for w in result["workers"]} == {f"b{i}" for i in range(WORKERS)}
+    assert t["duplicates"] == 0 and t["env_steps"] == STEPS
     assert all(w["sent_rows"] > 0 for w in result["workers"])  # both hosts' workers contributed
     assert result["summary"]["survivor"] == result["allocation"][-1]["survivor"]
     # Exact mode (the default) across hosts: the one-process Algorithm 1, bit for bit.

@@ -211,3 +211,29 @@ def test_only_the_learner_of_a_parallel_run_is_pinned(monkeypatch):
     assert json.loads(learner.stdout) == [every[0]]
     assert json.loads(worker.stdout) == every
 
+
+
+def test_a_stopped_run_continues_only_with_the_same_code_config_and_a_checkpoint(tmp_path):
+    """mam_lab.scheduler.continuable: what a rerun of the grid continues rather than redoes."""
+    from mam_lab.scheduler import continuable
+    from services.run import rundir
+    from services.run.config import RunConfig
+
+    spec = plan(small_grid())[0]
+    mine = spec.run_config("grid-00001-run")
+    run_dir = tmp_path / "run"
+    (run_dir / rundir.CHECKPOINTS).mkdir(parents=True)
+    write_json(run_dir / rundir.CONFIG, {**mine.to_dict(), "endpoint": "tcp/127.0.0.1:7001"})
+    write_json(run_dir / rundir.LAUNCH, {"config": mine.to_dict(), "code": "abc"})
+    assert continuable(run_dir, spec.run_config("grid-00002-run"), "abc") is None  # no checkpoint yet
+    (run_dir / rundir.CHECKPOINTS / "manifest-000003.json").write_text("{}")
+    got = continuable(run_dir, spec.run_config("grid-00002-run"), "abc")
+    assert got is not None and got.run == "grid-00001-run"  # its own name: its processes find each other
+    assert continuable(run_dir, spec.run_config("x"), "abc+0123") is None  # other code
+    other = RunConfig.from_dict({**mine.to_dict(), "steps": mine.steps + 1})
+    assert continuable(run_dir, other, "abc") is None  # another budget
+    write_json(run_dir / rundir.LAUNCH, {"config": mine.to_dict(), "code": "abc", "failed": True})
+    assert continuable(run_dir, mine, "abc") is None  # a failed attempt is redone
+    write_json(run_dir / rundir.LAUNCH, {"config": mine.to_dict(), "code": "abc"})
+    write_json(run_dir / rundir.SUMMARY, {})
+    assert continuable(run_dir, mine, "abc") is None  # finished

@@ -83,3 +83,44 @@ def test_a_killed_mam_run_continues_with_resume_to_its_budget(tmp_path: Path) ->
     assert [e["returns"] for e in read_jsonl(run_dir / "eval.jsonl")] == [e["returns"] for e in ref.evaluations]
     _, params = read_policy_file(run_dir / "checkpoints" / "policy.npz")
     assert all(np.array_equal(a[n], b[n]) for a, b in zip(params, ref.policy) for n in a)
+
+
+@pytest.mark.slow
+def test_a_grid_killed_mid_run_continues_the_run_from_its_checkpoint_exactly(tmp_path: Path) -> None:
+    """`mam experiment` SIGKILLed with everything it started (a session's end, a reboot): run
+    again, it continues the stopped run from its checkpoint instead of redoing it, and the run
+    is the uninterrupted one (the one-process reference) bit for bit."""
+    exp = tmp_path / "exp"
+    args = [sys.executable, "-m", "mam_lab.experiment", "--exp-dir", str(exp), "--envs", "AppleCollect-v1",
+            "--algos", "ma-ddpg", "--seeds", "1", *[a for a in ARGS if a not in ("--env", "AppleCollect-v1",
+                                                                               "--algo", "ma-ddpg", "--seed", "4")],
+            "--no-report", "--parallel", "1", "--no-ledger"]
+    run_dir = exp / "AppleCollect-v1" / "ma-ddpg" / "seed0"
+    env = dict(os.environ, COLUMNS="200", PYTHONWARNINGS="ignore")
+    proc = subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
+                            start_new_session=True)
+    try:
+        deadline = time.monotonic() + 180
+        while not any(r.get("iterations", 0) >= 400 for r in read_jsonl(run_dir / "learner.jsonl")) \
+                or not list((run_dir / "checkpoints").glob("manifest-*.json")):
+            assert time.monotonic() < deadline and proc.poll() is None, "the grid's run did not get going"
+            time.sleep(0.3)
+        time.sleep(2.5)
+        os.killpg(proc.pid, signal.SIGKILL)  # the grid and its run's own session: everything
+        for line in subprocess.run(["pgrep", "-f", str(run_dir)], capture_output=True, text=True).stdout.split():
+            os.kill(int(line), signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    again = subprocess.run(args, cwd=ROOT, env=env, text=True, capture_output=True, timeout=400)
+    assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
+    assert "continuing AppleCollect-v1/ma-ddpg/seed0 from its checkpoint" in again.stdout, again.stdout[-3000:]
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["parts"] == 2 and summary["exact"] is True, summary
+    cfg = resolve("ma-ddpg", workers=3, actors=2, start_steps=200, compete_every=300, eliminate_at=900,
+                  eval_episodes=2, eval_every=300, hidden=(16, 16), batch_size=16, seed=0)
+    ref = run_reference("AppleCollect-v1", cfg, 1500)
+    assert [e["returns"] for e in read_jsonl(run_dir / "eval.jsonl")] == [e["returns"] for e in ref.evaluations]
+    _, params = read_policy_file(run_dir / "checkpoints" / "policy.npz")
+    assert all(np.array_equal(a[n], b[n]) for a, b in zip(params, ref.policy) for n in a)
