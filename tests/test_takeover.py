@@ -145,3 +145,49 @@ def test_slot_episode_and_episode_starts_are_validated() -> None:
         TransitionBatch.from_bytes(_batch(0, 1, np.zeros((2, 2), np.float32), starts=(2,)).to_bytes(), spec)
     assert TransitionBatch.from_bytes(_batch(0, 1, np.zeros((2, 2), np.float32), starts=(1,)).to_bytes(),
                                       spec).episode_starts == (1,)
+
+
+@pytest.mark.slow
+def test_a_restarted_worker_on_an_env_with_hidden_randomness_is_reported_and_the_run_finishes(tmp_path) -> None:
+    """`mam run` on an env whose observations carry noise outside every seed: the worker restarted
+    after a SIGKILL cannot replay its slot's episode; it says so, the run finishes its budget in
+    lock-step, and summary.json names the env, the slot and the step."""
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from services.cli.plot import read_jsonl
+    from tests.e2e import ROOT, processes_of, unique_run
+
+    run_dir, name = tmp_path / "hidden", unique_run("hidden")
+    args = ["--env", "tests.hidden_env:HiddenNoise-v0", "--algo", "ma-ddpg", "--steps", "1200", "--workers", "3",
+            "--actors", "2", "--start-steps", "200", "--compete-every", "300", "--eliminate-at", "900",
+            "--eval-episodes", "1", "--eval-every", "600", "--hidden", "16,16", "--batch-size", "16", "--seed", "1",
+            "--run", name, "--run-dir", str(run_dir), "--no-plot"]
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", *args], cwd=ROOT, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        deadline, victim = time.monotonic() + 120, None
+        while victim is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+            rows = read_jsonl(run_dir / "learner.jsonl") if (run_dir / "learner.jsonl").is_file() else []
+            pids = subprocess.run(["pgrep", "-f", f"services.roles.worker --run {name} .*--id w1 "],
+                                  capture_output=True, text=True).stdout.split()
+            if pids and rows and rows[-1]["iterations"] >= 300:
+                victim = int(pids[0])
+        assert victim is not None, "no worker to kill"
+        os.kill(victim, signal.SIGKILL)
+        out, _ = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, out[-3000:]
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["exact"] is False and summary["env_steps"] == 3 * 900 + 300, summary
+    why = summary["inexact"]
+    assert "tests.hidden_env:HiddenNoise-v0 replayed slot 1's episode differently" in why, why
+    assert "the env is not deterministic" in why and "iteration" in why
+    assert processes_of(name) == []
