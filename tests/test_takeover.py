@@ -12,6 +12,7 @@ import tests.hidden_env  # noqa: F401  (registers HiddenNoise-v0)
 from mam_core.algorithm1 import Algorithm1
 from mam_core.config import resolve
 from mam_core.envs import make_env
+from mam_core.policy import EnvSpec, NumpyActors
 from mam_core.replay import ReplayBuffer
 from mam_core.schedule import Schedule
 from mam_core.slot import SlotStreams, act, replay_episode, uniform
@@ -55,16 +56,23 @@ def run_slot(env_id: str, slot: int, plan: Algorithm1, cfg, upto: int, policy, s
     return rows, starts
 
 
-@pytest.mark.parametrize("env_id,cuts", [("AppleCollect-v1", (1, 2, 57, 130, 131, 260)),
-                                         ("InvertedPendulum-v5", (40, 333))])
-def test_a_rebuilt_slot_continues_exactly_as_the_uninterrupted_one(env_id: str, cuts: tuple[int, ...]) -> None:
+@pytest.mark.parametrize("env_id,algo,cuts", [("AppleCollect-v1", "ma-td3", (1, 2, 57, 130, 131, 260)),
+                                              ("InvertedPendulum-v5", "ma-td3", (40, 333)),
+                                              ("InvertedPendulum-v5", "ma-sac", (150, 260))])
+def test_a_rebuilt_slot_continues_exactly_as_the_uninterrupted_one(env_id: str, algo: str,
+                                                                   cuts: tuple[int, ...]) -> None:
     """Cut the slot at iteration t, rebuild it in a fresh env from its current episode, step on:
-    every later row equals the uninterrupted slot's (random phase, Gaussian noise, episode resets)."""
-    cfg = resolve("ma-td3", workers=2, actors=2, start_steps=100, seed=11)
+    every later row equals the uninterrupted slot's (random phase, Gaussian noise or SAC's sampled
+    actions, episode resets)."""
+    cfg = resolve(algo, workers=2, actors=2, start_steps=100, seed=11)
     plan = Algorithm1.for_run(cfg, 400)
-
-    def policy(obs: np.ndarray) -> np.ndarray:
-        return np.tanh(np.resize(obs, 1 if env_id.startswith("Inverted") else 2)).astype(np.float32) * 0.1
+    if cfg.stochastic:  # a squashed Gaussian: the slot's noise stream draws its ε
+        actors = NumpyActors(1, EnvSpec.from_env(make_env(env_id)), (8,), gaussian=True)
+        actors.load_member(0, {n: np.full(shape, 0.05, np.float32) for n, shape in actors.shapes.items()})
+        policy = actors.policy(0)
+    else:
+        def policy(obs: np.ndarray) -> np.ndarray:
+            return np.tanh(np.resize(obs, 1 if env_id.startswith("Inverted") else 2)).astype(np.float32) * 0.1
 
     whole, starts = run_slot(env_id, 1, plan, cfg, plan.iterations + 1, policy)
     assert len(starts) > 2  # several episodes
