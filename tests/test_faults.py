@@ -72,7 +72,7 @@ def cpu_seconds(pid: int) -> float:
 
 
 def start_run(tmp_path: Path, run: str, endpoint: str, steps: int, extra: list[str] = (), workers: int = 3):
-    learner = spawn("learner", "--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--schedule", "equal-data",
+    learner = spawn("learner", "--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--schedule", "equal-data",
                     "--steps", str(steps),
                     "--start-steps", "300", "--compete-every", "500", "--eliminate-at", "1000000", *SMALL, *extra,
                     "--workers", str(workers), "--seed", "5", "--run", run, "--listen", endpoint,
@@ -133,7 +133,7 @@ def test_worker_killed_and_restarted(tmp_path: Path) -> None:
     assert summary["exact"] is True, summary  # the new w1 rebuilt slot 1 from its episode: the seed's run
     cfg = resolve("ma-ddpg", schedule="equal-data", start_steps=300, compete_every=500, eliminate_at=1_000_000,
                   hidden=(32, 32), batch_size=32, eval_episodes=3, workers=3, seed=5)
-    _equals_reference(tmp_path, run_reference("AppleCollect-v0", cfg, 5000))
+    _equals_reference(tmp_path, run_reference("AppleCollect-v1", cfg, 5000))
     assert processes_of(run) == []
 
 
@@ -171,7 +171,7 @@ def test_referee_killed_and_restarted(tmp_path: Path) -> None:
     assert rounds == list(range(1, len(rounds) + 1))
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["exact"] is True, summary
-    _equals_reference(tmp_path, run_reference("AppleCollect-v0", cfg, steps))
+    _equals_reference(tmp_path, run_reference("AppleCollect-v1", cfg, steps))
     assert processes_of(run) == []
 
 
@@ -234,13 +234,13 @@ def test_learner_killed_and_resumed(tmp_path: Path) -> None:
     assert len(load_replay(tmp_path)) == transport["env_steps"]
     cfg = resolve("ma-ddpg", schedule="equal-data", start_steps=300, compete_every=500, eliminate_at=1_000_000,
                   hidden=(32, 32), batch_size=32, eval_episodes=3, workers=3, seed=5)
-    _equals_reference(tmp_path, run_reference("AppleCollect-v0", cfg, 4000))
+    _equals_reference(tmp_path, run_reference("AppleCollect-v1", cfg, 4000))
     assert processes_of(run) == []
 
 
 def test_ctrl_c_on_mam_run_leaves_nothing_and_a_usable_checkpoint(tmp_path: Path) -> None:
     run, run_dir = unique_run("ctrl-c"), tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", "--env", "AppleCollect-v0", "--algo",
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", "--env", "AppleCollect-v1", "--algo",
                              "ma-ddpg", "--steps", "1000000", "--start-steps", "300", *SMALL, "--run", run,
                              "--run-dir", str(run_dir)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
@@ -256,6 +256,6 @@ def test_ctrl_c_on_mam_run_leaves_nothing_and_a_usable_checkpoint(tmp_path: Path
     assert processes_of(run) == []
     cfg = json.loads((run_dir / "config.json").read_text())
     state = torch.load(run_dir / "checkpoints" / "learner.pt", weights_only=True)
-    agent = MultiActorAgent(AlgoConfig.from_dict(cfg["algo"]), EnvSpec.from_env_id("AppleCollect-v0"))
+    agent = MultiActorAgent(AlgoConfig.from_dict(cfg["algo"]), EnvSpec.from_env_id("AppleCollect-v1"))
     agent.load_state_dict(state["agent"])
     assert agent.updates > 200
