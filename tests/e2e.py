@@ -78,3 +78,30 @@ def assert_exactly_once(run: dict[str, Any]) -> None:
     sent = {f"{w['worker']}/{w['incarnation']}": w["sent_rows"] for w in run["workers"]}
     assert sent == t["rows_per_stream"]
     assert sum(sent.values()) == t["env_steps"]
+
+
+def learner_iterations(run_dir: Path) -> int:
+    """The iterations of the learner's last learner.jsonl row (0 before the first)."""
+    rows = read_jsonl(run_dir / "learner.jsonl") if (run_dir / "learner.jsonl").is_file() else []
+    return rows[-1]["iterations"] if rows else 0
+
+
+def pid_of(pattern: str) -> int | None:
+    """The first live process whose command line matches `pattern` (pgrep -f)."""
+    out = subprocess.run(["pgrep", "-f", pattern], capture_output=True, text=True).stdout.split()
+    return int(out[0]) if out else None
+
+
+def signal_when(run_dir: Path, pattern: str, iterations: int, sig: int, proc: subprocess.Popen | None = None,
+                timeout: float = 180.0) -> int:
+    """Send `sig` to the process matching `pattern` once the run's learner has logged `iterations`
+    iterations; its pid. Fails if that does not happen within `timeout` s (or `proc` ends first)."""
+    deadline = time.monotonic() + timeout
+    while learner_iterations(run_dir) < iterations or pid_of(pattern) is None:
+        assert time.monotonic() < deadline, f"no {pattern!r} at iteration {iterations} within {timeout:.0f} s"
+        assert proc is None or proc.poll() is None, "the run ended first"
+        time.sleep(0.2)
+    pid = pid_of(pattern)
+    assert pid is not None
+    os.kill(pid, sig)
+    return pid

@@ -29,11 +29,10 @@ import zenoh
 from mam_core.config import resolve
 from mam_core.policy import read_policy_file
 from mam_core.reference import run_reference
-from services.cli.plot import read_jsonl
 from services.messaging import bus, keys
 from services.messaging.codec import decode
 from services.roles import role
-from tests.e2e import ROOT, assert_exactly_once, load, stop, unique_run
+from tests.e2e import ROOT, assert_exactly_once, learner_iterations, load, stop, unique_run
 
 DEPLOY = ROOT / "deploy"
 ZENOH_DIR = DEPLOY / "zenoh"
@@ -474,11 +473,6 @@ RUN_FLAGS = ["--env", "AppleCollect-v0", "--algo", "ma-ddpg", "--schedule", "equ
 ACL_TRACE = {"RUST_LOG": "warn,zenoh::net::routing::interceptor=trace"}
 
 
-def _iterations(run_dir: Path) -> int:
-    rows = read_jsonl(run_dir / "learner.jsonl") if (run_dir / "learner.jsonl").is_file() else []
-    return rows[-1]["iterations"] if rows else 0
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("transport,lag", [("tcp", 2), ("tls", 0)])
 def test_a_run_across_two_hosts_through_a_router(two_hosts: Netns, tmp_path: Path, transport: str, lag: int) -> None:
@@ -510,7 +504,7 @@ def test_a_run_across_two_hosts_through_a_router(two_hosts: Netns, tmp_path: Pat
         procs += [learner, referee, *workers]
         if transport == "tcp":  # b1 dies on host B; a1 takes its slot over from host A
             deadline = time.monotonic() + 120
-            while _iterations(run_dir) < 200 and time.monotonic() < deadline:
+            while learner_iterations(run_dir) < 200 and time.monotonic() < deadline:
                 time.sleep(0.2)
             workers[1].kill()
             workers[1].wait()

@@ -23,7 +23,7 @@ from mam_core.policy import read_policy_file
 from mam_core.reference import run_reference
 from mam_core.schedule import Schedule
 from services.cli.plot import read_jsonl
-from tests.e2e import ROOT, mam, unique_run
+from tests.e2e import ROOT, learner_iterations, mam, signal_when, unique_run
 
 # -- a real distributed run against the reference ------------------------------------------------
 
@@ -97,16 +97,6 @@ def test_reference_driver_is_deterministic_and_k1_needs_no_referee_rounds():
 # -- slow: MuJoCo, a killed and a paused worker ---------------------------------------------------------------
 
 
-def _pid(pattern: str) -> int | None:
-    out = subprocess.run(["pgrep", "-f", pattern], capture_output=True, text=True).stdout.split()
-    return int(out[0]) if out else None
-
-
-def _iterations(run_dir: Path) -> int:
-    rows = read_jsonl(run_dir / "learner.jsonl") if (run_dir / "learner.jsonl").is_file() else []
-    return rows[-1]["iterations"] if rows else 0
-
-
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_hopper_at_lag_1_through_every_fault_equals_the_reference(tmp_path: Path) -> None:
@@ -128,13 +118,8 @@ def test_hopper_at_lag_1_through_every_fault_equals_the_reference(tmp_path: Path
               (200, f"services.roles.worker --run {name} .*--id w2 ", signal.SIGSTOP)]
     try:
         for after, pattern, sig in faults:  # each once the run has gone `after` iterations further
-            at, deadline = _iterations(run_dir) + after, time.monotonic() + 180
-            while (_iterations(run_dir) < at or _pid(pattern) is None) and time.monotonic() < deadline:
-                assert proc.poll() is None, proc.communicate()[0][-3000:]
-                time.sleep(0.2)
-            pid = _pid(pattern)
-            assert pid is not None and _iterations(run_dir) < 2900, f"too late for {pattern}"
-            os.kill(pid, sig)
+            pid = signal_when(run_dir, pattern, learner_iterations(run_dir) + after, sig, proc)
+            assert learner_iterations(run_dir) < 2900, f"too late for {pattern}"
             if sig == signal.SIGSTOP:
                 time.sleep(12.0)
                 os.kill(pid, signal.SIGCONT)
@@ -164,18 +149,8 @@ def test_a_killed_worker_is_rebuilt_and_the_run_stays_exact(tmp_path: Path) -> N
             "--run-dir", str(run_dir)]
     proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", *args], cwd=ROOT, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    try:
-        deadline = time.monotonic() + 120
-        victim = None
-        while time.monotonic() < deadline and victim is None:  # a worker whose rows are in the replay
-            time.sleep(0.2)
-            rows = read_jsonl(run_dir / "learner.jsonl") if (run_dir / "learner.jsonl").is_file() else []
-            out = subprocess.run(["pgrep", "-f", f"services.roles.worker --run {name} .*--id w1 "], capture_output=True,
-                                 text=True).stdout.split()
-            if out and rows and rows[-1]["iterations"] >= 300:
-                victim = int(out[0])
-        assert victim is not None, "no worker to kill"
-        os.kill(victim, signal.SIGKILL)
+    try:  # a worker whose rows are in the replay
+        signal_when(run_dir, f"services.roles.worker --run {name} .*--id w1 ", 300, signal.SIGKILL, proc)
         out, _ = proc.communicate(timeout=300)
     finally:
         if proc.poll() is None:
@@ -213,17 +188,7 @@ def test_a_paused_worker_is_not_a_fault_the_run_stays_exact(tmp_path: Path) -> N
     proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", *args], cwd=ROOT, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
-        deadline = time.monotonic() + 120
-        victim = None
-        while time.monotonic() < deadline and victim is None:
-            time.sleep(0.2)
-            rows = read_jsonl(run_dir / "learner.jsonl") if (run_dir / "learner.jsonl").is_file() else []
-            out = subprocess.run(["pgrep", "-f", f"services.roles.worker --run {name} .*--id w1 "],
-                                 capture_output=True, text=True).stdout.split()
-            if out and rows and rows[-1]["iterations"] >= 50:
-                victim = int(out[0])
-        assert victim is not None, "no worker to pause"
-        os.kill(victim, signal.SIGSTOP)
+        victim = signal_when(run_dir, f"services.roles.worker --run {name} .*--id w1 ", 50, signal.SIGSTOP, proc)
         time.sleep(40.0)
         os.kill(victim, signal.SIGCONT)
         out, _ = proc.communicate(timeout=300)

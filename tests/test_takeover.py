@@ -161,14 +161,11 @@ def test_a_restarted_worker_on_an_env_with_hidden_randomness_is_reported_and_the
     after a SIGKILL cannot replay its slot's episode; it says so, the run finishes its budget in
     lock-step, and summary.json names the env, the slot and the step."""
     import json
-    import os
     import signal
     import subprocess
     import sys
-    import time
 
-    from services.cli.plot import read_jsonl
-    from tests.e2e import ROOT, processes_of, unique_run
+    from tests.e2e import ROOT, processes_of, signal_when, unique_run
 
     run_dir, name = tmp_path / "hidden", unique_run("hidden")
     args = ["--env", "tests.hidden_env:HiddenNoise-v0", "--algo", "ma-ddpg", "--steps", "1200", "--workers", "3",
@@ -178,16 +175,7 @@ def test_a_restarted_worker_on_an_env_with_hidden_randomness_is_reported_and_the
     proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", *args], cwd=ROOT, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
-        deadline, victim = time.monotonic() + 120, None
-        while victim is None and time.monotonic() < deadline:
-            time.sleep(0.2)
-            rows = read_jsonl(run_dir / "learner.jsonl") if (run_dir / "learner.jsonl").is_file() else []
-            pids = subprocess.run(["pgrep", "-f", f"services.roles.worker --run {name} .*--id w1 "],
-                                  capture_output=True, text=True).stdout.split()
-            if pids and rows and rows[-1]["iterations"] >= 300:
-                victim = int(pids[0])
-        assert victim is not None, "no worker to kill"
-        os.kill(victim, signal.SIGKILL)
+        signal_when(run_dir, f"services.roles.worker --run {name} .*--id w1 ", 300, signal.SIGKILL, proc)
         out, _ = proc.communicate(timeout=300)
     finally:
         if proc.poll() is None:
