@@ -302,9 +302,12 @@ def test_each_role_publishes_only_what_the_acl_allows(role_sessions) -> None:
     assert seen & refused == set(), "publications the ACL should have refused"
 
 
-def test_only_the_learner_answers_a_workers_episode_query(role_sessions) -> None:
+def test_only_the_learner_answers_a_workers_episode_query(role_sessions, tls_router) -> None:
     """A worker taking a slot over asks `mam/<run>/episode/w<i>` (services/roles/takeover.py): the
-    learner's queryable answers it through the TLS router; a worker's or the referee's does not."""
+    learner's queryable answers it through the TLS router; another worker's or the referee's does
+    not. (The asker is a second worker session: a session's own queryable answers it locally.)"""
+    certs, endpoint, tmp = tls_router
+    asker = bus.open_session(client_config(certs, "worker", endpoint, tmp), retry_for=10)
     run = unique_run("acl-episode")
     key = keys.episode(run, 1)
     answers = {role: bus.Answers(role_sessions[role], keys.episode_all(run)) for role in ("learner", "worker",
@@ -313,20 +316,21 @@ def test_only_the_learner_answers_a_workers_episode_query(role_sessions) -> None
 
     def ask() -> None:  # every reply to each query (zenoh's default: one per queryable that matches)
         for _ in range(6):
-            for reply in role_sessions["worker"].get(key, timeout=1.0):
+            for reply in asker.get(key, timeout=1.0):
                 if reply.ok is not None:
                     got.append(reply.ok.payload.to_bytes())
 
-    asker = threading.Thread(target=ask)
-    asker.start()
+    thread = threading.Thread(target=ask)
+    thread.start()
     deadline = time.monotonic() + 12
-    while asker.is_alive() and time.monotonic() < deadline:
+    while thread.is_alive() and time.monotonic() < deadline:
         for name, a in answers.items():
             a.poll(lambda _key, _payload, name=name: name.encode())
         time.sleep(0.02)
-    asker.join(15)
+    thread.join(15)
     for a in answers.values():
         a.close()
+    asker.close()
     assert got and set(got) == {b"learner"}, got
 
 

@@ -28,9 +28,10 @@ ASK_TIMEOUT_S = 5.0
 
 
 def ask_episode(w: Worker) -> SlotEpisode | None:
-    """The learner's answer for this worker's slot (asked until one comes; None: stopping)."""
+    """The learner's answer for this worker's slot (asked until one comes; None: stopping, or
+    the run is over)."""
     key = keys.episode(w.cfg.run, w.slot)
-    while not w.stop_requested:
+    while not w.stop_requested and not bus.run_is_done(w.done, w.cfg.run, w.rejects):
         payload = bus.ask(w.session, key, ASK_TIMEOUT_S)
         if payload is None:
             log.info("no answer from the learner on %s yet; asking again", key)

@@ -7,9 +7,12 @@ dropped because the channel was full, is simply asked again by the asker.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 
 import zenoh
+
+log = logging.getLogger("services.messaging.bus")
 
 
 class Answers:
@@ -31,6 +34,8 @@ class Answers:
                 if reply is not None:
                     query.reply(query.key_expr, reply)
                     n += 1
+            except Exception:  # a question this role cannot answer never stops it; the asker asks again
+                log.exception("no answer to a query on %s", query.key_expr)
             finally:
                 query.drop()  # the asker's get ends now, not at its timeout
         return n
