@@ -90,8 +90,8 @@ def experiment_command(
                           "wall time (median of the finished runs of its env and variant, here and in the ledger) "
                           "would end after it; a run with no estimate yet starts while the deadline is ahead. Runs "
                           "still in flight at the deadline are allowed to finish and are recorded when they do "
-                          "(Ctrl-C: not recorded, redone on resume); the runs not started wait for the next "
-                          "invocation")] = None,
+                          "(Ctrl-C: not recorded, continued from its checkpoint on resume); the runs not started "
+                          "wait for the next invocation")] = None,
 ) -> None:
     """Run a grid of algorithms × seeds × envs through the distributed system; resumable.
 

@@ -11,8 +11,9 @@ no logs. DIR/experiment.json lists every run planned into that ledger. A run rec
 ledger counts as finished even when EXP_DIR does not have it (a fresh clone continues the grid).
 
 Resumable: a run whose `summary.json` exists, or whose record is in the ledger, is skipped (after
-checking that its config matches the grid); a run directory without either (an interrupted or
-failed run) is removed and redone. Runs are ordered seed by seed (all envs and variants of seed 0,
+checking that its config matches the grid); a run directory without either is continued from its
+checkpoint when it was interrupted with the same code and config (mam_lab.scheduler.continuable),
+else (a failed run, other code) removed and redone. Runs are ordered seed by seed (all envs and variants of seed 0,
 then seed 1, ...), so a grid stopped early still has balanced results across algorithms.
 
 Wall-time estimates (`wall_estimates`, for `--stop-by`): the record.json wall times of the
