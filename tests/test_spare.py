@@ -157,6 +157,7 @@ class FakeRun:
                 report.publish({"slot": slot, "sent_rows": seq}, seq=seq)
 
 
+@pytest.mark.slow
 def test_spares_share_orphaned_slots_by_rank_and_leave_when_the_run_is_done(caplog):
     """Three spares, two slots orphaned one after the other: the first (by id) takes the first,
     the second the next one, neither takes a slot the other took; the third says it was not
