@@ -19,6 +19,7 @@ It reads RUN_DIR/checkpoints/policy.npz, which the learner writes next to every 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import zipfile
@@ -170,6 +171,16 @@ class SquashedGaussianPolicy:
         mu, log_std = self.heads(obs)
         eps = noise.normal(0.0, 1.0, mu.shape).astype(np.float32)
         return self.max_action * np.tanh(mu + np.exp(log_std) * eps)
+
+
+def params_digest(params: Mapping[str, np.ndarray]) -> str:
+    """A short digest of an actor's parameters (float32, by name): the learner and a worker
+    compare it to know that a row was acted with the very weights the learner computed."""
+    h = hashlib.blake2b(digest_size=8)
+    for name in sorted(params):
+        h.update(name.encode())
+        h.update(np.ascontiguousarray(params[name], np.float32).tobytes())
+    return h.hexdigest()
 
 
 class NumpyActors:

@@ -27,12 +27,7 @@ from mam_core.pacing import CheckpointRule
 from mam_core.replay import ReplayBuffer, ReplayLog
 from services.cli import options
 from services.messaging import bus, keys
-from services.messaging.codec import (
-    Allocation,
-    Done,
-    MessageError,
-    TransitionSpec,
-)
+from services.messaging.codec import Allocation, Done, MessageError, TransitionSpec
 from services.roles import episodes, learner_files, role, tb
 from services.roles.checkpoint import (
     EXIT_CORRUPT,
@@ -162,6 +157,8 @@ class Learner:
             self.env_steps += len(it.slots)
             for batch, used_rows in sources:
                 self.intake.insert_row(batch, used_rows)
+                if why := self.out.foreign_weights(batch):  # a row acted with weights this learner never made
+                    self.break_exact(why)
             self.episodes.inserted(index, it.slots, sources)
             for batch in used:
                 if self.intake.admit(batch):
@@ -225,6 +222,8 @@ class Learner:
             if stage.holds(batch):
                 continue  # a resend of a batch still staged: it is counted once, when it is used
             staged, why, trimmed = stage.add(batch)
+            if not staged and not why and not trimmed:  # held back (SlotStage.add): its rows come again
+                continue
             if why:
                 self.break_exact(why)
             if batch.inexact:

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mam_core.algorithm1 import Algorithm1
+from mam_core.policy import params_digest
 from services.messaging.codec import TransitionBatch
 
 log = logging.getLogger("mam.learner")
@@ -52,8 +53,10 @@ class SlotStage:
     incarnation takes the slot over (a restarted or replacement worker, which rebuilt the slot
     from its current episode); its predecessor's late batches are dropped from then on. Rows of
     iterations the slot already has are skipped (resends to a restarted learner, a replacement
-    starting behind); a batch that starts past the slot's next iteration fills the gap (rows
-    were lost) and says so, and so does the slot's owner stepping iterations again.
+    starting behind). The owner's batch that starts past the slot's next iteration waits for
+    the rows before it (its resend to a restarted learner, or the owner rebuilding the slot
+    there); a new owner's fills the gap (rows were lost) and says so, and so does the slot's
+    owner stepping iterations again.
     """
 
     def __init__(self, slots: int, start: int = 1) -> None:
@@ -64,7 +67,10 @@ class SlotStage:
 
     def add(self, batch: TransitionBatch) -> tuple[bool, str, int]:
         """Stage a batch: (staged, why exactness broke or "", its rows not staged: iterations the
-        slot had already, all of a predecessor's late batch). A batch not staged holds nothing new."""
+        slot had already, all of a predecessor's late batch). A batch not staged holds nothing new,
+        but for one of the slot's owner that starts past the slot's next iteration (0 rows not
+        staged): held back, since its earlier rows come first in the owner's resend, or the owner
+        rebuilds the slot at the next iteration and steps from there."""
         s, owner = batch.slot, (batch.worker, batch.incarnation)
         if batch.iteration < 1 or not 0 <= s < len(self.queues):
             return False, f"worker {batch.worker} sent iteration {batch.iteration} of slot {s} " \
@@ -86,6 +92,8 @@ class SlotStage:
                   f"back to where a restarted learner stood)"
         if skip >= batch.rows:
             return False, why, batch.rows
+        if skip < 0 and not changed:  # the owner's earlier rows are on their way (a resend), or it rebuilds
+            return False, why, 0      # the slot where this learner stands (worker out_of_step): not staged
         if skip < 0:
             why = why or f"slot {s} lost iterations {self.end[s]}..{batch.iteration - 1} (rows lost in flight)"
             skip = 0  # its rows stand in for the lost iterations
@@ -148,7 +156,7 @@ class WeightsHistory:
     the dead one's (`prefer`)."""
 
     def __init__(self, n_actors: int) -> None:
-        self.by_actor: list[dict[int, tuple[str, dict[str, np.ndarray]]]] = [{} for _ in range(n_actors)]
+        self.by_actor: list[dict[int, tuple[str, dict[str, np.ndarray], str]]] = [{} for _ in range(n_actors)]
 
     def add(self, actor: int, version: int, params: Mapping[str, np.ndarray], incarnation: str = "",
             prefer: str = "") -> bool:
@@ -157,8 +165,8 @@ class WeightsHistory:
         held = self.by_actor[actor].get(version)
         if held is not None and (held[0] == incarnation or (prefer and held[0] == prefer)):
             return False
-        self.by_actor[actor][version] = (incarnation,
-                                         {name: np.array(a, np.float32, copy=True) for name, a in params.items()})
+        copy = {name: np.array(a, np.float32, copy=True) for name, a in params.items()}
+        self.by_actor[actor][version] = (incarnation, copy, params_digest(copy))
         return True
 
     def has(self, actor: int, version: int) -> bool:
@@ -170,6 +178,10 @@ class WeightsHistory:
     def source(self, actor: int, version: int) -> str:
         """The learner incarnation the held copy came from."""
         return self.by_actor[actor][version][0]
+
+    def digest(self, actor: int, version: int) -> str:
+        """`params_digest` of the held copy (what the rows acted with it carry)."""
+        return self.by_actor[actor][version][2]
 
     def forget_below(self, version: int) -> None:
         for versions in self.by_actor:

@@ -13,8 +13,9 @@ import logging
 import time
 from typing import TYPE_CHECKING
 
+from mam_core.policy import params_digest
 from services.messaging import bus, keys
-from services.messaging.codec import Done, LearnerStats, MessageError, Weights, decode, encode
+from services.messaging.codec import Done, LearnerStats, MessageError, TransitionBatch, Weights, decode, encode
 from services.roles.lockstep import snapshot_versions
 
 if TYPE_CHECKING:
@@ -39,6 +40,7 @@ class Outbox:
         self.snapshot_pubs = [bus.declare_reliable_publisher(s, keys.eval_weights(run, a)) for a in range(k)]
         self.recent_weights: dict[int, list[tuple[int, bytes]]] = {}  # version -> (actor, message)
         self.snapshots: dict[int, list[tuple[int, bytes]]] = {}
+        self.digests: dict[tuple[int, int], str] = {}  # (actor, version) -> params_digest of what it published
         self.referee_events = 0  # evaluations the referee reports done
         self.seq = 0
 
@@ -48,8 +50,19 @@ class Outbox:
 
     def weights_message(self, k: int) -> bytes:
         lr = self.learner
-        return Weights(k, lr.agent.versions[k], lr.agent.actor_params(k), lr.spec.obs_dim, lr.spec.act_dim,
+        params = lr.agent.actor_params(k)
+        self.digests[(k, lr.agent.versions[k])] = params_digest(params)
+        return Weights(k, lr.agent.versions[k], params, lr.spec.obs_dim, lr.spec.act_dim,
                        max(lr.spec.max_action), tuple(lr.algo.hidden), lr.incarnation).to_bytes(lr.id, self.next_seq())
+
+    def foreign_weights(self, batch: TransitionBatch) -> str:
+        """Why `batch`'s rows were acted with other weights than this learner's of their version
+        (a dead incarnation's that computed otherwise), or "" (the same, or not known here)."""
+        mine = self.digests.get((batch.actor, batch.version)) if batch.version >= 0 else None
+        if mine is None or not batch.policy_digest or batch.policy_digest == mine:
+            return ""
+        return (f"slot {batch.slot} acted at iteration {batch.iteration} with actor {batch.actor}'s version "
+                f"{batch.version} of learner {batch.policy_from or '?'}, not this learner's")
 
     def weights(self, all_actors: bool = False) -> None:
         """The live actors' weights (all with `all_actors`), kept while a slot may act with them."""
@@ -64,6 +77,8 @@ class Outbox:
         needed = plan.version_for(min(lr.iteration + 1, plan.iterations))
         for old in [v for v in self.recent_weights if v < needed]:
             del self.recent_weights[old]
+        for key in [key for key in self.digests if key[1] < needed - 1 and lr.agent.live_actors[key[0]]]:
+            del self.digests[key]
 
     def snapshots_after(self, index: int) -> None:
         """The versions the referee's next evaluations judge, once each (`snapshot_versions`)."""

@@ -98,7 +98,7 @@ class Worker(GuardedSimulator):
         self.p_n, self.p_actor, self.p_version = 0, -1, -1
         self.p_iteration = -1  # the iteration of the first pending row
         self.p_starts: list[int] = []  # pending rows that begin an episode
-        self.p_from = ""  # the learner incarnation of the pending rows' weights
+        self.p_from = self.p_digest = ""  # the learner incarnation of the pending rows' weights, their digest
         self.p_started = time.monotonic()
 
     # -- the loop -----------------------------------------------------------------------------
@@ -150,10 +150,12 @@ class Worker(GuardedSimulator):
                 return
             self.refresh(decisions, index)
             if index is not None and self.out_of_step(index, waiting_since):
-                log.info("iteration %d: the restarted learner needs iteration %d of slot %d next; going on from "
-                         "there", index, self.stats.slots_next[self.slot], self.slot)
-                index, waiting_since, self.synced_with = self.stats.slots_next[self.slot], time.monotonic(), \
-                    self.stats.incarnation
+                log.info("iteration %d: the restarted learner needs iteration %d of slot %d next; rebuilding the "
+                         "slot there", index, self.stats.slots_next[self.slot], self.slot)
+                self.synced_with = self.stats.incarnation
+                self.unacked = deque(b for b in self.unacked if b.iteration < self.stats.slots_next[self.slot])
+                self.unacked_rows = sum(b.rows for b in self.unacked)
+                index, waiting_since = takeover.take_over(self, self.stats.slots_next[self.slot]), time.monotonic()
             if index is None:  # where the run stands: the learner's stats
                 if self.stats is None:
                     self.stats_sub.wait_fresh(timeout=0.1)
@@ -190,8 +192,7 @@ class Worker(GuardedSimulator):
 
     def out_of_step(self, index: int, waiting_since: float) -> bool:
         """This slot waits, and a learner restarted since its position was set still needs another
-        iteration of it well after this worker's resends: the slot goes on from there (a step
-        back the learner records as the end of exactness)."""
+        iteration of it well after this worker's resends: the slot is rebuilt there (takeover)."""
         st = self.stats  # (rows still pending here, after a pause: no resync)
         if st is None or self.slot >= len(st.slots_next) or st.slots_next[self.slot] == index or self.p_n or \
                 st.incarnation == self.synced_with:
@@ -291,9 +292,9 @@ class Worker(GuardedSimulator):
         """Iteration `index` of this slot: one transition (a simulator fault: counted, the env
         reset, the step retried; the run is then not the seed's, and the learner says so)."""
         self.actor = actor
-        policy_from = ""
+        policy_from = digest = ""
         if version >= 0:
-            policy_from = self.history.source(actor, version)
+            policy_from, digest = self.history.source(actor, version), self.history.digest(actor, version)
             if self.loaded[actor] != (version, policy_from):
                 self.actors.load_member(actor, self.history.get(actor, version))
                 self.loaded[actor] = (version, policy_from)
@@ -320,7 +321,7 @@ class Worker(GuardedSimulator):
         self.p_reward[i] = reward
         self.p_next[i] = next_obs
         self.p_term[i] = terminated  # truncation is not terminal: the target still bootstraps
-        self.p_actor, self.p_version, self.p_from = actor, version, policy_from
+        self.p_actor, self.p_version, self.p_from, self.p_digest = actor, version, policy_from, digest
         self.p_n += 1
         self.episode_return += reward
         if terminated or truncated:
@@ -342,7 +343,7 @@ class Worker(GuardedSimulator):
         batch = TransitionBatch(self.id, self.incarnation, self.batch_seq, self.p_actor, self.p_version,
                                 *rows, tuple(self.finished_returns) or None, iteration=self.p_iteration,
                                 slot=self.slot, policy_from=self.p_from, env_faults=sum(self.faults.values()),
-                                episode_starts=tuple(self.p_starts), inexact=self.inexact)
+                                episode_starts=tuple(self.p_starts), inexact=self.inexact, policy_digest=self.p_digest)
         if self.batch_log is not None:
             self.batch_log.write(f"{self.batch_seq} {n}\n")
         self.pub.put(batch.to_bytes())

@@ -68,6 +68,7 @@ class TransitionBatch:
     env_faults: int = 0  # simulator faults this worker incarnation has met so far (its run is then not the seed's)
     episode_starts: tuple[int, ...] = ()  # rows that are the first step of an episode (after a reset)
     inexact: str = ""  # why this worker's slot is no longer the seed's (its recovery failed), or ""
+    policy_digest: str = ""  # mam_core.policy.params_digest of the weights the rows acted with ("" random)
 
     @property
     def rows(self) -> int:
@@ -102,6 +103,8 @@ class TransitionBatch:
             body["episode_starts"] = [int(r) for r in self.episode_starts]
         if self.inexact:
             body["inexact"] = self.inexact
+        if self.policy_digest:
+            body["policy_digest"] = self.policy_digest
         return encode(
             self.KIND,
             body,
@@ -155,9 +158,10 @@ class TransitionBatch:
         if any(r >= n for r in starts) or list(starts) != sorted(set(starts)):
             raise MessageError("range:episode_starts", f"episode starts must be distinct rows in order, < {n}")
         inexact = _text(msg, "inexact") if "inexact" in msg else ""
+        digest = _id(msg, "policy_digest") if "policy_digest" in msg else ""
         return cls(worker, incarnation, batch_seq, actor, version, obs, action, reward,
                    next_obs, term, episode_return, resend, iteration, slot, policy_from,
-                   env_faults, starts, inexact)
+                   env_faults, starts, inexact, digest)
 
     @classmethod
     def from_bytes(cls, payload: bytes, spec: TransitionSpec, *,
