@@ -5,6 +5,7 @@ weights are accepted, and workers step on from the new learner's iteration."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -18,10 +19,10 @@ import numpy as np
 import pytest
 
 from mam_core.config import resolve
-from mam_core.policy import EnvSpec, NumpyActors, read_policy_file
+from mam_core.policy import EnvSpec, NumpyActors, params_digest, read_policy_file
 from mam_core.reference import run_reference
 from services.cli.plot import read_jsonl
-from services.messaging.codec import TransitionBatch
+from services.messaging.codec import TransitionBatch, TransitionSpec
 from services.roles.lockstep import SlotStage, WeightsHistory
 from tests.e2e import ROOT, unique_run
 
@@ -64,6 +65,23 @@ def test_the_stage_tells_a_resend_from_a_slot_that_stepped_iterations_again():
     assert staged and skipped == 1 and why == "slot 0 stepped iterations 6..6 again (w0 went back to where a " \
                                               "restarted learner stood)"
     assert stage.end == [9]
+    # A batch of the owner past the slot's next iteration waits for its resend (not staged, nothing
+    # counted); a new owner's fills the gap and says the rows were lost.
+    assert stage.add(_batch("w0", "a", 9, 12, 2)) == (False, "", 0) and stage.end == [9]
+    staged, why, _ = stage.add(_batch("w0", "b", 0, 12, 2))
+    assert staged and why == "slot 0 lost iterations 9..11 (rows lost in flight)" and stage.end == [11]
+
+
+def test_a_held_version_carries_the_digest_a_batch_reports():
+    """The worker's copy of a version and the batches acted with it carry `params_digest`; the
+    learner compares it with its own (services/roles/outbox.py: foreign_weights)."""
+    shapes = NumpyActors(1, SPEC, HIDDEN).shapes
+    history = WeightsHistory(1)
+    one = {name: np.full(shape, 1.0, np.float32) for name, shape in shapes.items()}
+    history.add(0, 3, one, "L1")
+    assert history.digest(0, 3) == params_digest(one) != params_digest({**one, "w0": one["w0"] * 2})
+    batch = dataclasses.replace(_batch("w0", "a", 0, 1, 2), policy_digest=history.digest(0, 3))
+    assert TransitionBatch.from_bytes(batch.to_bytes(), TransitionSpec(3, 2, 1)).policy_digest == params_digest(one)
 
 
 @pytest.mark.slow
