@@ -60,6 +60,7 @@ def test_learner_transport_and_weights_pieces() -> None:
     assert result["transport_bytes_per_transition"] >= (17 + 17 + 6 + 1) * 4
 
 
+@pytest.mark.slow  # three runs start torch and MuJoCo: ~35 s, past the fast suite's budget
 def test_end_to_end_and_collection_pieces() -> None:
     result = bench_json(start_bench("--only", "e2e,collection"), timeout=300)  # three runs start torch and MuJoCo
     assert_positive(result, ["e2e_vs_single_process", "e2e_bf16_vs_single_process", "e2e_single_process_s",
