@@ -232,12 +232,9 @@ class Referee:
         self.last_publish = time.monotonic()
 
     def refresh(self) -> None:
-        item = self.stats_sub.fresh().get(keys.learner_stats(self.cfg.run))
-        if item is not None:
-            try:
-                self.stats = LearnerStats.from_bytes(item.payload)
-            except MessageError as e:
-                self.rejects.reject("learner", e)
+        stats = role.fresh_learner_stats(self.stats_sub, self.cfg.run, self.rejects)
+        if stats is not None:
+            self.stats = stats
 
     # -- evaluation -----------------------------------------------------------------------------
     def evaluate(self, it: Any, seed: int, purpose: str, versions: list[int], updates: int) -> list[float | None]:

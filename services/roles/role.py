@@ -198,3 +198,16 @@ def weights_screen(shapes: Mapping[str, tuple[int, ...]], n_actors: int,
         return True
 
     return admits
+
+
+def fresh_learner_stats(latest: bus.Latest, run: str, rejects: bus.RejectLog) -> LearnerStats | None:
+    """The learner's stats if new ones arrived since the last call (a malformed message is
+    counted as rejected, never raised), else None."""
+    item = latest.fresh().get(keys.learner_stats(run))
+    if item is None:
+        return None
+    try:
+        return LearnerStats.from_bytes(item.payload)
+    except MessageError as e:
+        rejects.reject("learner", e)
+        return None

@@ -37,7 +37,7 @@ from typing import Any
 import typer
 
 from services.messaging import bus, keys
-from services.messaging.codec import LearnerStats, MessageError, decode
+from services.messaging.codec import MessageError, decode
 from services.roles import role
 from services.run.config import RunConfig
 
@@ -188,14 +188,9 @@ class Spare:
 
     def read(self, stats: bus.Latest, reports: bus.Latest) -> None:
         """The learner's awaited slots (of this run's M slots), and each worker's slot from its report."""
-        item = stats.fresh().get(keys.learner_stats(self.cfg.run))
-        if item is not None:
-            try:
-                st = LearnerStats.from_bytes(item.payload)
-            except MessageError as e:
-                self.rejects.reject("learner", e)
-            else:
-                self.awaiting = tuple(a for a in st.awaiting if a < self.cfg.algo.workers)
+        st = role.fresh_learner_stats(stats, self.cfg.run, self.rejects)
+        if st is not None:
+            self.awaiting = tuple(a for a in st.awaiting if a < self.cfg.algo.workers)
         for item in reports.fresh().values():
             try:
                 body = decode(item.payload)

@@ -217,15 +217,10 @@ class Worker(GuardedSimulator):
 
     def refresh(self, decisions: dict[int, dict[str, int]], index: int | None) -> None:
         """Weights, the referee's decisions (with the one before: none is missed), the learner's stats."""
-        item = self.stats_sub.fresh().get(keys.learner_stats(self.cfg.run))
-        if item is not None:
-            try:
-                st = LearnerStats.from_bytes(item.payload)
-            except MessageError as e:
-                self.rejects.reject("learner", e)
-            else:
-                self.stats, self.stats_at = st, time.monotonic()
-                self.on_stats(st)
+        st = role.fresh_learner_stats(self.stats_sub, self.cfg.run, self.rejects)
+        if st is not None:
+            self.stats, self.stats_at = st, time.monotonic()
+            self.on_stats(st)
         self.take_weights(None, index)
         item = self.allocation.fresh().get(keys.allocation(self.cfg.run))
         if item is not None:
