@@ -316,6 +316,29 @@ def test_two_runs_on_one_hub_never_cross(star):
 # --------------------------------------------------------------------------- liveliness
 
 
+def test_a_settled_watch_holds_every_token_already_up_at_its_first_look(star):
+    """watch_alive's history comes on Zenoh's thread: a spare that judged from its first look saw
+    no live worker and called a held slot orphaned (CI). settle() waits for what a query finds."""
+    run = unique_run()
+    owner = star.client()
+    tokens = [declare_alive(owner, run, "worker", f"w{i}") for i in range(3)]
+    gone = declare_alive(owner, run, "worker", "w9")
+    gone.undeclare()
+    watcher = star.client()
+    for _ in range(5):  # a fresh watch each time: the first look after settle() is complete
+        workers = watch_alive(watcher, run, "worker")
+        assert workers.settle(watcher, run, timeout=5.0)
+        assert workers.live() == {"w0", "w1", "w2"}
+        workers.close()
+    empty = unique_run()
+    nobody = watch_alive(watcher, empty, "worker")
+    started = time.monotonic()
+    assert nobody.settle(watcher, empty, timeout=5.0) and nobody.live() == frozenset()
+    assert time.monotonic() - started < 5.0  # nothing up: the query ends, the wait does not run out
+    nobody.close()
+    del tokens
+
+
 def test_liveliness_appear_undeclare_and_session_close(star):
     run = unique_run()
     early = star.client()

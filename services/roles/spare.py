@@ -143,6 +143,8 @@ class Spare:
         reports = bus.Latest(late_join=False).subscribe(s, keys.role_stats_all(run, "worker"))
         workers, spares = bus.watch_alive(s, run, "worker"), bus.watch_alive(s, run, keys.SPARE)
         token = bus.declare_alive(s, run, keys.SPARE, self.id)
+        for watch in (workers, spares):  # who is up already, before the first look judges a slot orphaned
+            watch.settle(s, run)
         log.info("spare %s waits on run %s: it takes over a slot the learner has awaited with no live worker "
                  "for %.0f s", self.id, run, self.limit)
         try:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from typing import Callable
 
 import zenoh
@@ -79,6 +80,21 @@ class AliveWatch:
                 lambda: predicate(frozenset(i for r, i in self._members if self.role in (None, r))),
                 timeout,
             )
+
+    def settle(self, session: zenoh.Session, run: str, timeout: float = 2.0) -> bool:
+        """Wait until this watch holds every token a liveliness query finds up now (True), at most
+        ``timeout`` seconds. The subscriber's history comes on Zenoh's thread, some time after
+        ``watch_alive`` returns: a caller that judges "nobody is up" from the first look settles
+        first. The query is a barrier only: a token it finds that goes away meanwhile is not added."""
+        up: set[tuple[str, str]] = set()
+        deadline = time.monotonic() + timeout
+        for reply in session.liveliness().get(keys.alive_all(run, self.role), timeout=timeout):
+            try:
+                up.add(keys.parse_alive(str(reply.ok.key_expr)))
+            except (ValueError, AttributeError, TypeError):
+                continue
+        with self._cond:
+            return self._cond.wait_for(lambda: up <= self._members, max(deadline - time.monotonic(), 0.0))
 
     def close(self) -> None:
         if self._sub is not None:
