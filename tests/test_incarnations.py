@@ -24,6 +24,7 @@ from mam_core.reference import run_reference
 from services.cli.plot import read_jsonl
 from services.messaging.codec import TransitionBatch, TransitionSpec
 from services.roles.lockstep import SlotStage, WeightsHistory
+from services.roles.outbox import PublishedDigests
 from tests.e2e import ROOT, unique_run
 
 SPEC = EnvSpec(3, 2, (1.0, 1.0))
@@ -82,6 +83,34 @@ def test_a_held_version_carries_the_digest_a_batch_reports():
     assert history.digest(0, 3) == params_digest(one) != params_digest({**one, "w0": one["w0"] * 2})
     batch = dataclasses.replace(_batch("w0", "a", 0, 1, 2), policy_digest=history.digest(0, 3))
     assert TransitionBatch.from_bytes(batch.to_bytes(), TransitionSpec(3, 2, 1)).policy_digest == params_digest(one)
+
+
+def test_published_digests_go_through_the_checkpoint_and_name_foreign_weights():
+    """With lag B > 0 a restarted learner gets rows acted with versions its predecessor published
+    before the checkpoint: the checkpoint carries their digests, so those rows are checked too."""
+    shapes = NumpyActors(1, SPEC, HIDDEN).shapes
+    one = {name: np.full(shape, 1.0, np.float32) for name, shape in shapes.items()}
+    other = {**one, "w0": one["w0"] * 2}
+    published = PublishedDigests()
+    for version in range(5):
+        published.record(0, version, one if version != 3 else other)
+    published.record(1, 2, one)  # an eliminated actor's last version
+    published.prune(4, [True, False])  # slots act with version >= 4 of the live actor from now on
+    assert sorted(published.known) == [(0, 3), (0, 4), (1, 2)]
+    restored = PublishedDigests.from_json(published.to_json())
+    assert restored.known == published.known
+
+    def acted(actor: int, version: int, params: dict) -> TransitionBatch:
+        return dataclasses.replace(_batch("w0", "a", 0, 9, 2), actor=actor, version=version,
+                                   policy_digest=params_digest(params), policy_from="L1")
+
+    assert restored.foreign(acted(0, 3, other)) == ""
+    assert restored.foreign(acted(0, 3, one)) == ("slot 0 acted at iteration 9 with actor 0's version 3 of "
+                                                  "learner L1, not this learner's")
+    assert restored.foreign(acted(1, 2, other)) != ""
+    assert restored.foreign(acted(0, 1, other)) == ""  # pruned: not known here, trusted
+    with pytest.raises(ValueError, match="actor, version, digest"):
+        PublishedDigests.from_json('[[0, 1]]')
 
 
 @pytest.mark.slow

@@ -39,7 +39,7 @@ from services.roles.checkpoint import (
 from services.roles.episodes import SlotEpisodes
 from services.roles.intake import Intake
 from services.roles.lockstep import SlotStage
-from services.roles.outbox import Outbox
+from services.roles.outbox import Outbox, PublishedDigests
 from services.run import announce, cpu, rundir, runlock
 from services.run.config import RunConfig
 from services.run.rundir import JsonlWriter, write_json
@@ -95,6 +95,7 @@ class Learner:
         self.stage: SlotStage | None = None
         self.episodes = SlotEpisodes(self.plan)  # per slot, where its current episode began (a takeover's replay)
         self.awaiting: tuple[int, ...] = ()  # slots whose rows the loop waits for; -1: the referee's decision
+        self.digests = PublishedDigests()  # of the versions a slot may act with (checked per batch)
         if resume is not None:
             learner_files.restore(self, resume)
 
@@ -157,7 +158,7 @@ class Learner:
             self.env_steps += len(it.slots)
             for batch, used_rows in sources:
                 self.intake.insert_row(batch, used_rows)
-                if why := self.out.foreign_weights(batch):  # a row acted with weights this learner never made
+                if why := self.digests.foreign(batch):  # a row acted with weights this learner never made
                     self.break_exact(why)
             self.episodes.inserted(index, it.slots, sources)
             for batch in used:

@@ -13,6 +13,7 @@ import numpy as np
 from mam_core.evaluation import estimation_bias
 from mam_core.seeding import bias_seed
 from services.roles.checkpoint import save_checkpoint
+from services.roles.outbox import PublishedDigests
 
 if TYPE_CHECKING:
     from services.roles.learner import Learner
@@ -27,6 +28,7 @@ def checkpoint(lr: Learner) -> None:
                 "stream_skipped": json.dumps(lr.intake.stream_skipped),
                 "stream_partial": json.dumps(lr.intake.stream_partial), "referee_seen": int(lr.referee_seen),
                 "iteration": lr.iteration, "inexact": lr.inexact, "episodes": lr.episodes.to_json(),
+                "digests": lr.digests.to_json(),
                 "wall_s": round(lr.wall_before + time.monotonic() - lr.started, 3)}
     path = save_checkpoint(lr.run_dir, lr.agent, lr.buffer, counters, lr.cfg, lr.replay_log,
                            survivor=lr.survivor)  # with policy.npz, in a verified generation
@@ -64,6 +66,8 @@ def restore(lr: Learner, state: dict[str, Any]) -> None:
     lr.episodes.inserted_through = lr.iteration
     if "episodes" in c:
         lr.episodes.restore(str(c["episodes"]))
+    if "digests" in c:  # what the dead learner published: rows acted with it are checked too (lag B > 0)
+        lr.digests = PublishedDigests.from_json(str(c["digests"]))
     # Every stream and the staging point are in the checkpoint; the workers resend the rows after
     # it: the resumed learner recomputes the same updates (exact unless the run was inexact already).
     lr.inexact = str(c.get("inexact", ""))

@@ -9,6 +9,7 @@ until the referee reports the evaluations that judge them done (its role stats' 
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from typing import TYPE_CHECKING
@@ -29,6 +30,44 @@ REFEREE_GRACE_S = 60.0
 REFEREE_WAIT_S = 240.0  # ... and at most, in all, for its final evaluation
 
 
+class PublishedDigests:
+    """`params_digest` of every actor version a slot may still act with, as this learner published
+    it, to check the `policy_digest` a batch reports (`foreign`). Kept in the learner's checkpoint:
+    with lag B > 0 a restarted learner receives rows acted with versions its predecessor published
+    before the checkpoint, and checks those too."""
+
+    def __init__(self, known: dict[tuple[int, int], str] | None = None) -> None:
+        self.known: dict[tuple[int, int], str] = dict(known or {})  # (actor, version) -> digest
+
+    def record(self, actor: int, version: int, params: dict) -> None:
+        self.known[(actor, version)] = params_digest(params)
+
+    def foreign(self, batch: TransitionBatch) -> str:
+        """Why `batch`'s rows were acted with other weights than this learner's of their version
+        (a dead incarnation's that computed otherwise), or "" (the same, or not known here)."""
+        mine = self.known.get((batch.actor, batch.version)) if batch.version >= 0 else None
+        if mine is None or not batch.policy_digest or batch.policy_digest == mine:
+            return ""
+        return (f"slot {batch.slot} acted at iteration {batch.iteration} with actor {batch.actor}'s version "
+                f"{batch.version} of learner {batch.policy_from or '?'}, not this learner's")
+
+    def prune(self, needed: int, live: list[bool]) -> None:
+        """Forget live actors' versions older than `needed` - 1 (no slot acts with them again; an
+        eliminated actor's last versions stay, a few entries)."""
+        for key in [key for key in self.known if key[1] < needed - 1 and live[key[0]]]:
+            del self.known[key]
+
+    def to_json(self) -> str:
+        return json.dumps([[a, v, d] for (a, v), d in sorted(self.known.items())])
+
+    @classmethod
+    def from_json(cls, text: str) -> PublishedDigests:
+        rows = json.loads(text)
+        if not isinstance(rows, list) or not all(isinstance(r, list) and len(r) == 3 for r in rows):
+            raise ValueError("published digests: not a list of [actor, version, digest]")
+        return cls({(int(a), int(v)): str(d) for a, v, d in rows})
+
+
 class Outbox:
     def __init__(self, learner: Learner) -> None:
         self.learner = learner
@@ -40,7 +79,7 @@ class Outbox:
         self.snapshot_pubs = [bus.declare_reliable_publisher(s, keys.eval_weights(run, a)) for a in range(k)]
         self.recent_weights: dict[int, list[tuple[int, bytes]]] = {}  # version -> (actor, message)
         self.snapshots: dict[int, list[tuple[int, bytes]]] = {}
-        self.digests: dict[tuple[int, int], str] = {}  # (actor, version) -> params_digest of what it published
+        self.digests = learner.digests  # what it published (and its predecessor, from the checkpoint)
         self.referee_events = 0  # evaluations the referee reports done
         self.seq = 0
 
@@ -51,18 +90,9 @@ class Outbox:
     def weights_message(self, k: int) -> bytes:
         lr = self.learner
         params = lr.agent.actor_params(k)
-        self.digests[(k, lr.agent.versions[k])] = params_digest(params)
+        self.digests.record(k, lr.agent.versions[k], params)
         return Weights(k, lr.agent.versions[k], params, lr.spec.obs_dim, lr.spec.act_dim,
                        max(lr.spec.max_action), tuple(lr.algo.hidden), lr.incarnation).to_bytes(lr.id, self.next_seq())
-
-    def foreign_weights(self, batch: TransitionBatch) -> str:
-        """Why `batch`'s rows were acted with other weights than this learner's of their version
-        (a dead incarnation's that computed otherwise), or "" (the same, or not known here)."""
-        mine = self.digests.get((batch.actor, batch.version)) if batch.version >= 0 else None
-        if mine is None or not batch.policy_digest or batch.policy_digest == mine:
-            return ""
-        return (f"slot {batch.slot} acted at iteration {batch.iteration} with actor {batch.actor}'s version "
-                f"{batch.version} of learner {batch.policy_from or '?'}, not this learner's")
 
     def weights(self, all_actors: bool = False) -> None:
         """The live actors' weights (all with `all_actors`), kept while a slot may act with them."""
@@ -77,8 +107,7 @@ class Outbox:
         needed = plan.version_for(min(lr.iteration + 1, plan.iterations))
         for old in [v for v in self.recent_weights if v < needed]:
             del self.recent_weights[old]
-        for key in [key for key in self.digests if key[1] < needed - 1 and lr.agent.live_actors[key[0]]]:
-            del self.digests[key]
+        self.digests.prune(needed, lr.agent.live_actors)
 
     def snapshots_after(self, index: int) -> None:
         """The versions the referee's next evaluations judge, once each (`snapshot_versions`)."""
