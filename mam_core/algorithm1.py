@@ -138,12 +138,21 @@ class Algorithm1:
         """Slot `slot`'s steps in iterations 1..index-1: (start-phase steps, steps with an actor).
         A slot steps in a prefix of the iterations (every slot until C, slot 0 after it; only the
         last iteration may be cut short), and the start phase is a prefix too."""
-        n = max(min(index - 1, self._last_step(slot)), 0)
+        n = max(min(index - 1, self.last_step(slot)), 0)
         random = min(n, self._random_iterations)
         return random, n - random
 
-    def _last_step(self, slot: int) -> int:
-        """The last iteration in which `slot` steps (0: none)."""
+    def last_step(self, slot: int) -> int:
+        """The last iteration in which `slot` steps (0: none): after it the slot needs no actor."""
+        if slot not in self._last_steps:
+            self._last_steps[slot] = self._find_last_step(slot)
+        return self._last_steps[slot]
+
+    @cached_property
+    def _last_steps(self) -> dict[int, int]:
+        return {}
+
+    def _find_last_step(self, slot: int) -> int:
         def steps(i: int) -> bool:
             after = self.transitions_before(i + 1) if i < self.iterations else self.schedule.budget
             return slot < min(self.width(i), after - self.transitions_before(i))

@@ -66,12 +66,19 @@ def test_mam_run_equals_the_reference_at_lag_0_and_2(tmp_path: Path) -> None:
     distributed run equals the one-process reference with its lag, bit for bit (the reference
     is deterministic, so each reruns from its seed), and the two lags differ."""
     torch.set_num_threads(1)  # the learner's default (learner_threads = 1): the same float sums
-    first = _record(_mam_run(tmp_path, "exact-a", seed=3))
+    first_dir = _mam_run(tmp_path, "exact-a", seed=3)
+    first = _record(first_dir)
     ref = run_reference("AppleCollect-v1", resolve("ma-ddpg", seed=3, **APPLE), APPLE_STEPS)
     assert first["summary"]["exact"] is True and first["summary"]["lag"] == 0
     _equals_reference(first, ref)
     plan = Algorithm1.for_run(resolve("ma-ddpg", seed=3, **APPLE), APPLE_STEPS)  # the referee's events are the plan's
     assert [(i, p) for i, p, _ in first["evals"]] == [(plan.iteration(i).units[1], p) for i, p in plan.events()]
+    # A worker holds the versions of its next iterations only: slots 1-4, idle after C, held every
+    # version published after it (150 here, over 10 GiB in a 100k-iteration HalfCheetah run).
+    held = {r["worker"]: r["weights_held_max"] for r in map(json.loads, map(Path.read_text,
+                                                                          (first_dir / "workers").glob("*.json")))}
+    assert sorted(held) == [f"w{i}" for i in range(5)]
+    assert max(held.values()) <= APPLE["actors"] * 2, held
 
     lagged = _record(_mam_run(tmp_path, "exact-lag2", 3, "--lag", "2"))
     ref2 = run_reference("AppleCollect-v1", resolve("ma-ddpg", seed=3, lag=2, **APPLE), APPLE_STEPS)

@@ -183,6 +183,14 @@ class WeightsHistory:
         """`params_digest` of the held copy (what the rows acted with it carry)."""
         return self.by_actor[actor][version][2]
 
+    def held(self) -> int:
+        """Versions held, of all actors (a worker reports it: an idle slot holds none)."""
+        return sum(len(versions) for versions in self.by_actor)
+
+    def clear(self) -> None:
+        for versions in self.by_actor:
+            versions.clear()
+
     def forget_below(self, version: int) -> None:
         for versions in self.by_actor:
             for v in [v for v in versions if v < version]:
