@@ -87,7 +87,8 @@ def experiment_command(
     stop_by: Annotated[Optional[str], typer.Option(
         "--stop-by", help="deadline, HH:MM (local time, the next time the clock shows it) or an ISO datetime: "
                           "start no run whose estimated "
-                          "wall time (median of the finished runs of its env and variant, here and in the ledger) "
+                          "wall time (median of the finished runs of its env and variant, here and in the ledger; "
+                          "for a stopped run that goes on from its checkpoint, the share still to do) "
                           "would end after it; a run with no estimate yet starts while the deadline is ahead. Runs "
                           "still in flight at the deadline are allowed to finish and are recorded when they do "
                           "(Ctrl-C: not recorded, continued from its checkpoint on resume); the runs not started "

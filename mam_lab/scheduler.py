@@ -12,7 +12,8 @@ sends SIGTERM to every run, whose launcher stops its processes, and a rerun resu
 
 A deadline (`--stop-by TIME`, `may_start`): a run starts only if its estimated wall time (the
 median of the finished runs of the same env and variant in the experiment directory and the
-ledger, mam_lab.ledger.wall_estimates, updated as runs finish) ends by TIME; a run with no
+ledger, mam_lab.ledger.wall_estimates, updated as runs finish; for a stopped run that goes on
+from its checkpoint, the share its checkpoint leaves: `remaining_share`) ends by TIME; a run with no
 estimate yet (its variant has never finished) starts while TIME is still ahead, since finishing
 one is how its estimate is made; after TIME nothing starts. A run still in flight at TIME is
 allowed to finish and is recorded when it does. Runs not started are reported
@@ -46,6 +47,7 @@ from typing import IO, Any
 
 from rich.console import Console
 
+from mam_core.algorithm1 import Algorithm1
 from mam_lab.grid import RunSpec
 from mam_lab.ledger import RECORD, backfill_ledger, estimate_wall_s, make_record, run_state, write_ledger_record
 from mam_lab.provenance import ROOT, code_fingerprint, code_version
@@ -139,6 +141,21 @@ def may_start(now: float, stop_by: float | None, estimate_s: float | None) -> bo
     if now >= stop_by:
         return False
     return estimate_s is None or now + estimate_s <= stop_by
+
+
+def remaining_share(run_dir: Path, cfg: RunConfig) -> float:
+    """What part of a run is still to do: 1 for a fresh one; for a stopped one that goes on from
+    its checkpoint, the updates its newest checkpoint leaves of the run's (the learner's updates are
+    most of a run's time), so --stop-by lets a run 90 % done finish instead of deferring it as a
+    whole run."""
+    total = Algorithm1.for_run(cfg.algo, cfg.steps)
+    total_updates = total.updates_after(total.iterations)
+    done = 0
+    for path in (run_dir / rundir.CHECKPOINTS).glob(rundir.MANIFEST_GLOB):
+        updates = (read_json(path) or {}).get("updates")
+        if isinstance(updates, int) and not isinstance(updates, bool):
+            done = max(done, updates)
+    return min(max(1.0 - done / total_updates, 0.0), 1.0) if total_updates > 0 else 1.0
 
 
 def parse_stop_by(text: str, now: datetime | None = None) -> datetime:
@@ -261,7 +278,14 @@ def run_grid(specs: Sequence[RunSpec], exp_dir: Path, console: Console, *, plot_
     estimates = {k: list(v) for k, v in (estimates or {}).items()}
 
     def estimate_of(spec: RunSpec) -> float | None:
-        return estimate_wall_s(estimates.get((spec.env, spec.variant), []))
+        whole = estimate_wall_s(estimates.get((spec.env, spec.variant), []))
+        run_dir = exp_dir / spec.path
+        if whole is None or not run_dir.is_dir():
+            return whole
+        cfg = spec.run_config(run_name_for(spec, tag))  # a stopped run goes on only with this code and config
+        if continuable(run_dir, cfg, code_fingerprint(ROOT)) is None:
+            return whole
+        return whole * remaining_share(run_dir, cfg)
 
     in_main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _raise_keyboard_interrupt) if in_main else None

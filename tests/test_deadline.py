@@ -6,12 +6,13 @@ flight at TIME is allowed to finish and is recorded."""
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from datetime import datetime, timedelta, timezone
 
 import pytest
 
-from mam_lab.grid import plan
+from mam_lab.grid import make_grid, plan
 from mam_lab.ledger import estimate_wall_s, record_wall_s, run_state, wall_estimates
 from mam_lab.scheduler import may_start, parse_stop_by, run_grid
 from mam_lab.view import estimate_text
@@ -133,3 +134,46 @@ def test_the_plan_table_shows_each_rows_estimate(tmp_path):
     text = out.getvalue()
     assert "est. 0:03:00 (median of 2)" in text  # median of 100 s and 260 s
     assert "no estimate" in text  # ddpg: none finished
+
+
+def test_a_stopped_run_is_estimated_by_what_its_checkpoint_leaves(tmp_path):
+    """A run stopped with 90 % of its updates checkpointed goes on from there: --stop-by weighs the
+    10 % left, not a whole run (grid e's MA-SAC runs, stopped near their end, were deferred whole)."""
+    from mam_core.algorithm1 import Algorithm1
+    from mam_lab.provenance import ROOT, code_fingerprint
+    from mam_lab.scheduler import remaining_share
+    from services.run import rundir
+
+    specs = plan(make_grid(envs="AppleCollect-v0", algos="ma-ddpg,ddpg", seeds="2", steps=300,
+                           flags={"hidden": "8,8", "batch_size": 8, "start_steps": 50}))
+    exp = tmp_path / "exp"
+    run_dir, cfg = exp / specs[0].path, specs[0].run_config("x00001-stopped")
+    whole = Algorithm1.for_run(cfg.algo, cfg.steps)
+    total = whole.updates_after(whole.iterations)
+    assert total > 0
+    (run_dir / rundir.CHECKPOINTS).mkdir(parents=True)
+    write_json(run_dir / rundir.CONFIG, cfg.to_dict())
+    write_json(run_dir / rundir.LAUNCH, {"config": cfg.to_dict(), "code": code_fingerprint(ROOT)})
+    assert remaining_share(run_dir, cfg) == 1.0  # no checkpoint yet
+    write_json(run_dir / rundir.CHECKPOINTS / "manifest-000006.json", {"updates": total // 2})
+    write_json(run_dir / rundir.CHECKPOINTS / "manifest-000007.json", {"updates": total * 9 // 10})
+    assert remaining_share(run_dir, cfg) == pytest.approx(1 - (total * 9 // 10) / total)  # the newest
+    estimates = {("AppleCollect-v0", "ma-ddpg"): [3600.0], ("AppleCollect-v0", "ddpg"): [1.0]}
+    runner = FakeLauncher()
+
+    def launcher(job):  # FAKE_RUN writes a finished run's checkpoints/ itself
+        shutil.rmtree(job.run_dir / rundir.CHECKPOINTS, ignore_errors=True)
+        return runner(job)
+
+    result = run_grid(specs, exp, quiet(), launcher=launcher, cores=[()], stop_by=time.time() + 600,
+                      estimates=estimates)
+    # ~360 s of the stopped run fit in 10 minutes; a fresh ma-ddpg run's hour does not
+    assert result.finished == [specs[0], specs[1], specs[3]] and result.deferred == [specs[2]]
+    assert runner.calls[0] == run_dir
+    # with other code the stopped run would be redone whole: its estimate is the whole run's again
+    write_json(run_dir / rundir.LAUNCH, {"config": cfg.to_dict(), "code": "another-commit"})
+    (run_dir / rundir.SUMMARY).unlink()
+    write_json(run_dir / rundir.CHECKPOINTS / "manifest-000007.json", {"updates": total * 9 // 10})
+    result = run_grid(specs[:1], exp, quiet(), launcher=FakeLauncher(), cores=[()], stop_by=time.time() + 600,
+                      estimates=estimates)
+    assert result.deferred == [specs[0]]
