@@ -204,11 +204,8 @@ class Worker(GuardedSimulator):
     def take_weights(self, item: bus.Received | None, index: int | None) -> None:
         """Keep the versions this slot may still act with (none below iteration `index`'s)."""
         items = ([item] if item is not None else []) + self.weights.drain()
-        if index is not None and index > self.plan.last_step(self.slot):
-            # The slot has stepped its last (slots 1..M-1 after the paper schedule's elimination):
-            # it needs no version, and keeping every new one grew an idle worker by ~0.3 MB a
-            # version (HalfCheetah), over 10 GiB in a 100k-iteration run.
-            self.history.clear()
+        if index is not None and index > self.plan.last_step(self.slot):  # stepped its last: needs no version
+            self.history.clear()  # (slots 1..M-1 after the paper schedule's C: else it kept all, >10 GiB)
             return
         oldest = self.plan.version_for(index) if index is not None and index <= self.plan.iterations else 0
         current = self.stats.incarnation if self.stats is not None else ""
