@@ -141,10 +141,9 @@ class Spare:
         stats = bus.Latest.subscribe(s, keys.learner_stats(run))
         done = bus.Latest.subscribe(s, keys.done(run))
         reports = bus.Latest(late_join=False).subscribe(s, keys.role_stats_all(run, "worker"))
-        workers, spares = bus.watch_alive(s, run, "worker"), bus.watch_alive(s, run, keys.SPARE)
+        # who is up already, before the first look judges a slot orphaned
+        workers, spares = bus.watch_alive(s, run, "worker", settle=2.0), bus.watch_alive(s, run, keys.SPARE, settle=2.0)
         token = bus.declare_alive(s, run, keys.SPARE, self.id)
-        for watch in (workers, spares):  # who is up already, before the first look judges a slot orphaned
-            watch.settle(s, run)
         log.info("spare %s waits on run %s: it takes over a slot the learner has awaited with no live worker "
                  "for %.0f s", self.id, run, self.limit)
         try:

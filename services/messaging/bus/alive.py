@@ -43,6 +43,7 @@ class AliveWatch:
         self._cond = threading.Condition()
         self._members: set[tuple[str, str]] = set()
         self._sub = None
+        self.settled: bool | None = None  # watch_alive(settle=...): whether the first look was complete
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         try:
@@ -81,21 +82,6 @@ class AliveWatch:
                 timeout,
             )
 
-    def settle(self, session: zenoh.Session, run: str, timeout: float = 2.0) -> bool:
-        """Wait until this watch holds every token a liveliness query finds up now (True), at most
-        ``timeout`` seconds. The subscriber's history comes on Zenoh's thread, some time after
-        ``watch_alive`` returns: a caller that judges "nobody is up" from the first look settles
-        first. The query is a barrier only: a token it finds that goes away meanwhile is not added."""
-        up: set[tuple[str, str]] = set()
-        deadline = time.monotonic() + timeout
-        for reply in session.liveliness().get(keys.alive_all(run, self.role), timeout=timeout):
-            try:
-                up.add(keys.parse_alive(str(reply.ok.key_expr)))
-            except (ValueError, AttributeError, TypeError):
-                continue
-        with self._cond:
-            return self._cond.wait_for(lambda: up <= self._members, max(deadline - time.monotonic(), 0.0))
-
     def close(self) -> None:
         if self._sub is not None:
             self._sub.undeclare()
@@ -113,10 +99,28 @@ def watch_alive(
     run: str,
     role: str | None = None,
     on_change: Callable[[str, str, bool], None] | None = None,
+    settle: float | None = None,
 ) -> AliveWatch:
-    """Follow the liveliness tokens of ``run`` (one role, or all); tokens already up count."""
+    """Follow the liveliness tokens of ``run`` (one role, or all); tokens already up count.
+
+    The subscriber's history comes on Zenoh's thread, some time after this returns. A caller that
+    judges "nobody is up" from its first look passes ``settle`` (seconds): a liveliness query finds
+    the tokens up now, and this returns once the watch holds them all (``watch.settled``), or the time
+    runs out. The query goes first: asked after a liveliness subscriber of the same keys exists on the
+    session (even a closed one), Zenoh answered it with nothing or a part (docs/ZENOH-NOTES.md)."""
     watch = AliveWatch(role, on_change)
+    up: set[tuple[str, str]] = set()
+    deadline = time.monotonic() + (settle or 0.0)
+    if settle is not None:
+        for reply in session.liveliness().get(keys.alive_all(run, role), timeout=settle):
+            try:
+                up.add(keys.parse_alive(str(reply.ok.key_expr)))
+            except (ValueError, AttributeError, TypeError):
+                continue
     watch._sub = session.liveliness().declare_subscriber(
         keys.alive_all(run, role), watch._on_sample, history=True
     )
+    if settle is not None:  # a token the query found that goes away meanwhile is not added: False
+        with watch._cond:
+            watch.settled = watch._cond.wait_for(lambda: up <= watch._members, max(deadline - time.monotonic(), 0.0))
     return watch
