@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -105,3 +108,56 @@ def signal_when(run_dir: Path, pattern: str, iterations: int, sig: int, proc: su
     assert pid is not None
     os.kill(pid, sig)
     return pid
+
+
+class LinkProxy:
+    """A TCP proxy on loopback in front of `port`: a client that connects to `self.port` reaches
+    the listener there. `blackhole()` drops what clients send (the other way still flows) until
+    `cut()` closes every connection; clients then reconnect through it, and it forwards again."""
+
+    def __init__(self, port: int) -> None:
+        self.target, self.pairs = port, []
+        self.dropping, self.closed = threading.Event(), threading.Event()
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.port = self.server.getsockname()[1]
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while not self.closed.is_set():
+            try:
+                client, _ = self.server.accept()
+                upstream = socket.create_connection(("127.0.0.1", self.target))
+            except OSError:
+                continue
+            self.pairs.append((client, upstream))
+            threading.Thread(target=self._pump, args=(client, upstream, True), daemon=True).start()
+            threading.Thread(target=self._pump, args=(upstream, client, False), daemon=True).start()
+
+    def _pump(self, src: socket.socket, dst: socket.socket, upward: bool) -> None:
+        try:
+            while data := src.recv(65536):
+                if not (upward and self.dropping.is_set()):
+                    dst.sendall(data)
+        except OSError:
+            pass
+        finally:
+            for s in (src, dst):
+                with contextlib.suppress(OSError):
+                    s.shutdown(socket.SHUT_RDWR)
+
+    def blackhole(self) -> None:
+        self.dropping.set()
+
+    def cut(self) -> None:
+        pairs, self.pairs = self.pairs, []
+        for pair in pairs:
+            for s in pair:
+                with contextlib.suppress(OSError):
+                    s.shutdown(socket.SHUT_RDWR)
+                s.close()
+        self.dropping.clear()
+
+    def close(self) -> None:
+        self.closed.set()
+        self.server.close()
+        self.cut()

@@ -10,13 +10,11 @@ policy version, and exits when the run is done.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 import socket
 import time
 import uuid
-from collections import deque
 from pathlib import Path
 from typing import Any, Optional
 
@@ -33,6 +31,7 @@ from services.cli import options
 from services.messaging import bus, keys
 from services.messaging.codec import Allocation, LearnerStats, MessageError, TransitionBatch, Weights
 from services.roles import role, takeover
+from services.roles.kept import KeptBatches
 from services.roles.lockstep import WeightsHistory
 from services.roles.simulator import FAULTS, EnvFault, GuardedSimulator
 from services.run import config, rundir
@@ -44,6 +43,7 @@ log = logging.getLogger("mam.worker")
 MAX_BATCH_AGE_S = 0.05  # a partial batch is sent after this long
 STATUS_EVERY_S = 10.0
 RESYNC_S = 2.0  # waiting this long while a restarted learner needs another iteration of this slot: go there
+LOST_AFTER_S = 2.0  # the learner's stats still lack a row sent this long before them: the batch was lost
 class Worker(GuardedSimulator):
     def __init__(self, cfg: RunConfig, session: Any, worker_id: str, slot_index: int = 0,
                  run_dir: Path | None = None) -> None:
@@ -64,11 +64,10 @@ class Worker(GuardedSimulator):
         self.obs = self.reset_env(seed=self.streams.episode_seed(1))
         self.first_row = True  # the next step is an episode's first (batches flag it: episode_starts)
         self.inexact = ""  # why this slot is no longer the seed's (a failed rebuild): every batch says it
-        # Exactly once across a learner restart: batches the learner has not yet checkpointed
-        # are kept and resent to its next incarnation (bounded by cfg.resend_rows).
-        self.retain, self.unacked = cfg.save_replay, deque()
-        self.unacked_rows = self.resent_rows = self.resends = 0
-        self.unacked_dropped_rows = 0  # over the bound: not kept (if then lost, a counted gap)
+        # Exactly once: batches the learner has not yet checkpointed are kept, and resent to its next
+        # incarnation or when one was lost in flight (kept.py; bounded by cfg.resend_rows).
+        self.kept = KeptBatches(cfg.save_replay, cfg.resend_rows)
+        self.lost_checked = 0.0  # when the kept batches last went again for a lost one
         self.batch_log = None
         # numpy forwards, no torch in a worker: a one-row torch forward costs ~100 µs of dispatch
         # between env steps, this ~14 µs, and importing torch ~3 s and ~180 MB (docs/PERFORMANCE.md)
@@ -150,12 +149,13 @@ class Worker(GuardedSimulator):
                 log.info("run is done after %d transitions from this worker", self.sent_rows)
                 return
             self.refresh(decisions, index)
+            if index is not None:
+                self.resend_lost(index)
             if index is not None and self.out_of_step(index, waiting_since):
                 log.info("iteration %d: the restarted learner needs iteration %d of slot %d next; rebuilding the "
                          "slot there", index, self.stats.slots_next[self.slot], self.slot)
                 self.synced_with = self.stats.incarnation
-                self.unacked = deque(b for b in self.unacked if b.iteration < self.stats.slots_next[self.slot])
-                self.unacked_rows = sum(b.rows for b in self.unacked)
+                self.kept.forget_from(self.stats.slots_next[self.slot])
                 index, waiting_since = takeover.take_over(self, self.stats.slots_next[self.slot]), time.monotonic()
             if index is None:  # where the run stands: the learner's stats
                 if self.stats is None:
@@ -256,9 +256,7 @@ class Worker(GuardedSimulator):
 
     def fault_counters(self) -> dict[str, Any]:
         """Simulator faults and resends (role_stats topic and workers/*.json)."""
-        return {"env_faults": dict(self.faults), "env_remade": self.env_remade, "resent_rows": self.resent_rows,
-                "resends": self.resends, "unacked_rows": self.unacked_rows,
-                "unacked_dropped_rows": self.unacked_dropped_rows}
+        return {"env_faults": dict(self.faults), "env_remade": self.env_remade, **self.kept.counters()}
 
     def on_stats(self, st: LearnerStats) -> None:
         """Drop what the learner has checkpointed; on a new learner incarnation resend the rest."""
@@ -266,28 +264,29 @@ class Worker(GuardedSimulator):
         if st.incarnation != self.learner_incarnation:
             first = self.learner_incarnation is None
             self.learner_incarnation, self.learner_seen_at = st.incarnation, time.monotonic()
-            if self.unacked and not first:
-                self.resend()
+            if not first:
+                self.kept.resend(self.pub, "the new learner")
+                self.lost_checked = time.monotonic()
             log.info("learner %s is up at iteration %d", self.learner_incarnation or "?", st.iteration)
 
     def trim_acked(self, st: LearnerStats) -> None:
         mine = st.per_worker.get(self.id)
         if not mine or mine.acked_incarnation != self.incarnation or mine.acked_seq is None:
             return
-        acked = mine.acked_seq
-        while self.unacked and self.unacked[0].batch_seq <= acked:
-            self.unacked_rows -= self.unacked.popleft().rows
+        self.kept.acked(mine.acked_seq)
 
-    def resend(self) -> None:
-        """Every kept batch again, in order, flagged: the learner keeps the rows it has not got."""
-        n = 0
-        for batch in self.unacked:
-            self.pub.put(dataclasses.replace(batch, resend=True).to_bytes())
-            n += batch.rows
-        self.resent_rows += n
-        self.resends += 1
-        log.info("resent %d rows in %d batches (seq %d..%d) to the new learner", n, len(self.unacked),
-                 self.unacked[0].batch_seq, self.unacked[-1].batch_seq)
+    def resend_lost(self, index: int) -> None:
+        """The learner (the same incarnation) still waits for an iteration of this slot that a kept
+        batch holds, in stats newer by LOST_AFTER_S than when the batch went: it was lost in
+        flight; the kept batches from it on go again (kept.py)."""
+        st, now = self.stats, time.monotonic()
+        if st is None or st.incarnation != self.learner_incarnation or self.slot not in st.awaiting or \
+                self.slot >= len(st.slots_next):
+            return
+        need, since = st.slots_next[self.slot], max(self.flushed_at, self.lost_checked)
+        if need < index and self.stats_at - since > LOST_AFTER_S and self.kept.holds(need):
+            self.lost_checked = now
+            self.kept.resend(self.pub, f"the learner, which waits for iteration {need:,} of slot {self.slot}", need)
 
     def step(self, index: int, random_phase: bool, actor: int, version: int) -> None:
         """Iteration `index` of this slot: one transition (a simulator fault: counted, the env
@@ -339,7 +338,7 @@ class Worker(GuardedSimulator):
             return
         n = self.p_n
         rows = (self.p_obs[:n], self.p_action[:n], self.p_reward[:n], self.p_next[:n], self.p_term[:n])
-        if self.retain:  # kept for a resend: the pending arrays are reused
+        if self.kept.keep:  # kept for a resend: the pending arrays are reused
             rows = tuple(a.copy() for a in rows)
         batch = TransitionBatch(self.id, self.incarnation, self.batch_seq, self.p_actor, self.p_version,
                                 *rows, tuple(self.finished_returns) or None, iteration=self.p_iteration,
@@ -349,13 +348,7 @@ class Worker(GuardedSimulator):
             self.batch_log.write(f"{self.batch_seq} {n}\n")
         self.pub.put(batch.to_bytes())
         self.flushed_at = time.monotonic()
-        if self.retain:
-            self.unacked.append(batch)
-            self.unacked_rows += n
-            while self.unacked_rows > self.cfg.resend_rows and len(self.unacked) > 1:
-                dropped = self.unacked.popleft()
-                self.unacked_rows -= dropped.rows
-                self.unacked_dropped_rows += dropped.rows
+        self.kept.add(batch)
         self.batch_seq += 1
         self.sent_rows += n
         self.finished_returns = []
