@@ -41,7 +41,7 @@ from mam_lab.view import describe_plan, hms
 from services.cli import options
 
 # --- command ---------------------------------------------------------------------------------
-from services.run import cpu, preflight
+from services.run import cpu, preflight, runlock
 
 
 @options.run_options(exclude=tuple(GRID_DIMENSIONS))
@@ -148,14 +148,19 @@ def experiment_command(
                   + f"; code {ROOT} at {commit_label(code)}")
     if dry_run:
         return
-    exp_dir.mkdir(parents=True, exist_ok=True)
-    write_manifest(exp_dir, grid, specs, aliases, ledger, parallel=parallel)
-    try:
-        result = run_grid(specs, exp_dir, console, plot_runs=not no_plot, retries=retries, fail_fast=fail_fast,
-                          parallel=parallel, cores=slots, ledger=ledger, experiment=grid.name,
-                          stop_by=deadline.timestamp() if deadline is not None else None, estimates=estimates)
-    except KeyboardInterrupt:
-        result = GridResult(interrupted=True)
+    try:  # one grid per directory: a second would take this one's runs in flight for stopped ones
+        lock = runlock.lock_experiment(exp_dir, grid.name)
+    except runlock.RunInUse as e:
+        console.print(f"[red]error[/]: {e}", highlight=False)
+        raise typer.Exit(runlock.EXIT_REFUSED) from None
+    with lock:
+        write_manifest(exp_dir, grid, specs, aliases, ledger, parallel=parallel)
+        try:
+            result = run_grid(specs, exp_dir, console, plot_runs=not no_plot, retries=retries, fail_fast=fail_fast,
+                              parallel=parallel, cores=slots, ledger=ledger, experiment=grid.name,
+                              stop_by=deadline.timestamp() if deadline is not None else None, estimates=estimates)
+        except KeyboardInterrupt:
+            result = GridResult(interrupted=True)
     console.print(f"[bold]{len(result.skipped) + len(result.finished)}/{len(specs)}[/] runs finished "
                   f"({len(result.finished)} now, {len(result.skipped)} before), {len(result.failed)} failed "
                   f"in {hms(result.elapsed_s)}")
@@ -172,7 +177,10 @@ def experiment_command(
     if result.interrupted:
         console.print(f"[yellow]interrupted[/]: run the same command again to resume ({exp_dir})")
         raise typer.Exit(130)
-    if result.failed:
+    if result.in_use:
+        console.print(f"[red]{len(result.in_use)} run(s) not started[/]: another process holds their run "
+                      "directories (above); stop it, then run the same command again")
+    if result.failed or result.in_use:
         raise typer.Exit(1)
 
 

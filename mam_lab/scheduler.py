@@ -24,7 +24,10 @@ continues from its checkpoint when the grid runs again (`continuable`): the same
 the same config but for the run's name, a verified checkpoint and no summary.json. The launcher
 resumes it as `mam run --resume` does, and a resumed run is the uninterrupted one bit for bit
 (docs/RELIABILITY.md). Anything else about a partial run directory (a failed attempt, other code,
-another config) redoes the run from the start.
+another config) redoes the run from the start, unless a live process holds it (runlock.in_use: a
+`mam run` started there by hand): that run is neither continued nor redone (`GridResult.in_use`).
+One grid per experiment directory is the caller's lock (`mam experiment` takes
+runlock.lock_experiment before it writes anything there).
 """
 
 from __future__ import annotations
@@ -52,7 +55,7 @@ from mam_lab.grid import RunSpec
 from mam_lab.ledger import RECORD, backfill_ledger, estimate_wall_s, make_record, run_state, write_ledger_record
 from mam_lab.provenance import ROOT, code_fingerprint, code_version
 from mam_lab.view import GridView, hms
-from services.run import config, rundir
+from services.run import config, rundir, runlock
 from services.run.config import RunConfig
 from services.run.rundir import env_dirname, read_json, write_json
 
@@ -127,6 +130,7 @@ class GridResult:
     elapsed_s: float = 0.0
     run_wall_s: dict[str, float] = field(default_factory=dict)  # label -> wall time of its finished attempt
     deferred: list[RunSpec] = field(default_factory=list)  # not started: they would end after --stop-by
+    in_use: list[RunSpec] = field(default_factory=list)  # not touched: another process holds the run directory
 
 
 # --- the deadline ----------------------------------------------------------------------------
@@ -381,6 +385,13 @@ def run_grid(specs: Sequence[RunSpec], exp_dir: Path, console: Console, *, plot_
                             result.deferred.append(spec)
                             view.defer_run(spec, estimate)
                             continue
+                        holder = runlock.in_use(exp_dir / spec.path) if (exp_dir / spec.path).is_dir() else None
+                        if holder is not None:  # neither continued nor redone: it is someone's live run
+                            result.in_use.append(spec)
+                            view.progress.console.print(f"[red]not started[/] {spec.label}: its run directory "
+                                                        f"{exp_dir / spec.path} is in use by {holder}",
+                                                        highlight=False)
+                            continue
                         start(spec, attempt, free.pop(0))
                     if not active and (stopping or not queue):
                         break
@@ -397,6 +408,7 @@ def run_grid(specs: Sequence[RunSpec], exp_dir: Path, console: Console, *, plot_
     result.finished.sort(key=order.__getitem__)
     result.deferred.sort(key=order.__getitem__)
     result.failed.sort(key=order.__getitem__)
+    result.in_use.sort(key=order.__getitem__)
     result.elapsed_s = time.monotonic() - started
     return result
 

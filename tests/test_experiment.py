@@ -26,6 +26,7 @@ from tests.lab_fixtures import (
     _mkdir,
     _read,
     _timing,
+    finish_fake,
     quiet,
     small_grid,
 )
@@ -237,3 +238,63 @@ def test_a_stopped_run_continues_only_with_the_same_code_config_and_a_checkpoint
     write_json(run_dir / rundir.LAUNCH, {"config": mine.to_dict(), "code": "abc"})
     write_json(run_dir / rundir.SUMMARY, {})
     assert continuable(run_dir, mine, "abc") is None  # finished
+
+
+HOLD = """
+import sys, time
+from pathlib import Path
+from services.run import runlock
+what, where = sys.argv[1], Path(sys.argv[2])
+lock = runlock.lock_experiment(where, "first") if what == "experiment" else runlock.lock_run(where, "by-hand")
+print("held", flush=True)
+time.sleep(120)
+"""
+
+
+def _hold(what: str, where: Path) -> subprocess.Popen:
+    """Another live process holding WHERE's lock as `mam experiment` (or `mam run`) does."""
+    proc = subprocess.Popen([sys.executable, "-c", HOLD, what, str(where)], cwd=ROOT, stdout=subprocess.PIPE,
+                            text=True)
+    assert proc.stdout.readline().strip() == "held"
+    return proc
+
+
+def test_a_second_experiment_on_the_same_directory_is_refused_and_touches_nothing(tmp_path):
+    """Two grids on one directory would take each other's runs in flight for stopped ones."""
+    exp = tmp_path / "exp"
+    finish_fake(plan(small_grid())[0], exp)
+    before = sorted((p.relative_to(exp).as_posix(), p.stat().st_mtime_ns) for p in exp.rglob("*"))
+    first = _hold("experiment", exp)
+    try:
+        args = ["--exp-dir", str(exp), "--envs", "AppleCollect-v0", "--algos", "ma-ddpg,ddpg", "--seeds", "2",
+                "--steps", "300", "--hidden", "8,8", "--batch-size", "8", "--no-ledger", "--no-plot", "--no-report"]
+        got = subprocess.run([sys.executable, "-m", "mam_lab.experiment", *args], cwd=ROOT, text=True,
+                             capture_output=True, timeout=120, env=dict(os.environ, COLUMNS="300"))
+    finally:
+        first.kill()
+        first.wait()
+    assert got.returncode == 73, got.stdout + got.stderr
+    assert f"experiment directory {exp} is in use by mam experiment of grid 'first' (pid {first.pid}" in got.stdout
+    after = sorted((p.relative_to(exp).as_posix(), p.stat().st_mtime_ns) for p in exp.rglob("*"))
+    assert [p for p in after if p[0] != "experiment.lock"] == before  # no manifest, no run touched
+    from services.run import runlock
+
+    runlock.lock_experiment(exp, "second").release()  # the killed holder's lock went with it
+
+
+def test_a_run_directory_held_by_a_live_process_is_neither_continued_nor_redone(tmp_path):
+    specs = plan(small_grid())
+    exp = tmp_path / "exp"
+    busy = _mkdir(exp / specs[0].path)
+    (busy / "junk").write_text("someone's run")
+    holder = _hold("run", busy)
+    try:
+        runner = FakeLauncher()
+        result = run_grid(specs, exp, quiet(), launcher=runner, cores=[()])
+    finally:
+        holder.kill()
+        holder.wait()
+    assert result.in_use == specs[:1] and result.finished == specs[1:] and not result.failed
+    assert busy not in runner.calls and (busy / "junk").read_text() == "someone's run"
+    result = run_grid(specs, exp, quiet(), launcher=FakeLauncher(), cores=[()])  # the holder is gone: redone
+    assert result.finished == specs[:1] and not result.in_use

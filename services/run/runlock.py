@@ -6,12 +6,17 @@ A run directory is locked by the processes that own it, with `fcntl.flock` on lo
     RUN_DIR/run.lock       `mam run` (the launcher); its children carry its token in MAM_RUN_LOCK
     RUN_DIR/learner.lock   the learner of the run (launched or split)
     RUN_DIR/referee.lock   the referee of the run (launched or split)
+    EXP_DIR/experiment.lock   `mam experiment`, for the whole grid (`lock_experiment`)
 
 `mam run` takes run.lock and refuses a directory whose learner or referee lock is held (a split
 run lives there). A learner or referee takes its own lock and refuses a directory whose run.lock
 is held by a `mam run` that is not its parent: the launcher writes a random token into run.lock
 and passes it to its children in the environment (LOCK_ENV). A split learner and a split
 referee may share a directory (the runbook does); a second of either is refused.
+
+One `mam experiment` per experiment directory: a second one would take the first one's runs in
+flight for stopped ones, and redo (delete) them when they refuse it. The grid also leaves alone a
+run directory some process holds (`in_use`: a `mam run` started there by hand).
 
 A second learner for a run name that is live on the same Zenoh network is refused too
 (`refuse_live_learner`: the liveliness tokens mam/<run>/alive/learner/*).
@@ -32,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 RUN_LOCK = "run.lock"
+EXPERIMENT_LOCK = "experiment.lock"
 LOCK_ENV = "MAM_RUN_LOCK"  # the launcher's token, in its children's environment
 EXIT_REFUSED = 73  # a role refused to start (its run directory or run name is in use)
 LEASE_S = 12.0  # how long a learner token may linger after its process froze (Zenoh's lease is 10 s)
@@ -102,7 +108,8 @@ def describe(info: dict[str, Any]) -> str:
     if not info:
         return "another process"
     since = time.strftime("%H:%M:%S", time.localtime(info["started"])) if "started" in info else "?"
-    return f"{info.get('role', '?')} of run {info.get('run', '?')!r} (pid {info.get('pid', '?')} on " \
+    of = "grid" if info.get("role") == "mam experiment" else "run"
+    return f"{info.get('role', '?')} of {of} {info.get('run', '?')!r} (pid {info.get('pid', '?')} on " \
            f"{info.get('host', '?')}, since {since})"
 
 
@@ -140,6 +147,27 @@ def lock_run(run_dir: Path, run: str) -> DirLock:
                            "refusing to start (one run per directory; pass another --run-dir or --run)")
     lock.token = uuid.uuid4().hex
     lock.write(_info("mam run", run, lock.token))
+    return lock
+
+
+def in_use(run_dir: Path) -> str | None:
+    """Who holds RUN_DIR (a `mam run`, a learner or a referee), described; None if nobody does."""
+    for name in (RUN_LOCK, role_lock("learner"), role_lock("referee")):
+        if _held(run_dir / name):
+            return describe(holder(run_dir / name))
+    return None
+
+
+def lock_experiment(exp_dir: Path, name: str) -> DirLock:
+    """`mam experiment`'s lock on EXP_DIR (experiment.lock); RunInUse if another one holds it."""
+    exp_dir.mkdir(parents=True, exist_ok=True)
+    path = exp_dir / EXPERIMENT_LOCK
+    lock = _try_lock(path)
+    if lock is None:
+        raise RunInUse(f"experiment directory {exp_dir} is in use by {describe(holder(path))}: refusing to start "
+                       "(one `mam experiment` per directory; wait for it, or stop it with Ctrl-C: its runs "
+                       "continue from their checkpoints when the grid runs again)")
+    lock.write(_info("mam experiment", name))
     return lock
 
 
