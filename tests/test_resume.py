@@ -54,6 +54,10 @@ def test_a_killed_mam_run_continues_with_resume_to_its_budget(tmp_path: Path) ->
             assert time.monotonic() < deadline and proc.poll() is None, "the run did not get going"
             time.sleep(0.3)
         time.sleep(2.5)  # a checkpoint past the start
+        # the launcher keeps launcher.json up to date while the part runs (every PARTS_EVERY_S)
+        while not json.loads((run_dir / "launcher.json").read_text())["wall_s"] > 0:
+            assert time.monotonic() < deadline and proc.poll() is None, "launcher.json does not count the part"
+            time.sleep(0.3)
         os.killpg(proc.pid, signal.SIGKILL)  # `mam run` and every child, as a reboot would
         proc.wait(30)
     finally:
@@ -61,6 +65,8 @@ def test_a_killed_mam_run_continues_with_resume_to_its_budget(tmp_path: Path) ->
             os.killpg(proc.pid, signal.SIGKILL)
     time.sleep(1.0)
     assert not (run_dir / "summary.json").exists()
+    part1 = json.loads((run_dir / "launcher.json").read_text())
+    assert part1["parts"] == 1 and part1["wall_s"] > 0  # the killed part's time counts
     got = mam_run("--resume", str(run_dir), "--seed", "5")  # contradicts the run's seed 4
     assert got.returncode == 2 and "--seed 5 contradicts the run's 4" in got.stderr, got.stderr
     got = mam_run("--resume", str(run_dir), "--seed", "4")  # agreeing flags are fine
@@ -69,6 +75,7 @@ def test_a_killed_mam_run_continues_with_resume_to_its_budget(tmp_path: Path) ->
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["iterations"] == 1500  # the budget, in iterations (3 slots until C = 900, then 1)
     assert summary["parts"] == 2 and summary["exact"] is True, summary
+    assert summary["launcher_wall_time_s"] > part1["wall_s"]  # both parts
     transport = json.loads((run_dir / "transport.json").read_text())
     assert transport["duplicates"] == 0 and transport["env_steps"] == summary["env_steps"]
     elimination = [a for a in read_jsonl(run_dir / "allocation.jsonl") if a["reason"] == "elimination"]
@@ -106,6 +113,9 @@ def test_a_grid_killed_mid_run_continues_the_run_from_its_checkpoint_exactly(tmp
             assert time.monotonic() < deadline and proc.poll() is None, "the grid's run did not get going"
             time.sleep(0.3)
         time.sleep(2.5)
+        while not json.loads((run_dir / "launcher.json").read_text())["wall_s"] > 0:
+            assert time.monotonic() < deadline and proc.poll() is None, "launcher.json does not count the part"
+            time.sleep(0.3)
         os.killpg(proc.pid, signal.SIGKILL)  # the grid and its run's own session: everything
         for line in subprocess.run(["pgrep", "-f", str(run_dir)], capture_output=True, text=True).stdout.split():
             os.kill(int(line), signal.SIGKILL)
@@ -113,11 +123,14 @@ def test_a_grid_killed_mid_run_continues_the_run_from_its_checkpoint_exactly(tmp
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
+    part1 = json.loads((run_dir / "launcher.json").read_text())
     again = subprocess.run(args, cwd=ROOT, env=env, text=True, capture_output=True, timeout=400)
     assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
     assert "continuing AppleCollect-v1/ma-ddpg/seed0 from its checkpoint" in again.stdout, again.stdout[-3000:]
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["parts"] == 2 and summary["exact"] is True, summary
+    assert summary["launcher_wall_time_s"] > part1["wall_s"] > 0  # both parts: the killed one counts
+    assert json.loads((run_dir / "record.json").read_text())["run_wall_s"] >= summary["launcher_wall_time_s"]
     cfg = resolve("ma-ddpg", workers=3, actors=2, start_steps=200, compete_every=300, eliminate_at=900,
                   eval_episodes=2, eval_every=300, hidden=(16, 16), batch_size=16, seed=0)
     ref = run_reference("AppleCollect-v1", cfg, 1500)

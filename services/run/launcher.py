@@ -144,6 +144,39 @@ class Child:
     started: float = field(default_factory=time.monotonic)
 
 
+PARTS_EVERY_S = 5.0  # how often a running part rewrites RUN_DIR/launcher.json
+
+
+@dataclass
+class RunParts:
+    """RUN_DIR/launcher.json: how many parts a run has had (a resumed run has several), the
+    restarts of each role and the wall time over all of them. `supervise` rewrites it every
+    PARTS_EVERY_S while a part runs, so a part killed with everything (SIGKILL, a reboot, a session's
+    end) still counts its restarts and time up to then."""
+
+    run_dir: Path
+    before: dict[str, Any]  # rundir.earlier_parts: what the earlier parts took
+    started: float = field(default_factory=time.monotonic)
+    saved_at: float = 0.0
+
+    def totals(self, restarts: dict[str, int]) -> dict[str, Any]:
+        earlier = self.before["restarts"]
+        return {"parts": self.before["parts"] + 1,
+                "restarts": {r: restarts.get(r, 0) + earlier.get(r, 0) for r in {**earlier, **restarts}},
+                "wall_s": round(self.before["wall_s"] + time.monotonic() - self.started, 2)}
+
+    def save(self, restarts: dict[str, int]) -> dict[str, Any]:
+        state = self.totals(restarts)
+        with contextlib.suppress(OSError):  # a full disk stops the run elsewhere; this record can wait
+            write_json(self.run_dir / rundir.LAUNCHER_STATE, state)
+        self.saved_at = time.monotonic()
+        return state
+
+    def tick(self, restarts: dict[str, int]) -> None:
+        if time.monotonic() - self.saved_at >= PARTS_EVERY_S:
+            self.save(restarts)
+
+
 @dataclass
 class LocalCluster:
     """Child processes of one local run, supervised; `stop()` leaves nothing running.
@@ -172,6 +205,7 @@ class LocalCluster:
     stall_actions: int = 0  # watchdog restarts since progress was last seen
     started_at: float = field(default_factory=time.monotonic)  # the launcher's start: the bar's clock
     done_at: float | None = None  # when the learner reported the budget reached
+    parts: RunParts | None = None  # launcher.json, kept up to date by supervise
 
     def spawn(self, role: str, args: list[str]) -> Child:
         log_path = self.run_dir / rundir.LOGS / f"{role}.log"
@@ -233,6 +267,8 @@ class LocalCluster:
         """Restart children that died (after their backoff), and act on a stall (check_stall).
         Raises RunStopped (RoleKeepsDying, RunStalled, a fatal exit)."""
         now = time.monotonic()
+        if self.parts is not None:
+            self.parts.tick(self.restart_counts())
         self.check_stall(now)
         for c in list(self.children):
             if c.role in self.pending or c.proc.poll() is None or not self.needs_restart(c):
@@ -417,12 +453,11 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
     registry.register(cfg.run, endpoint, run_dir)  # `mam watch --run NAME` finds it without --connect
     console.print(f"run dir {run_dir}   watch live: [cyan]{command_name()} watch --run {cfg.run}[/]")
     before = rundir.earlier_parts(run_dir)  # a resumed run: what its earlier parts took and restarted
-    with contextlib.suppress(OSError):  # this part counts even if it is killed (its restarts and time then do not)
-        write_json(run_dir / rundir.LAUNCHER_STATE, {**before, "parts": before["parts"] + 1})
+    cluster.parts = RunParts(run_dir, before)  # this part counts even if it is killed
+    cluster.parts.save({})
     if rundir.has_checkpoint(run_dir):
         console.print(f"[bold]resuming[/] the run in {run_dir} from its last checkpoint (part {before['parts'] + 1}; "
                       f"the learner logs the iteration it resumes at)")
-    started = time.monotonic()
     interrupted = False
     gave_up: RunStopped | None = None
     previous = {sig: signal.signal(sig, _raise_interrupted) for sig in (signal.SIGTERM, signal.SIGINT)}
@@ -452,19 +487,15 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
     failed = [c for c in cluster.children if c.proc.returncode not in (0, -signal.SIGTERM, None)]
     for c in failed:
         console.print(f"[red]{c.role} exited with {describe_exit(c.proc.returncode)}[/]: see {c.log}")
-    restarts = cluster.restart_counts()
-    restarts = {r: restarts.get(r, 0) + before["restarts"].get(r, 0) for r in {**before["restarts"], **restarts}}
-    wall = before["wall_s"] + time.monotonic() - started
-    with contextlib.suppress(OSError):  # the next part of a resumed run adds to these
-        write_json(run_dir / rundir.LAUNCHER_STATE, {"parts": before["parts"] + 1, "restarts": restarts,
-                                                     "wall_s": round(wall, 2)})
+    state = cluster.parts.save(cluster.restart_counts())  # the next part of a resumed run adds to these
+    restarts, wall = state["restarts"], state["wall_s"]
     summary_path = run_dir / rundir.SUMMARY
     summary: dict[str, Any] = {}
     finished = cluster.finished() and gave_up is None and not interrupted
     if summary_path.is_file() and finished:
         summary = json.loads(summary_path.read_text())
         summary["launcher_wall_time_s"] = round(wall, 2)  # every part of the run
-        summary["parts"] = before["parts"] + 1
+        summary["parts"] = state["parts"]
         summary["restarts"] = restarts
         summary["restarts_total"] = sum(restarts.values())
         summary["restarts_cancelled"] = dict(cluster.cancelled)  # died in their backoff as the run finished
