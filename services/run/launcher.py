@@ -11,7 +11,6 @@ RUN_DIR/logs/<role>.log (a restarted child appends to it).
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import signal
@@ -144,39 +143,6 @@ class Child:
     started: float = field(default_factory=time.monotonic)
 
 
-PARTS_EVERY_S = 5.0  # how often a running part rewrites RUN_DIR/launcher.json
-
-
-@dataclass
-class RunParts:
-    """RUN_DIR/launcher.json: how many parts a run has had (a resumed run has several), the
-    restarts of each role and the wall time over all of them. `supervise` rewrites it every
-    PARTS_EVERY_S while a part runs, so a part killed with everything (SIGKILL, a reboot, a session's
-    end) still counts its restarts and time up to then."""
-
-    run_dir: Path
-    before: dict[str, Any]  # rundir.earlier_parts: what the earlier parts took
-    started: float = field(default_factory=time.monotonic)
-    saved_at: float = 0.0
-
-    def totals(self, restarts: dict[str, int]) -> dict[str, Any]:
-        earlier = self.before["restarts"]
-        return {"parts": self.before["parts"] + 1,
-                "restarts": {r: restarts.get(r, 0) + earlier.get(r, 0) for r in {**earlier, **restarts}},
-                "wall_s": round(self.before["wall_s"] + time.monotonic() - self.started, 2)}
-
-    def save(self, restarts: dict[str, int]) -> dict[str, Any]:
-        state = self.totals(restarts)
-        with contextlib.suppress(OSError):  # a full disk stops the run elsewhere; this record can wait
-            write_json(self.run_dir / rundir.LAUNCHER_STATE, state)
-        self.saved_at = time.monotonic()
-        return state
-
-    def tick(self, restarts: dict[str, int]) -> None:
-        if time.monotonic() - self.saved_at >= PARTS_EVERY_S:
-            self.save(restarts)
-
-
 @dataclass
 class LocalCluster:
     """Child processes of one local run, supervised; `stop()` leaves nothing running.
@@ -205,7 +171,7 @@ class LocalCluster:
     stall_actions: int = 0  # watchdog restarts since progress was last seen
     started_at: float = field(default_factory=time.monotonic)  # the launcher's start: the bar's clock
     done_at: float | None = None  # when the learner reported the budget reached
-    parts: RunParts | None = None  # launcher.json, kept up to date by supervise
+    parts: rundir.RunParts | None = None  # launcher.json, kept up to date by supervise
 
     def spawn(self, role: str, args: list[str]) -> Child:
         log_path = self.run_dir / rundir.LOGS / f"{role}.log"
@@ -453,7 +419,7 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
     registry.register(cfg.run, endpoint, run_dir)  # `mam watch --run NAME` finds it without --connect
     console.print(f"run dir {run_dir}   watch live: [cyan]{command_name()} watch --run {cfg.run}[/]")
     before = rundir.earlier_parts(run_dir)  # a resumed run: what its earlier parts took and restarted
-    cluster.parts = RunParts(run_dir, before)  # this part counts even if it is killed
+    cluster.parts = rundir.RunParts(run_dir, before)  # this part counts even if it is killed
     cluster.parts.save({})
     if rundir.has_checkpoint(run_dir):
         console.print(f"[bold]resuming[/] the run in {run_dir} from its last checkpoint (part {before['parts'] + 1}; "

@@ -21,8 +21,10 @@ looks for, so a rename is one edit. Plain string constants: importing this modul
     RUN_DIR/plots/                 `mam plot` PNGs
     RUN_DIR/tb/                    TensorBoard event files
     RUN_DIR/launch.json, launcher.log, record.json   a run of a `mam experiment` grid
+    RUN_DIR/launcher.json          `mam run`'s parts, restarts and wall time so far (RunParts)
 
     EXP_DIR/experiment.json, report.md, figures/, failures/   a `mam experiment` directory
+    EXP_DIR/experiment.lock        the `mam experiment` working there (services/run/runlock.py)
 
 `read_json` and `read_jsonl` read them, for the plots, the reports and the lab alike: a file
 that is missing, unreadable or (for JSONL) a row that is half written reads as nothing.
@@ -30,11 +32,14 @@ that is missing, unreadable or (for JSONL) a row that is half written reads as n
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import re
 import shutil
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -181,3 +186,36 @@ def earlier_parts(run_dir: Path) -> dict[str, Any]:
                 "wall_s": float(data["wall_s"])}
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return {"parts": 0, "restarts": {}, "wall_s": 0.0}
+
+
+PARTS_EVERY_S = 5.0  # how often a running part rewrites RUN_DIR/launcher.json
+
+
+@dataclass
+class RunParts:
+    """RUN_DIR/launcher.json: how many parts a run has had (a resumed run has several), the
+    restarts of each role and the wall time over all of them. `supervise` rewrites it every
+    PARTS_EVERY_S while a part runs, so a part killed with everything (SIGKILL, a reboot, a session's
+    end) still counts its restarts and time up to then."""
+
+    run_dir: Path
+    before: dict[str, Any]  # rundir.earlier_parts: what the earlier parts took
+    started: float = field(default_factory=time.monotonic)
+    saved_at: float = 0.0
+
+    def totals(self, restarts: dict[str, int]) -> dict[str, Any]:
+        earlier = self.before["restarts"]
+        return {"parts": self.before["parts"] + 1,
+                "restarts": {r: restarts.get(r, 0) + earlier.get(r, 0) for r in {**earlier, **restarts}},
+                "wall_s": round(self.before["wall_s"] + time.monotonic() - self.started, 2)}
+
+    def save(self, restarts: dict[str, int]) -> dict[str, Any]:
+        state = self.totals(restarts)
+        with contextlib.suppress(OSError):  # a full disk stops the run elsewhere; this record can wait
+            write_json(self.run_dir / LAUNCHER_STATE, state)
+        self.saved_at = time.monotonic()
+        return state
+
+    def tick(self, restarts: dict[str, int]) -> None:
+        if time.monotonic() - self.saved_at >= PARTS_EVERY_S:
+            self.save(restarts)
