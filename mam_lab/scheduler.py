@@ -385,7 +385,7 @@ def run_grid(specs: Sequence[RunSpec], exp_dir: Path, console: Console, *, plot_
                             result.deferred.append(spec)
                             view.defer_run(spec, estimate)
                             continue
-                        holder = runlock.in_use(exp_dir / spec.path) if (exp_dir / spec.path).is_dir() else None
+                        holder = runlock.in_use(exp_dir / spec.path)
                         if holder is not None:  # neither continued nor redone: it is someone's live run
                             result.in_use.append(spec)
                             view.progress.console.print(f"[red]not started[/] {spec.label}: its run directory "

@@ -233,8 +233,8 @@ class LocalCluster:
         """Restart children that died (after their backoff), and act on a stall (check_stall).
         Raises RunStopped (RoleKeepsDying, RunStalled, a fatal exit)."""
         now = time.monotonic()
-        if self.parts is not None:
-            self.parts.tick(self.restart_counts())
+        if self.parts is not None and self.parts.due():
+            self.parts.save(self.restart_counts())
         self.check_stall(now)
         for c in list(self.children):
             if c.role in self.pending or c.proc.poll() is None or not self.needs_restart(c):

@@ -194,7 +194,7 @@ PARTS_EVERY_S = 5.0  # how often a running part rewrites RUN_DIR/launcher.json
 @dataclass
 class RunParts:
     """RUN_DIR/launcher.json: how many parts a run has had (a resumed run has several), the
-    restarts of each role and the wall time over all of them. `supervise` rewrites it every
+    restarts of each role and the wall time over all of them. `supervise` saves it when `due`, every
     PARTS_EVERY_S while a part runs, so a part killed with everything (SIGKILL, a reboot, a session's
     end) still counts its restarts and time up to then."""
 
@@ -216,6 +216,5 @@ class RunParts:
         self.saved_at = time.monotonic()
         return state
 
-    def tick(self, restarts: dict[str, int]) -> None:
-        if time.monotonic() - self.saved_at >= PARTS_EVERY_S:
-            self.save(restarts)
+    def due(self) -> bool:
+        return time.monotonic() - self.saved_at >= PARTS_EVERY_S

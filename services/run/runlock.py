@@ -51,6 +51,9 @@ def role_lock(role: str) -> str:
     return f"{role}.lock"
 
 
+ROLE_LOCKS = (role_lock("learner"), role_lock("referee"))
+
+
 class DirLock:
     """An flock held on RUN_DIR/<name> until `release` (or the process's death)."""
 
@@ -140,19 +143,20 @@ def lock_run(run_dir: Path, run: str) -> DirLock:
     if lock is None:
         raise RunInUse(f"run directory {run_dir} is in use by {describe(holder(path))}: refusing to start "
                        "(one run per directory; pass another --run-dir or --run)")
-    for role in ("learner", "referee"):
-        if _held(run_dir / role_lock(role)):
-            lock.release()
-            raise RunInUse(f"run directory {run_dir} is in use by {describe(holder(run_dir / role_lock(role)))}: "
-                           "refusing to start (one run per directory; pass another --run-dir or --run)")
+    who = in_use(run_dir, ROLE_LOCKS)
+    if who is not None:
+        lock.release()
+        raise RunInUse(f"run directory {run_dir} is in use by {who}: refusing to start (one run per directory; "
+                       "pass another --run-dir or --run)")
     lock.token = uuid.uuid4().hex
     lock.write(_info("mam run", run, lock.token))
     return lock
 
 
-def in_use(run_dir: Path) -> str | None:
-    """Who holds RUN_DIR (a `mam run`, a learner or a referee), described; None if nobody does."""
-    for name in (RUN_LOCK, role_lock("learner"), role_lock("referee")):
+def in_use(run_dir: Path, names: tuple[str, ...] = (RUN_LOCK, *ROLE_LOCKS)) -> str | None:
+    """Who holds one of RUN_DIR's locks `names` (a `mam run`, a learner or a referee), described;
+    None if nobody does (or RUN_DIR does not exist)."""
+    for name in names:
         if _held(run_dir / name):
             return describe(holder(run_dir / name))
     return None
