@@ -5,10 +5,13 @@ The ledger (`--ledger DIR` or a grid file's `ledger = "DIR"`, relative to the cu
 none by default, and `--no-ledger` drops the file's) keeps a compact record of each finished run, to be
 committed (the project's evidence grids name docs/results/<name>/runs):
 DIR/<env>/<variant>/seed<k>/ with config.json, summary.json, eval.jsonl, allocation.jsonl,
-bias.jsonl (where present), learner.jsonl thinned to LEARNER_ROWS rows and record.json (the commit
-the run ran at, with a dirty flag, versions, wall time, the spec, the exit status); no checkpoints,
-no logs. DIR/experiment.json lists every run planned into that ledger. A run recorded in the
-ledger counts as finished even when EXP_DIR does not have it (a fresh clone continues the grid).
+bias.jsonl (where present), learner.jsonl thinned to LEARNER_ROWS rows, train_returns.jsonl (every
+learner row with a training-episode return, unthinned) and record.json (the commit the run ran at, with
+a dirty flag, versions, wall time, the spec, the exit status); no checkpoints, no logs.
+DIR/experiment.json lists every run planned into that ledger. A run recorded in the ledger counts
+as finished even when EXP_DIR does not have it (a fresh clone continues the grid).
+A record made before records had train_returns.jsonl gets it from the run's directory with
+`python -m mam_lab.ledger RUN_DIR RECORD_DIR` (add_train_returns).
 
 Resumable: a run whose `summary.json` exists, or whose record is in the ledger, is skipped (after
 checking that its config matches the grid); a run directory without either is continued from its
@@ -32,6 +35,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import typer
 from rich.console import Console
 
 from mam_lab.grid import Grid, GridError, RunSpec
@@ -44,6 +48,8 @@ LEDGER_FILES = (rundir.CONFIG, rundir.SUMMARY, rundir.EVAL, rundir.ALLOCATION, r
 
 
 LEARNER_ROWS = 200  # learner.jsonl is thinned to at most this many rows in the ledger
+TRAIN_RETURNS = "train_returns.jsonl"  # learner.jsonl's training-episode returns, every one
+TRAIN_KEYS = ("iterations", "env_steps", "train_return", "train_episodes")
 RECORD_FORMAT = 1
 
 
@@ -68,6 +74,23 @@ def thin_jsonl(src: Path, dest: Path, max_rows: int = LEARNER_ROWS) -> tuple[int
     keep = thin_indices(len(lines), max_rows)
     dest.write_text("".join(lines[i] + "\n" for i in keep), encoding="utf-8")
     return len(keep), len(lines)
+
+
+def extract_train_returns(src: Path, dest: Path) -> int:
+    """Copy every learner.jsonl row that has a training-episode return (`train_return`: the mean return
+    of the training episodes that ended since the row before) to `dest`, with only TRAIN_KEYS. The
+    thinned learner.jsonl keeps few of them, and they show what the behaviour policy did between
+    evaluations. Returns the number of rows."""
+    rows = []
+    for line in Path(src).read_text(encoding="utf-8", errors="replace").splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(row, dict) and "train_return" in row:
+            rows.append(json.dumps({k: row[k] for k in TRAIN_KEYS if k in row}))
+    dest.write_text("".join(line + "\n" for line in rows), encoding="utf-8")
+    return len(rows)
 
 
 def compact_allocation(src: Path, dest: Path) -> tuple[int, int]:
@@ -127,6 +150,7 @@ def write_ledger_record(run_dir: Path, dest: Path, record: Mapping[str, Any],
     if (run_dir / rundir.LEARNER_LOG).is_file():
         kept, total = thin_jsonl(run_dir / rundir.LEARNER_LOG, tmp / rundir.LEARNER_LOG, max_rows)
         record["learner_rows"] = {"kept": kept, "of": total}
+        record["train_return_rows"] = extract_train_returns(run_dir / rundir.LEARNER_LOG, tmp / TRAIN_RETURNS)
     if (run_dir / rundir.ALLOCATION).is_file():
         kept, total = compact_allocation(run_dir / rundir.ALLOCATION, tmp / rundir.ALLOCATION)
         record["allocation_rows"] = {"kept": kept, "of": total}
@@ -145,6 +169,38 @@ def write_ledger_record(run_dir: Path, dest: Path, record: Mapping[str, Any],
 
 def read_record(run_dir: Path) -> dict[str, Any]:
     return read_json(Path(run_dir) / RECORD)
+
+
+def add_train_returns(run_dir: Path, record_dir: Path) -> int:
+    """Add train_returns.jsonl to a ledger record written before records had it, from the run's own
+    directory (which still has the whole learner.jsonl). The run directory must be the recorded run:
+    its config.json and summary.json are the record's, byte for byte, and every row of the record's
+    thinned learner.jsonl is one of its rows. record.json then lists the file, the row count and
+    `train_returns_added` (the commit that added it, and when). Returns the number of rows."""
+    run_dir, record_dir = Path(run_dir), Path(record_dir)
+    record = read_record(record_dir)
+    if not record:
+        raise GridError(f"{record_dir} is not a ledger record (no {RECORD})")
+    for name in (rundir.CONFIG, rundir.SUMMARY):
+        mine, theirs = run_dir / name, record_dir / name
+        if not mine.is_file() or not theirs.is_file() or mine.read_bytes() != theirs.read_bytes():
+            raise GridError(f"{run_dir} is not the run recorded in {record_dir}: {name} differs or is missing")
+    full = run_dir / rundir.LEARNER_LOG
+    if not full.is_file():
+        raise GridError(f"{run_dir} has no {rundir.LEARNER_LOG}")
+    lines = set(full.read_text(encoding="utf-8", errors="replace").splitlines())
+    thinned = (record_dir / rundir.LEARNER_LOG).read_text(encoding="utf-8").splitlines()
+    if not thinned or any(line not in lines for line in thinned):
+        raise GridError(f"{run_dir}'s {rundir.LEARNER_LOG} does not hold the record's rows")
+    tmp = record_dir / f".{TRAIN_RETURNS}.tmp"
+    rows = extract_train_returns(full, tmp)
+    os.replace(tmp, record_dir / TRAIN_RETURNS)
+    files = dict(record.get("files") or {})
+    files[TRAIN_RETURNS] = (record_dir / TRAIN_RETURNS).stat().st_size
+    write_json(record_dir / RECORD, {**record, "files": files, "train_return_rows": rows,
+                                      "train_returns_added": {"commit": code_version(ROOT).get("commit"),
+                                                              "at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}})
+    return rows
 
 
 def write_manifest(exp_dir: Path, grid: Grid, specs: Sequence[RunSpec], aliases: Mapping[str, str],
@@ -295,3 +351,18 @@ def wall_estimates(specs: Sequence[RunSpec], exp_dir: Path, ledger: Path | None 
 def estimate_wall_s(times: Sequence[float]) -> float | None:
     """The estimated wall time of a run: the median of its variant's finished runs (None without any)."""
     return float(statistics.median(times)) if times else None
+
+
+def main(run_dir: Path = typer.Argument(..., help="the run's directory (it has the whole learner.jsonl)"),
+         record_dir: Path = typer.Argument(..., help="its record in the ledger")) -> None:
+    """Add train_returns.jsonl to a ledger record made before records had it (see add_train_returns)."""
+    try:
+        rows = add_train_returns(run_dir, record_dir)
+    except GridError as e:
+        Console(stderr=True).print(f"[red]{e}[/]")
+        raise typer.Exit(1) from None
+    Console().print(f"{record_dir}: {TRAIN_RETURNS} with {rows} row(s)")
+
+
+if __name__ == "__main__":
+    typer.run(main)

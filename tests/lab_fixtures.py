@@ -109,7 +109,10 @@ if mode == "interrupt":
     sys.exit(130)
 with open(os.path.join(run_dir, "learner.jsonl"), "w") as f:
     for i in range(1000):
-        f.write(json.dumps({"env_steps": i, "updates": i}) + "\n")
+        row = {"env_steps": i, "updates": i}
+        if i % 100 == 99:  # a training episode ended: 10 rows carry its return
+            row.update(train_return=i / 10, train_episodes=2)
+        f.write(json.dumps(row) + "\n")
 with open(os.path.join(run_dir, "eval.jsonl"), "w") as f:
     f.write(json.dumps({"env_steps": cfg["steps"], "mean": [1.0]}) + "\n")
 os.makedirs(os.path.join(run_dir, "checkpoints"))

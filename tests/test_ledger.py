@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -95,7 +96,10 @@ def test_finished_runs_go_to_the_ledger_and_a_fresh_clone_resumes_from_it(tmp_pa
     for spec in specs[:2]:
         rec_dir = ledger / spec.path
         names = {p.name for p in rec_dir.iterdir()}
-        assert names == {"config.json", "summary.json", "eval.jsonl", "learner.jsonl", "record.json"}
+        assert names == {"config.json", "summary.json", "eval.jsonl", "learner.jsonl", "record.json",
+                         "train_returns.jsonl"}
+        train = [json.loads(line) for line in (rec_dir / "train_returns.jsonl").read_text().splitlines()]
+        assert train == [{"env_steps": i, "train_return": i / 10, "train_episodes": 2} for i in range(99, 1000, 100)]
         rows = (rec_dir / "learner.jsonl").read_text().splitlines()
         assert len(rows) == LEARNER_ROWS and json.loads(rows[-1])["env_steps"] == 999
         record = json.loads((rec_dir / "record.json").read_text())
@@ -103,7 +107,7 @@ def test_finished_runs_go_to_the_ledger_and_a_fresh_clone_resumes_from_it(tmp_pa
         assert record["commit"] == head and isinstance(record["dirty"], bool)
         assert record["exit_status"] == 0 and record["experiment"] == "toy"
         assert record["spec"]["variant"] == spec.variant and record["spec"]["seed"] == spec.seed
-        assert record["learner_rows"] == {"kept": LEARNER_ROWS, "of": 1000}
+        assert record["learner_rows"] == {"kept": LEARNER_ROWS, "of": 1000} and record["train_return_rows"] == 10
         assert record["files"]["learner.jsonl"] == (rec_dir / "learner.jsonl").stat().st_size
         assert record["run_wall_s"] > 0 and "torch" in record["versions"]
         assert (exp / spec.path / "record.json").is_file()  # and beside the run
@@ -132,6 +136,41 @@ def test_runs_finished_before_the_ledger_are_copied_to_it(tmp_path):
     assert result.skipped == specs
     record = json.loads((ledger / specs[0].path / "record.json").read_text())
     assert record["backfilled"] is True and record["commit"]
+
+
+
+def test_a_record_made_before_train_returns_gets_them_from_its_own_run_directory_only(tmp_path):
+    specs = plan(small_grid())[:2]
+    exp, ledger = tmp_path / "exp", tmp_path / "ledger"
+    run_grid(specs, exp, quiet(), launcher=FakeLauncher(), cores=[()], ledger=ledger, experiment="toy")
+    rec_dir = ledger / specs[0].path
+    (rec_dir / "train_returns.jsonl").unlink()  # as the records of commits before the file existed
+    old = json.loads((rec_dir / "record.json").read_text())
+    del old["train_return_rows"], old["files"]["train_returns.jsonl"]
+    (rec_dir / "record.json").write_text(json.dumps(old))
+
+    def add(run_dir):
+        return subprocess.run([sys.executable, "-m", "mam_lab.ledger", str(run_dir), str(rec_dir)], cwd=ROOT,
+                              capture_output=True, text=True, timeout=60)
+
+    other = add(exp / specs[1].path)  # another run's directory: refused, the record untouched
+    assert other.returncode == 1 and "is not the run recorded" in other.stderr
+    assert not (rec_dir / "train_returns.jsonl").exists()
+    assert json.loads((rec_dir / "record.json").read_text()) == old
+    mine = exp / specs[0].path
+    rows = (mine / "learner.jsonl").read_text().splitlines()
+    (mine / "learner.jsonl").write_text("\n".join(rows[:500]) + "\n")  # cut short: not the recorded log
+    assert add(mine).returncode == 1 and not (rec_dir / "train_returns.jsonl").exists()
+    (mine / "learner.jsonl").write_text("\n".join(rows) + "\n")
+    done = add(mine)
+    assert done.returncode == 0, done.stderr
+    train = [json.loads(line) for line in (rec_dir / "train_returns.jsonl").read_text().splitlines()]
+    assert [r["env_steps"] for r in train] == list(range(99, 1000, 100))
+    record = json.loads((rec_dir / "record.json").read_text())
+    assert record["train_return_rows"] == 10 and record["train_returns_added"]["commit"] == old["commit"]
+    assert record["files"]["train_returns.jsonl"] == (rec_dir / "train_returns.jsonl").stat().st_size
+    assert {k: v for k, v in record.items() if k not in ("files", "train_return_rows", "train_returns_added")} == \
+        {k: v for k, v in old.items() if k != "files"}
 
 
 

@@ -98,6 +98,7 @@ def write_log(lr: Learner, now: float | None = None) -> None:
     row.update(lr.metrics)
     if lr.intake.episode_returns:
         row["train_return"] = float(np.mean(lr.intake.episode_returns))
+        row["train_episodes"] = len(lr.intake.episode_returns)
         lr.intake.episode_returns.clear()
     lr.log_writer.write(row)
 
