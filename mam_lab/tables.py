@@ -187,9 +187,9 @@ def comparison_rows(comparisons: Sequence[Comparison]) -> tuple[list[str], list[
 
 VERDICT_TEXT = (
     "Each multi-actor variant against the K=1 baseline of its family in the same grid (TD3 for MA-TD3, DDPG for "
-    "MA-DDPG), on the **deployed actor**: the survivor after the elimination C and, before C, the actor ranked "
-    "best at the latest competition, scored only on evaluation episodes that played no part in selecting it "
-    "(rows of a competition's own evaluation score the actor chosen by the competition before it). *Final "
+    "MA-DDPG, SAC for MA-SAC), on the **deployed actor**: the survivor after the elimination C and, before C, "
+    "the actor ranked best at the latest competition, scored only on evaluation episodes that played no part in "
+    "selecting it (rows of a competition's own evaluation score the actor chosen by the competition before it). *Final "
     "return*: per run the mean of the deployed actor's last {final_n} evaluations; *AUC*: the area under its "
     "curve from the end of the random phase (--start-steps) to the budget, divided by that span (a mean return). "
     "P(variant > baseline) of the final returns with a bootstrap 95% CI ({verdict_boot:,} resamples, seed 0); "
