@@ -1,6 +1,7 @@
 """The report's figures (matplotlib object API with the Agg canvas, never pyplot; matplotlib is
 imported only when a figure is drawn): learning curves with bootstrap CI bands, the allocation to
-the eventual survivor, the Eq. 17 bias rate (Fig. 3) and the IQMs with their CIs.
+the eventual survivor, training-episode returns beside the evaluations, the Eq. 17 bias rate (Fig. 3)
+and the IQMs with their CIs.
 """
 
 from __future__ import annotations
@@ -162,6 +163,33 @@ def plot_env_allocation(env: str, vs: Sequence[VariantStats], path: Path) -> Pat
         axes[1, col].set_xlabel("transitions")
     axes[0, 0].legend(loc="lower right", fontsize="small")
     fig.suptitle(f"{env}: allocation to the eventual survivor (thin: seeds)")
+    return _save(fig, path)
+
+
+def plot_env_training(env: str, vs: Sequence[VariantStats], path: Path) -> Path | None:
+    """Per variant with training returns recorded: each run's mean training-episode return (line: what
+    the behaviour policy did) and its deployed actor's evaluations (dots, the same colour), on the
+    schedule-step axis (iterations). Shows whether a fall in the evaluations is in training too."""
+    drawn = [v for v in vs if any(r.train for r in v.runs)]
+    if not drawn:
+        return None
+    fig = _figure(figsize=(max(7.5, 4.2 * len(drawn) + 1), 4.5))
+    axes = fig.subplots(1, len(drawn), sharey=True, squeeze=False)[0]
+    for ax, v in zip(axes, drawn):
+        for i, run in enumerate(r for r in v.runs if r.train):
+            colour = f"C{i % 10}"
+            xs, ys = zip(*run.train)
+            ax.plot(xs, ys, color=colour, linewidth=0.9, label=f"seed {run.seed}")
+            if run.deployed:
+                dx, dy = zip(*run.deployed_xy())
+                ax.plot(dx, dy, "o", color=colour, markersize=3)
+        n_train = sum(1 for r in v.runs if r.train)
+        ax.set_title(f"{v.variant} ({n_train} of {v.n} runs recorded)", fontsize="medium")
+        ax.set_xlabel("iterations (env transitions where a run does not record them)")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="best", fontsize="small")
+    axes[0].set_ylabel("return")
+    fig.suptitle(f"{env}: training episodes (lines) and the deployed actor's evaluations (dots)")
     return _save(fig, path)
 
 

@@ -48,7 +48,7 @@ LEDGER_FILES = (rundir.CONFIG, rundir.SUMMARY, rundir.EVAL, rundir.ALLOCATION, r
 
 
 LEARNER_ROWS = 200  # learner.jsonl is thinned to at most this many rows in the ledger
-TRAIN_RETURNS = "train_returns.jsonl"  # learner.jsonl's training-episode returns, every one
+TRAIN_RETURNS = rundir.TRAIN_RETURNS
 TRAIN_KEYS = ("iterations", "env_steps", "train_return", "train_episodes")
 RECORD_FORMAT = 1
 

@@ -60,7 +60,7 @@ from typing import Annotated, Optional
 import typer
 
 from mam_lab.analysis import AXES, Report, build_report
-from mam_lab.figures import plot_bias, plot_env_allocation, plot_env_curves, plot_iqm
+from mam_lab.figures import plot_bias, plot_env_allocation, plot_env_curves, plot_env_training, plot_iqm
 from mam_lab.stats import N_BOOT, N_BOOT_VERDICT, STABILITY_SEEDS
 from mam_lab.tables import print_tables, render_markdown
 from services.run import rundir
@@ -83,7 +83,8 @@ def write_report(exp_dir: Path, out: Path | None = None, n_boot: int = N_BOOT, s
             name = rundir.env_dirname(env)
             curves = [plot_env_curves(env, vs, fig_dir / f"curves_{name}{'' if a == 'transitions' else '_' + a}.png",
                                       seed=seed, axis=a) for a in report.axes]
-            for p in (*curves, plot_env_allocation(env, vs, fig_dir / f"allocation_{name}.png")):
+            for p in (*curves, plot_env_allocation(env, vs, fig_dir / f"allocation_{name}.png"),
+                      plot_env_training(env, vs, fig_dir / f"training_{name}.png")):
                 if p is not None:
                     written.setdefault(env, []).append(p)
         for env, bs in report.bias.items():

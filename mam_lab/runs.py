@@ -44,6 +44,7 @@ class RunRecord:
     evals: list[tuple[float, float | None, float]] = field(default_factory=list)  # (env steps, iterations, score)
     record: dict[str, Any] = field(default_factory=dict)  # record.json (the commit it ran at), if any
     deployed: list[DeployedPoint] = field(default_factory=list)  # the deployed actor's scores, schedule-step axis
+    train: list[tuple[float, float]] = field(default_factory=list)  # (schedule step, mean training-episode return)
 
     def deployed_xy(self) -> list[tuple[float, float]]:
         """(schedule step, deployed actor's return): iterations, env transitions in rows without them."""
@@ -117,7 +118,27 @@ def load_run(path: Path, env: str | None = None, variant: str | None = None) -> 
         allocation=allocation, deployed=deployed_points(rows, allocation, "iterations"),
         bias=bias_points(read_jsonl(path / rundir.BIAS)),
         bias_abs=bias_points(read_jsonl(path / rundir.BIAS), absolute=True),
-        record=read_json(path / rundir.RECORD))
+        record=read_json(path / rundir.RECORD), train=train_points(path))
+
+
+def train_points(path: Path) -> list[tuple[float, float]]:
+    """(iterations, or env transitions in rows without them; the mean return of the training episodes
+    that ended since the row before) from a ledger record's train_returns.jsonl, else from a run
+    directory's whole learner.jsonl. A ledger record made before train_returns.jsonl has only a thinned
+    learner.jsonl, whose few training returns would draw a false curve: none then."""
+    rows = read_jsonl(path / rundir.TRAIN_RETURNS)
+    if not rows:
+        thinned = read_json(path / rundir.RECORD).get("learner_rows")
+        if isinstance(thinned, dict) and thinned.get("kept") != thinned.get("of"):
+            return []
+        rows = read_jsonl(path / rundir.LEARNER_LOG)
+    points = []
+    for row in rows:
+        x = row.get("iterations", row.get("env_steps"))
+        y = row.get("train_return")
+        if isinstance(x, (int, float)) and isinstance(y, (int, float)) and np.isfinite(y):
+            points.append((float(x), float(y)))
+    return points
 
 
 @dataclass

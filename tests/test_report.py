@@ -266,3 +266,31 @@ def test_report_from_the_ledger_alone_and_from_a_fresh_clone(tmp_path):
     rep = build_report(tmp_path / "again", n_boot=200)
     assert sum(v.n for v in rep.envs["AppleCollect-v0"]) == 3
 
+
+
+def test_training_returns_are_drawn_from_whole_logs_and_ledger_files_never_from_thinned_ones(tmp_path):
+    exp = tmp_path / "exp"
+    make_experiment(exp)
+    runs = {s: exp / "Toy-v0" / "ma-td3" / f"seed{s}" for s in (0, 1, 2)}
+    whole = [{"env_steps": x, "iterations": x, "train_return": x / 10} for x in range(100, STEPS + 1, 100)]
+    # seed 0: a run directory with its whole learner.jsonl (rows without a training return in between)
+    (runs[0] / "learner.jsonl").write_text("".join(json.dumps(r) + "\n" + json.dumps({"iterations": r["iterations"]
+                                                                                     + 50}) + "\n" for r in whole))
+    # seed 1: a ledger record with train_returns.jsonl; seed 2: an older record, learner.jsonl thinned
+    (runs[1] / "train_returns.jsonl").write_text("".join(json.dumps({**r, "train_return": -1.0}) + "\n"
+                                                        for r in whole))
+    (runs[2] / "learner.jsonl").write_text(json.dumps(whole[3]) + "\n")
+    write_json(runs[2] / "record.json", {"commit": "abc", "learner_rows": {"kept": 200, "of": 5000}})
+    report, md, pngs = write_report(exp, n_boot=200)
+    ma = {r.seed: r for v in report.envs["Toy-v0"] if v.variant == "ma-td3" for r in v.runs}
+    assert ma[0].train == [(float(x), x / 10) for x in range(100, STEPS + 1, 100)]
+    assert ma[1].train == [(float(x), -1.0) for x in range(100, STEPS + 1, 100)]
+    assert ma[2].train == []
+    assert all(not r.train for v in report.envs["Toy-v0"] if v.variant == "td3" for r in v.runs)
+    png = exp / "figures" / "training_Toy-v0.png"
+    assert png in pngs and png.read_bytes()[:8] == PNG_MAGIC and "figures/training_Toy-v0.png" in md.read_text()
+    for p in runs.values():  # no training returns anywhere: no figure
+        for name in ("learner.jsonl", "train_returns.jsonl"):
+            (p / name).unlink(missing_ok=True)
+    _, _, pngs = write_report(exp, n_boot=200)
+    assert not any(p.name.startswith("training_") for p in pngs)

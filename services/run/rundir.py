@@ -68,6 +68,7 @@ CHAOS = "chaos.json"  # `mam chaos`'s result
 LAUNCH = "launch.json"  # what the run process is to do (written by the grid)
 LAUNCHER_LOG = "launcher.log"  # the run process's stdout and stderr
 RECORD = "record.json"  # which code ran it; in the ledger, written last: marks a finished run
+TRAIN_RETURNS = "train_returns.jsonl"  # in the ledger: learner.jsonl's training-episode returns, every one
 
 # --- an experiment directory (and a ledger) ----------------------------------------------------
 EXPERIMENT = "experiment.json"
