@@ -189,7 +189,8 @@ def add_train_returns(run_dir: Path, record_dir: Path) -> int:
     if not full.is_file():
         raise GridError(f"{run_dir} has no {rundir.LEARNER_LOG}")
     lines = set(full.read_text(encoding="utf-8", errors="replace").splitlines())
-    thinned = (record_dir / rundir.LEARNER_LOG).read_text(encoding="utf-8").splitlines()
+    thinned_log = record_dir / rundir.LEARNER_LOG
+    thinned = thinned_log.read_text(encoding="utf-8").splitlines() if thinned_log.is_file() else []
     if not thinned or any(line not in lines for line in thinned):
         raise GridError(f"{run_dir}'s {rundir.LEARNER_LOG} does not hold the record's rows")
     tmp = record_dir / f".{TRAIN_RETURNS}.tmp"
