@@ -41,7 +41,7 @@ from rich.console import Console
 from mam_lab.grid import Grid, GridError, RunSpec
 from mam_lab.provenance import ROOT, code_version, versions
 from services.run import rundir
-from services.run.rundir import read_json, write_json
+from services.run.rundir import read_json, read_jsonl, write_json
 
 RECORD = rundir.RECORD  # written last: its presence marks a finished run in the ledger
 LEDGER_FILES = (rundir.CONFIG, rundir.SUMMARY, rundir.EVAL, rundir.ALLOCATION, rundir.BIAS)
@@ -81,15 +81,9 @@ def extract_train_returns(src: Path, dest: Path) -> int:
     of the training episodes that ended since the row before) to `dest`, with only TRAIN_KEYS. The
     thinned learner.jsonl keeps few of them, and they show what the behaviour policy did between
     evaluations. Returns the number of rows."""
-    rows = []
-    for line in Path(src).read_text(encoding="utf-8", errors="replace").splitlines():
-        try:
-            row = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if isinstance(row, dict) and "train_return" in row:
-            rows.append(json.dumps({k: row[k] for k in TRAIN_KEYS if k in row}))
-    dest.write_text("".join(line + "\n" for line in rows), encoding="utf-8")
+    rows = [row for row in read_jsonl(src) if "train_return" in row]
+    dest.write_text("".join(json.dumps({k: row[k] for k in TRAIN_KEYS if k in row}) + "\n" for row in rows),
+                    encoding="utf-8")
     return len(rows)
 
 
