@@ -3,34 +3,36 @@
 #
 #   bash benchmarks/gpu.sh                  # on the GPU machine (device tool: carry benchmarks/wheels)
 #   bash benchmarks/gpu.sh --dry-run        # the same steps on CPU at tiny sizes (~2 min); = DEVICE=cpu
-#   bash benchmarks/gpu.sh --no-experiment  # skip step (c)
+#   bash benchmarks/gpu.sh --experiment     # also step (d), a grid of GPU learners (+~2 min)
 #
 # Steps (docs/PERFORMANCE.md, "GPU"):
 #   0. a venv over the machine's Python (its CUDA torch is reused, never another torch installed), the carried
 #      cp312 wheels (benchmarks/wheels: mujoco, gymnasium, eclipse-zenoh and their needs) installed offline, the
 #      project with --no-deps; a check that the wheels import and work (HalfCheetah-v5 steps, a Zenoh session).
-#   a. mam bench --only learner: K = 1, 2, 3 against the reference TD3, interleaved; a mini-batch per actor and
-#      --shared-batch; fp32 and bf16; the device's busy time per update (CUDA kernels by torch.profiler).
-#   b. mam run --env HalfCheetah-v5 --algo ma-td3 (K=2, M=3, --schedule paper) for E2E_SECONDS of training after
-#      its random phase, then stopped: env steps/s, updates/s from its learner.jsonl; the learner's update share
-#      and the device's busy share (from a.); nvidia-smi utilization. Where `mam run` has --collection, the run
-#      passes --collection exact, and a second run of ASYNC_SECONDS with --collection async gives exact ÷ async.
-#   c. mam experiment --parallel 8 of GPU learners (ma-td3 and td3 seeds) for at most EXPERIMENT_SECONDS:
-#      grid env steps/s and updates/s.
+#   a. mam bench --only learner: K = 1, 2 against the reference TD3, interleaved; the update through CUDA graphs
+#      (the default on a GPU, mam_core/graphs.py) and launched op by op (`k<K>_eager`); a mini-batch per actor
+#      and --shared-batch; fp32 and bf16; SAC; the device's busy time per update (torch.profiler).
+#   b. graphs-check: the graphed update against the eager one over 100 updates (MA-TD3 and MA-SAC, the
+#      elimination half-way), and two run_reference runs of one seed on the GPU: equal policy bits?
+#   c. mam run --env HalfCheetah-v5 --algo ma-td3 (K=2, --schedule paper) for E2E_SECONDS of training after its
+#      random phase, then stopped, for each of E2E_RUNS (M workers, lag B, graphs on/off): env steps/s, updates/s,
+#      the learner's wait share from its learner.jsonl; nvidia-smi utilization.
+#   d. (--experiment) mam experiment --parallel 8 of GPU learners for at most EXPERIMENT_SECONDS.
 # Output: $OUT/gpu.json (every figure), $OUT/gpu.log (this script's transcript), $OUT/logs.tar.gz (each step's
 # log and JSON, the runs' learner.jsonl): 3 files, within the device tool's 8-file limit.
 #
 # Environment: OUT (default ./gpu-out), DEVICE (cuda; cpu = --dry-run), PYTHON (the base Python; default
 # python3 on a GPU; for the dry run a python3.12 with torch, else the project's .venv), WORK (scratch: venvs,
-# run dirs; default a new folder under /tmp, removed at the end unless KEEP_WORK=1), E2E_SECONDS, ASYNC_SECONDS,
-# EXPERIMENT_SECONDS, PARALLEL.
+# run dirs; default a new folder under /tmp, removed at the end unless KEEP_WORK=1), E2E_SECONDS, E2E_RUNS
+# ("TAG:M:LAG[:nographs] ..."), EXPERIMENT_SECONDS, PARALLEL.
 set -uo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
-DRY=0; EXPERIMENT=1
+DRY=0; EXPERIMENT=0
 for arg in "$@"; do
   case "$arg" in
     --dry-run) DRY=1 ;;
+    --experiment) EXPERIMENT=1 ;;
     --no-experiment) EXPERIMENT=0 ;;
     -h|--help) sed -n '2,/^set -uo/p' "$0" | sed '$d; s/^# \{0,1\}//'; exit 0 ;;
     *) echo "unknown argument $arg (see --help)" >&2; exit 2 ;;
@@ -74,7 +76,7 @@ finish() {  # the one JSON (from whatever steps ran) and the logs
   local py="${VPY:-${BASE_PY:-python3}}"
   [ -x "$py" ] || command -v "$py" >/dev/null || py=python3
   "$py" benchmarks/gpu_steps.py combine --device "$DEVICE" $([ "$DRY" = 1 ] && echo --dry-run) \
-    --bench "$LOGS/bench.json" --e2e "$LOGS/e2e.json" --e2e-async "$LOGS/e2e_async.json" \
+    --bench "$LOGS/bench.json" --graphs-check "$LOGS/graphs_check.json" --e2e "$LOGS"/e2e-*.json \
     --experiment "$LOGS/experiment.json" --wheels "$LOGS/wheels_check.json" --setup "$LOGS/setup.json" \
     --timings "$LOGS/timings.json" --out "$OUT/gpu.json" || say "combine failed"
   for f in "$WORK"/e2e-*/learner.jsonl; do
@@ -89,15 +91,18 @@ finish() {  # the one JSON (from whatever steps ran) and the logs
 # Sizes: the GPU's, or tiny ones for the dry run (seconds, meaningless figures).
 if [ "$DRY" = 1 ]; then
   BENCH_SIZES=(--rounds 2 --updates 3 --hidden 32,32 --batch-size 32)
+  CHECK_SIZES=(--hidden 32,32 --batch-size 32 --updates 10 --steps 300 --start-steps 100 --compete-every 100)
   RUN_SIZES=(--hidden 32,32 --batch-size 32 --start-steps 300 --compete-every 1000 --eval-episodes 1 --grace 30)
-  E2E_SECONDS="${E2E_SECONDS:-12}"; ASYNC_SECONDS="${ASYNC_SECONDS:-6}"; EXPERIMENT_SECONDS="${EXPERIMENT_SECONDS:-45}"
+  E2E_SECONDS="${E2E_SECONDS:-8}"; EXPERIMENT_SECONDS="${EXPERIMENT_SECONDS:-45}"
+  E2E_RUNS="${E2E_RUNS:-m2-lag0:2:0 m2-lag2:2:2}"
   PARALLEL="${PARALLEL:-2}"; GRID=(--algos td3 --seeds 2 --steps 1000)
 else
-  BENCH_SIZES=(--rounds 7 --updates 50 --hidden 256,256 --batch-size 256)
-  # paper schedule (iterations): start 5000 instead of Table 3's 25,000 so the window is spent training
-  RUN_SIZES=(--hidden 256,256 --batch-size 256 --start-steps 5000 --compete-every 5000 --eval-episodes 20)
-  E2E_SECONDS_SET="${E2E_SECONDS:-}"
-  E2E_SECONDS="${E2E_SECONDS:-150}"; ASYNC_SECONDS="${ASYNC_SECONDS:-45}"
+  BENCH_SIZES=(--rounds 5 --updates 100 --hidden 256,256 --batch-size 256)
+  CHECK_SIZES=(--hidden 256,256 --batch-size 256 --updates 100 --steps 1500 --start-steps 500 --compete-every 500)
+  # paper schedule (iterations): start 1000 instead of Table 3's 25,000 so the window is spent training
+  RUN_SIZES=(--hidden 256,256 --batch-size 256 --start-steps 1000 --compete-every 5000 --eval-episodes 20)
+  E2E_SECONDS="${E2E_SECONDS:-30}"
+  E2E_RUNS="${E2E_RUNS:-m3-lag0:3:0 m3-lag2:3:2 m3-lag2-eager:3:2:nographs m8-lag2:8:2 m16-lag2:16:2}"
   EXPERIMENT_SECONDS="${EXPERIMENT_SECONDS:-60}"
   PARALLEL="${PARALLEL:-8}"; GRID=(--algos ma-td3,td3 --seeds 4 --steps 20000)
 fi
@@ -215,26 +220,23 @@ else
 fi
 
 # ---------------------------------------------------------------- a. the learner bench
-timed bench 300 "$VENV/bin/mam" bench --device "$DEVICE" --only learner --ks 1,2,3 --variants all --device-time \
+timed bench 300 "$VENV/bin/mam" bench --device "$DEVICE" --only learner --ks 1,2 --variants default --device-time \
   --shapes halfcheetah --threads 1 "${BENCH_SIZES[@]}" --out "$LOGS/bench.json"
 
-# ---------------------------------------------------------------- b. one mam run, time-boxed
-COLLECTION=()
-RUN_HELP="$(COLUMNS=200 "$VENV/bin/mam" run --help 2>&1)"  # not piped into grep -q: pipefail and SIGPIPE
-if grep -q -- '--collection' <<<"$RUN_HELP"; then
-  COLLECTION=(--collection exact)
-  [ "$DRY" = 0 ] && [ -z "${E2E_SECONDS_SET:-}" ] && E2E_SECONDS=120  # room for the async run in 8 minutes
-fi
-timed e2e $(( E2E_SECONDS + 300 )) "$VPY" benchmarks/gpu_steps.py e2e --device "$DEVICE" --seconds "$E2E_SECONDS" \
-  --work "$WORK" "${RUN_SIZES[@]}" "${COLLECTION[@]}" --out "$LOGS/e2e.json"
-if [ "${#COLLECTION[@]}" -gt 0 ]; then
-  timed e2e_async $(( ASYNC_SECONDS + 300 )) "$VPY" benchmarks/gpu_steps.py e2e --device "$DEVICE" \
-    --seconds "$ASYNC_SECONDS" --work "$WORK" "${RUN_SIZES[@]}" --collection async --out "$LOGS/e2e_async.json"
-else
-  say "mam run has no --collection option yet: no exact ÷ async figure"
-fi
+# ---------------------------------------------------------------- b. graphed == eager; one seed, one run
+timed graphs_check 240 "$VPY" benchmarks/gpu_steps.py graphs-check --device "$DEVICE" "${CHECK_SIZES[@]}" \
+  --out "$LOGS/graphs_check.json"
 
-# ---------------------------------------------------------------- c. a grid of GPU learners, time-boxed
+# ---------------------------------------------------------------- c. mam run, time-boxed, per configuration
+for spec in $E2E_RUNS; do
+  IFS=: read -r tag workers lag graphs <<<"$spec"
+  extra=(); [ "${graphs:-}" = nographs ] && extra=(--no-graphs)
+  timed "e2e-$tag" $(( E2E_SECONDS + 200 )) "$VPY" benchmarks/gpu_steps.py e2e --device "$DEVICE" \
+    --seconds "$E2E_SECONDS" --work "$WORK" --workers "$workers" --lag "$lag" --tag "$tag" "${extra[@]}" \
+    "${RUN_SIZES[@]}" --out "$LOGS/e2e-$tag.json"
+done
+
+# ---------------------------------------------------------------- d. a grid of GPU learners, time-boxed
 if [ "$EXPERIMENT" = 1 ]; then
   timed experiment $(( EXPERIMENT_SECONDS + 120 )) "$VPY" benchmarks/gpu_steps.py experiment --device "$DEVICE" \
     --parallel "$PARALLEL" --seconds "$EXPERIMENT_SECONDS" --work "$WORK" "${RUN_SIZES[@]}" "${GRID[@]}" \

@@ -1,9 +1,11 @@
 """The steps of benchmarks/gpu.sh that need Python: each writes one JSON object to --out.
 
     python benchmarks/gpu_steps.py wheels-check --out FILE
-    python benchmarks/gpu_steps.py e2e --device cuda --seconds 150 --work DIR --out FILE [--collection exact]
+    python benchmarks/gpu_steps.py e2e --device cuda --seconds 30 --workers 3 --lag 2 --tag m3-lag2 \
+        --work DIR --out FILE
+    python benchmarks/gpu_steps.py graphs-check --device cuda --out FILE
     python benchmarks/gpu_steps.py experiment --device cuda --parallel 8 --seconds 75 --work DIR --out FILE
-    python benchmarks/gpu_steps.py combine --bench B.json --e2e E.json [...] --out gpu.json
+    python benchmarks/gpu_steps.py combine --bench B.json --e2e E1.json E2.json [...] --out gpu.json
 
 `wheels-check` imports only the carried wheels' packages (mujoco, gymnasium, zenoh) and numpy, so
 it runs in a fresh venv that has nothing else. The others run the project's own commands (`mam run`,
@@ -156,8 +158,6 @@ def run_flags(args: argparse.Namespace) -> list[str]:
     flags = ["--device", args.device, "--hidden", args.hidden, "--batch-size", str(args.batch_size),
              "--start-steps", str(args.start_steps), "--eval-episodes", str(args.eval_episodes),
              "--compete-every", str(args.compete_every), "--schedule", "paper", "--no-plot"]
-    if args.collection:
-        flags += ["--collection", args.collection]
     return flags
 
 
@@ -165,18 +165,21 @@ def e2e(args: argparse.Namespace) -> dict[str, Any]:
     """`mam run --algo ma-td3` (K=2, M workers, paper schedule) for `seconds` of training after its
     random start phase, then SIGTERM; rates from its learner.jsonl (one row a second)."""
     work = Path(args.work)
-    run_dir = work / f"e2e-{args.collection or 'default'}"
+    run_dir = work / f"e2e-{args.tag}"
     shutil.rmtree(run_dir, ignore_errors=True)
     run_dir.mkdir(parents=True)
     cmd = [sys.executable, "-m", "services.cli", "run", "--env", args.env, "--algo", "ma-td3",
            "--workers", str(args.workers), "--steps", str(args.steps), "--seed", "0", "--run-dir", str(run_dir),
-           "--run", f"gpu-e2e-{os.getpid()}-{args.collection or 'default'}", *run_flags(args)]
+           "--lag", str(args.lag), "--run", f"gpu-e2e-{os.getpid()}-{args.tag}", *run_flags(args)]
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    if args.no_graphs:
+        env["MAM_CUDA_GRAPHS"] = "0"
     log = open(work / f"{run_dir.name}.log", "wb")
     t0 = time.monotonic()
     marks: dict[str, float] = {}
     with GpuSampler() as gpu:
         proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                start_new_session=True, env=dict(os.environ, PYTHONWARNINGS="ignore"))
+                                start_new_session=True, env=env)
         try:
             while proc.poll() is None:
                 now = time.monotonic()
@@ -199,7 +202,7 @@ def e2e(args: argparse.Namespace) -> dict[str, Any]:
     train = [r for r in rows if r.get("updates", 0) > 0]
     out: dict[str, Any] = {
         "command": " ".join(cmd[3:]), "returncode": rc, "exited_by_itself": "stop" not in marks,
-        "collection": args.collection or "(no --collection option)", "workers": args.workers, "actors": 2,
+        "tag": args.tag, "lag": args.lag, "cuda_graphs": not args.no_graphs, "workers": args.workers, "actors": 2,
         "hidden": args.hidden, "batch_size": args.batch_size, "start_steps": args.start_steps,
         "window_s": args.seconds, "rows": len(rows), "timed_out": "timed_out" in marks,
         "startup_s": marks.get("first_transition", math.nan) - t0,
@@ -214,7 +217,7 @@ def e2e(args: argparse.Namespace) -> dict[str, Any]:
                     "iterations_per_s": (b["iterations"] - a["iterations"]) / dt,
                     "updates": b["updates"], "env_steps": b["env_steps"], "utd": b.get("utd"),
                     "lost": b.get("lost"), "rejected": b.get("rejected")})
-        if "exact_wait_s" in b and "exact_wait_s" in a:  # exact collection: seconds the learner waited for rows
+        if "exact_wait_s" in b and "exact_wait_s" in a:  # seconds the learner waited for the iteration's rows
             out["learner_wait_share"] = (b["exact_wait_s"] - a["exact_wait_s"]) / dt
     if rows:
         out["all_env_steps_per_s"] = rows[-1]["env_steps"] / max(rows[-1]["t"], 1e-9)
@@ -271,45 +274,121 @@ def finite(x: Any) -> bool:
 
 def combine(args: argparse.Namespace) -> dict[str, Any]:
     bench = load(args.bench) or {}
-    run = load(args.e2e) or {}
-    run_async = load(args.e2e_async)
+    runs = [r for r in (load(p) for p in (args.e2e or [])) if r]
+    by_tag = {r.get("tag"): r for r in runs}
+    check = load(args.graphs_check) or {}
     grid = load(args.experiment)
     shape = "halfcheetah"
     k2_bench = bench.get(f"learner_{shape}_k2_updates_per_s")
     k2_device_ms = bench.get(f"learner_{shape}_k2_device_ms_per_update")
-    ups = run.get("updates_per_s")
+    main = by_tag.get("m3-lag2") or (runs[0] if runs else {})
+    ups = main.get("updates_per_s")
     derived: dict[str, Any] = {
+        "k2_updates_per_s": k2_bench,
+        "k2_eager_updates_per_s": bench.get(f"learner_{shape}_k2_eager_updates_per_s"),
+        "k2_graph_vs_eager": bench.get(f"learner_{shape}_k2_graph_vs_eager"),
         "k2_vs_td3": bench.get("learner_k2_vs_td3"),
         "k2_bf16_vs_td3": bench.get("learner_k2_bf16_vs_td3"),
-        "e2e_env_steps_per_s": run.get("env_steps_per_s"),
-        "e2e_updates_per_s": ups,
-        # The learner's share of wall time inside update(): the run's updates/s over what the same
-        # update (K=2, a mini-batch per actor, same sizes) does back to back in the learner bench.
-        "learner_update_share": ups / k2_bench if finite(ups) and finite(k2_bench) else None,
-        # The device's busy share: the run's updates/s times the device's busy time per update as the
-        # bench measured it (CUDA: kernel time by torch.profiler; CPU: process CPU time).
-        "device_time_share": ups * k2_device_ms / 1e3 if finite(ups) and finite(k2_device_ms) else None,
+        "k2_device_ms_per_update": k2_device_ms,
+        # the device's busy share of a graphed update in the bench: busy time per update x updates/s
+        "k2_device_busy_share": k2_bench * k2_device_ms / 1e3 if finite(k2_bench) and finite(k2_device_ms) else None,
         "device_time_source": bench.get("learner_device_time_source"),
-        "nvidia_smi_util_mean_pct": (run.get("gpu") or {}).get("util_mean_pct"),
-        # exact collection: the share of the window the learner waited for the iteration's rows
-        "learner_wait_share": run.get("learner_wait_share"),
-        "e2e_collection": run.get("collection"),
-        "exact_vs_async": (run["env_steps_per_s"] / run_async["env_steps_per_s"]
-                           if run_async and finite(run_async.get("env_steps_per_s")) and
-                           finite(run.get("env_steps_per_s")) else None),
+        "graphs_vs_eager_equal_bits": check.get("graphs_vs_eager", {}).get("equal_bits"),
+        "graphs_vs_eager_max_abs_diff": check.get("graphs_vs_eager", {}).get("max_abs_diff"),
+        "same_seed_same_policy": check.get("same_seed", {}).get("equal_bits"),
+        "e2e": {tag: {k: r.get(k) for k in ("workers", "lag", "cuda_graphs", "env_steps_per_s", "updates_per_s",
+                                            "learner_wait_share", "train_seconds", "random_phase_s")}
+                | {"nvidia_smi_util_mean_pct": (r.get("gpu") or {}).get("util_mean_pct")}
+                for tag, r in by_tag.items()},
+        "e2e_m3_lag2_env_steps_per_s": main.get("env_steps_per_s"),
+        "learner_update_share": ups / k2_bench if finite(ups) and finite(k2_bench) else None,
         "grid_env_steps_per_s": grid.get("grid_env_steps_per_s") if grid else None,
     }
 
     def goal(value: Any, target: float) -> bool | None:
         return (value >= target) if finite(value) else None
 
-    goals = {"k2_vs_td3 >= 0.95 (CUDA)": goal(derived["k2_vs_td3"], 0.95),
-             "e2e_env_steps_per_s >= 1000 (paper schedule)": goal(derived["e2e_env_steps_per_s"], 1000.0)}
+    goals = {"k2_updates_per_s >= 1500 (graphed, H200)": goal(k2_bench, 1500.0),
+             "k2_device_busy_share >= 0.5": goal(derived["k2_device_busy_share"], 0.5),
+             "e2e m3 lag2 env_steps_per_s >= 1000": goal(main.get("env_steps_per_s"), 1000.0),
+             "graphed == eager within tolerance (100 updates)": check.get("graphs_vs_eager", {}).get("close"),
+             "same seed, same policy bits (GPU)": check.get("same_seed", {}).get("equal_bits")}
     timings = load(args.timings) or {}
     return {"dry_run": args.dry_run, "device": bench.get("device", args.device), "machine": bench.get("machine"),
             "versions": bench.get("versions"), "setup": load(args.setup), "derived": derived, "goals": goals,
-            "learner_bench": bench, "e2e": run, "e2e_async": run_async, "experiment": grid,
+            "learner_bench": bench, "e2e": runs, "graphs_check": check, "experiment": grid,
             "wheels_check": load(args.wheels), "timings_s": timings}
+
+
+# --------------------------------------------------------------------------- graphs check
+
+
+def graphs_check(args: argparse.Namespace) -> dict[str, Any]:
+    """The graphed update against the eager one (same seed, same replay data, `updates` updates,
+    the elimination half-way: a recapture), and two graphed runs of one seed (run_reference)."""
+    import mam_core  # noqa: F401, I001  (pins the arithmetic before numpy and torch load)
+    import numpy as np
+    import torch
+    from mam_core.agent import EnvSpec, MultiActorAgent
+    from mam_core.config import resolve
+    from mam_core.reference import run_reference
+    from mam_lab.bench_learner import random_replay
+
+    device = args.device
+    out: dict[str, Any] = {"device": device, "torch": torch.__version__,
+                           "gpu": torch.cuda.get_device_name() if device.startswith("cuda") else None}
+    obs_dim, act_dim, max_action, batch = 17, 6, 1.0, args.batch_size
+    hidden = tuple(int(h) for h in args.hidden.split(","))
+    spec = EnvSpec(obs_dim, act_dim, (max_action,) * act_dim)
+
+    def trained(algo: str, graphs: bool) -> tuple[MultiActorAgent, int]:
+        os.environ["MAM_CUDA_GRAPHS"] = "1" if graphs else "0"
+        buf = random_replay(obs_dim, act_dim, max_action, 20 * batch, device, seed=3)
+        agent = MultiActorAgent(resolve(algo, actors=2, hidden=hidden, batch_size=batch, seed=5), spec, device)
+        sample = agent.sampler(buf, batch)
+        eliminated = False
+        for _ in range(args.updates):  # as Algorithm1.run_updates: the elimination before an actor phase
+            staged = sample()
+            agent.update_critics(staged)
+            if agent.actor_phase_due:
+                if not eliminated and agent.updates >= args.updates // 2:
+                    agent.eliminate(1)
+                    eliminated = True
+                agent.update_actors(staged)
+        torch.cuda.synchronize() if device.startswith("cuda") else None
+        return agent, ({"captures": agent.graphs.captures, "failed": agent.graphs.failed}
+                       if agent.graphs is not None else {"captures": 0, "failed": "no graphs here"})
+
+    def compare(a: MultiActorAgent, b: MultiActorAgent) -> dict[str, Any]:
+        diffs = [float((p - q).abs().max()) for p, q in zip(a.state_dict()["actor"].values(),
+                                                             b.state_dict()["actor"].values())]
+        diffs += [float((p - q).abs().max()) for p, q in zip(a.state_dict()["critic"].values(),
+                                                              b.state_dict()["critic"].values())]
+        close = all(torch.allclose(p, q, rtol=1e-4, atol=1e-5) for p, q in
+                    zip(list(a.state_dict()["actor"].values()) + list(a.state_dict()["critic"].values()),
+                        list(b.state_dict()["actor"].values()) + list(b.state_dict()["critic"].values())))
+        return {"max_abs_diff": max(diffs), "equal_bits": max(diffs) == 0.0, "close": bool(close)}
+
+    t0 = time.perf_counter()
+    for algo in ("ma-td3", "ma-sac"):
+        eager, _ = trained(algo, False)
+        graphed, info = trained(algo, True)
+        out[f"{algo}_graphs_vs_eager"] = compare(eager, graphed) | info | {"updates": args.updates}
+    out["graphs_vs_eager"] = {k: (all(out[f"{a}_graphs_vs_eager"][k] for a in ("ma-td3", "ma-sac"))
+                                  if k != "max_abs_diff" else max(out[f"{a}_graphs_vs_eager"][k]
+                                                                  for a in ("ma-td3", "ma-sac")))
+                              for k in ("max_abs_diff", "equal_bits", "close")}
+    out["graphs_vs_eager_s"] = time.perf_counter() - t0
+    os.environ["MAM_CUDA_GRAPHS"] = "1"
+    t0 = time.perf_counter()
+    cfg = resolve("ma-td3", actors=2, workers=3, hidden=hidden, batch_size=batch, seed=11, device=device,
+                  start_steps=args.start_steps, compete_every=args.compete_every, eval_episodes=2)
+    runs = [run_reference("HalfCheetah-v5", cfg, args.steps) for _ in range(2)]
+    same = all(np.array_equal(x[name], y[name]) for x, y in zip(runs[0].policy, runs[1].policy) for name in x)
+    out["same_seed"] = {"equal_bits": bool(same), "steps": args.steps, "updates": runs[0].updates,
+                        "survivor": runs[0].survivor, "wall_s": [r.wall_time_s for r in runs]}
+    out["same_seed_s"] = time.perf_counter() - t0
+    return out
 
 
 def _terminate(signum: int, frame: Any) -> None:
@@ -335,10 +414,12 @@ def main() -> None:
         s.add_argument("--start-steps", type=int, default=5000, help="iterations (paper schedule)")
         s.add_argument("--compete-every", type=int, default=5000, help="[A] iterations")
         s.add_argument("--eval-episodes", type=int, default=20)
-        s.add_argument("--collection", default=None, help="passed as --collection where mam run has it")
         s.add_argument("--grace", type=float, default=60.0)
         if name == "e2e":
             s.add_argument("--workers", type=int, default=3)
+            s.add_argument("--lag", type=int, default=0)
+            s.add_argument("--tag", default="default", help="names the run directory and the JSON row")
+            s.add_argument("--no-graphs", action="store_true", help="MAM_CUDA_GRAPHS=0 for the run")
             s.add_argument("--steps", type=int, default=1_000_000, help="budget (iterations): not reached")
             s.add_argument("--startup-timeout", type=float, default=240.0)
         else:
@@ -346,15 +427,25 @@ def main() -> None:
             s.add_argument("--algos", default="ma-td3,td3")
             s.add_argument("--seeds", type=int, default=4)
             s.add_argument("--steps", type=int, default=20_000)
+    g = sub.add_parser("graphs-check")
+    g.add_argument("--device", default="cuda")
+    g.add_argument("--hidden", default="256,256")
+    g.add_argument("--batch-size", type=int, default=256)
+    g.add_argument("--updates", type=int, default=100)
+    g.add_argument("--steps", type=int, default=1500, help="run_reference iterations (twice)")
+    g.add_argument("--start-steps", type=int, default=500)
+    g.add_argument("--compete-every", type=int, default=500)
     c = sub.add_parser("combine")
-    for opt in ("bench", "e2e", "e2e-async", "experiment", "wheels", "setup", "timings"):
+    for opt in ("bench", "experiment", "wheels", "setup", "timings", "graphs-check"):
         c.add_argument(f"--{opt}")
+    c.add_argument("--e2e", nargs="*", default=[])
     c.add_argument("--device", default="cuda")
     c.add_argument("--dry-run", action="store_true")
     for s in sub.choices.values():
         s.add_argument("--out", required=True)
     args = p.parse_args()
-    step = {"wheels-check": wheels_check, "e2e": e2e, "experiment": experiment, "combine": combine}[args.step]
+    step = {"wheels-check": wheels_check, "e2e": e2e, "experiment": experiment, "graphs-check": graphs_check,
+            "combine": combine}[args.step]
     write(args.out, step(args))
 
 

@@ -7,8 +7,8 @@ them off, so CPU runs take exactly the code they took before this module existed
 the CPU does (glibc keeping freed blocks for torch's malloc-based allocator, `mam_core.agent`)
 is a field too.
 
-CUDA graphs and `torch.compile` are not used: nothing has measured them on a GPU yet
-(docs/PERFORMANCE.md, "GPU"); if added, their switch belongs here.
+CUDA graphs of the update (`mam_core.graphs`) are on for CUDA (`MAM_CUDA_GRAPHS=0` turns them
+off); `torch.compile` is not used.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ class Accel:
     non_blocking: bool = False  # asynchronous host -> device copies (needs pinned memory to overlap)
     resident_replay: bool = False  # the replay keeps its sampled fields in device memory (gather there)
     host_allocator_tuning: bool = False  # glibc keeps freed blocks (torch's CPU allocator is malloc)
+    cuda_graphs: bool = False  # the update's two phases replay as CUDA graphs (mam_core/graphs.py)
 
     @property
     def cuda(self) -> bool:
@@ -41,7 +42,7 @@ class Accel:
 
 
 CPU = Accel("cpu", host_allocator_tuning=True)
-CUDA = Accel("cuda", pin_memory=True, non_blocking=True, resident_replay=True)
+CUDA = Accel("cuda", pin_memory=True, non_blocking=True, resident_replay=True, cuda_graphs=True)
 
 
 def for_device(device: str | torch.device) -> Accel:

@@ -14,6 +14,7 @@ import copy
 import ctypes
 import math
 import sys
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -217,6 +218,22 @@ class MultiActorAgent:
         self.updates = 0
         self.actor_updates = 0
         self.versions = [0] * k  # bumped on every actor step of a live actor
+        # CUDA graphs of the two phases (mam_core/graphs.py), made by `sampler` where the device
+        # takes them; `structure` counts the changes that invalidate a captured graph.
+        self.graphs: Any = None
+        self.structure = 0
+
+    def sampler(self, buffer: Any, batch_size: int | None = None) -> Callable[[], Any]:
+        """What Algorithm 1 calls for each update's mini-batch(es) from `buffer` (a ReplayBuffer):
+        `buffer.sample(B, batch_groups)`, or on a device that takes CUDA graphs (mam_core/accel.py)
+        the same indices staged for the graphed update, which gathers the rows itself."""
+        batch_size = batch_size or self.cfg.batch_size
+        from mam_core import graphs
+
+        if graphs.usable(self, buffer):
+            self.graphs = graphs.UpdateGraphs(self, buffer, batch_size)
+            return self.graphs.stage
+        return lambda: buffer.sample(batch_size, self.batch_groups)
 
     # -- the update step -------------------------------------------------------------------
     def update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
@@ -232,9 +249,25 @@ class MultiActorAgent:
         """The update just made is the d-th since the last actor phase (TD3's rule)."""
         return self.updates % self.cfg.policy_delay == 0
 
-    def update_critics(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
+    def update_critics(self, batch: Any) -> dict[str, float]:
         """Algorithm 1, lines 11-13: every live actor's critics regress on its Eq. 9 targets.
-        Between this and `update_actors` Algorithm 1 places the round and the elimination."""
+        Between this and `update_actors` Algorithm 1 places the round and the elimination.
+        `batch` is a dict of tensors, or a `graphs.Staged` mini-batch (`sampler`)."""
+        if self.graphs is not None and self.graphs.staged(batch):
+            values = self.graphs.critics()
+            self.updates += 1
+            return self.graphs.metrics(self.critic_metric_names(), values)
+        values = self.critic_step(batch)
+        self.updates += 1
+        return dict(zip(self.critic_metric_names(), values.tolist()))
+
+    def critic_metric_names(self) -> list[str]:
+        """The names of `critic_step`'s values, in order."""
+        return ["loss/critic", *(f"q/actor{j}" for j in range(self.cfg.actors))]
+
+    def critic_step(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The critic phase's tensor work (no host sync, no Python state: a CUDA graph captures it):
+        the Eq. 9 targets, Eq. 5 and the critics' Adam step; its metrics as one tensor."""
         k, n = self.cfg.actors, self.cfg.critics_per_actor
         obs, action, reward = batch["obs"], batch["action"], batch["reward"]
         next_obs, not_done = batch["next_obs"], batch["not_done"]
@@ -250,51 +283,63 @@ class MultiActorAgent:
             q = self.critic(obs, action).view(k, n, -1)  # the batch's action is shared by all n·K critics
         loss_q = critic_loss(q, y, self.critic_live)
         adam_step(self.critic_opt, loss_q, self.critic_params_list)
-        self.updates += 1
-        values = torch.cat([loss_q.detach().reshape(1), q.detach().mean(dim=(1, 2))]).tolist()
-        out = {"loss/critic": values[0]}
-        out.update({f"q/actor{j}": values[1 + j] for j in range(k)})
-        return out
+        return torch.cat([loss_q.detach().reshape(1), q.detach().mean(dim=(1, 2))])
 
-    def update_actors(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
+    def update_actors(self, batch: Any) -> dict[str, float]:
         """Algorithm 1, lines 21-24: actor k follows its first critic Q_k1 (Eq. 7), then the
         soft target update (Eq. 4); eliminated members and their targets stay frozen. SAC: actor
         k follows min_i Q_ki with its entropy bonus, then α_k steps (`_update_soft_actors`)."""
+        if self.graphs is not None and self.graphs.staged(batch):
+            metrics = self.graphs.metrics(self.actor_metric_names(), self.graphs.actors())
+        else:
+            metrics = dict(zip(self.actor_metric_names(), self.actor_step(batch).tolist()))
+        self.actor_updates += 1
+        for j, alive in enumerate(self._live_flags):  # a Python list: no device sync
+            if alive:
+                self.versions[j] += 1
+        return metrics
+
+    def actor_metric_names(self) -> list[str]:
+        """The names of `actor_step`'s values, in order."""
+        k = self.cfg.actors
+        if not self.stochastic:
+            return ["loss/actor", *(f"loss/actor{j}" for j in range(k))]
+        return ["loss/actor", *(["loss/alpha"] if self.alpha_opt is not None else []),
+                *(f"alpha/actor{j}" for j in range(k))]
+
+    def actor_step(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The actor phase's tensor work (capturable, like `critic_step`): Eq. 7 and the actors'
+        Adam step (SAC: and α's), then the soft target update (Eq. 4); its metrics as one tensor."""
         if self.stochastic:
-            metrics = self._update_soft_actors(batch["obs"])
+            values = self._update_soft_actors(batch["obs"])
         else:
             pi = self.actor(batch["obs"])
             q1 = self.critic(batch["obs"], pi, members=self._first_critics)
             loss_pi = actor_loss(q1, self.live)
             adam_step(self.actor_opt, loss_pi, self.actor_params_list)  # actor params only
-            per_actor = torch.cat([loss_pi.detach().reshape(1), -q1.detach().mean(dim=-1) * self.live]).tolist()
-            metrics = {"loss/actor": per_actor[0], **{f"loss/actor{j}": v for j, v in enumerate(per_actor[1:])}}
-        self.actor_updates += 1
-        for j, alive in enumerate(self._live_flags):  # a Python list: no device sync
-            if alive:
-                self.versions[j] += 1
+            values = torch.cat([loss_pi.detach().reshape(1), -q1.detach().mean(dim=-1) * self.live])
         if self.actor_target is not None:
             soft_update(self.actor_target, self.actor, self._tau_actor)
         soft_update(self.critic_target, self.critic, self._tau_critic)
-        return metrics
+        return values
 
-    def _update_soft_actors(self, obs: torch.Tensor) -> dict[str, float]:
+    def _update_soft_actors(self, obs: torch.Tensor) -> torch.Tensor:
         """SAC's actor phase: a ~ π_k(·|s) (reparameterised), actor k descends
         E[α_k·log π_k(a|s) − min_i Q_ki(s, a)], then log α_k descends the temperature loss with the
-        same log π (as SAC v2's code does). Eliminated actors and their α_k stay frozen (masked)."""
+        same log π (as SAC v2's code does). Eliminated actors and their α_k stay frozen (masked).
+        Its metrics: the actor loss, the temperature loss (when α is learned), α_k after the step."""
         k, n = self.cfg.actors, self.cfg.critics_per_actor
         action, log_prob = self.actor.sample(obs, self._gaussian_noise(k, obs.shape[-2]))
         critic_obs = obs.repeat_interleave(n, dim=0) if obs.dim() == 3 else obs
         q = self.critic(critic_obs, self.critic.per_actor_actions(action)).view(k, n, -1)
         loss_pi = soft_actor_loss(q, log_prob, self.alpha, self.live)
         adam_step(self.actor_opt, loss_pi, self.actor_params_list)  # actor params only
-        out = {"loss/actor": float(loss_pi.detach())}
+        values = [loss_pi.detach().reshape(1)]
         if self.alpha_opt is not None:
             loss_alpha = temperature_loss(self.log_alpha, log_prob, self.target_entropy, self.live)
             adam_step(self.alpha_opt, loss_alpha, [self.log_alpha])
-            out["loss/alpha"] = float(loss_alpha.detach())
-        out.update({f"alpha/actor{j}": a for j, a in enumerate(self.alpha.tolist())})
-        return out
+            values.append(loss_alpha.detach().reshape(1))
+        return torch.cat([*values, self.alpha])
 
     @property
     def alpha(self) -> torch.Tensor:
@@ -303,7 +348,14 @@ class MultiActorAgent:
 
     def _gaussian_noise(self, k: int, rows: int) -> torch.Tensor:
         """ε ~ N(0, I) [K, rows, A] from the agent's seeded stream (SAC's reparameterised draws)."""
-        return torch.randn((k, rows, self.spec.act_dim), generator=self.noise_gen, device=self.device)
+        return self.draw_noise((k, rows, self.spec.act_dim))
+
+    def draw_noise(self, shape: tuple[int, ...]) -> torch.Tensor:
+        """N(0, I) of `shape` from the agent's seeded stream (`noise_gen`): every random draw of an
+        update goes through here (a CUDA graph draws them before its replay, in the same order)."""
+        if self.graphs is not None and self.graphs.capturing:
+            return self.graphs.noise(shape)
+        return torch.randn(shape, generator=self.noise_gen, device=self.device)
 
     def _next_actions(self, next_obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         """ã_j of Eq. 9 for every actor j on `next_obs` ([rows, obs_dim] or [K, rows, obs_dim]):
@@ -319,7 +371,7 @@ class MultiActorAgent:
         """Target policy smoothing: ã = clip(π'(s') + clip(N(0, σ̃), ±c), ±max_action)."""
         if not self.cfg.target_smoothing:
             return action
-        noise = torch.randn(action.shape, generator=self.noise_gen, device=self.device)
+        noise = self.draw_noise(tuple(action.shape))
         noise = (noise * (self.cfg.policy_noise * self.max_action)).clamp(
             -self.cfg.noise_clip * self.max_action, self.cfg.noise_clip * self.max_action)
         return torch.maximum(torch.minimum(action + noise, self.max_action), -self.max_action)
@@ -384,6 +436,7 @@ class MultiActorAgent:
         k, n = self.cfg.actors, self.cfg.critics_per_actor
         if not 0 <= survivor < k:
             raise ValueError(f"survivor {survivor} out of range for K={k}")
+        self.structure += 1  # other index tensors, maybe η = 0: a captured graph is stale
         self.live.zero_()
         self.live[survivor] = 1.0
         self._live_flags = [j == survivor for j in range(k)]
@@ -452,6 +505,7 @@ class MultiActorAgent:
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.structure += 1  # the optimizers' state tensors are new ones: a captured graph is stale
         self.actor.load_state_dict(state["actor"])
         self.critic.load_state_dict(state["critic"])
         if self.actor_target is not None:

@@ -265,7 +265,7 @@ class Algorithm1:
                 each(metrics)
         if it.eliminate and at is None:
             eliminate()
-        return metrics
+        return dict(metrics)  # read once per iteration (a graphed update's metrics stay on the device)
 
     # -- evaluations ------------------------------------------------------------------------------
     @cached_property

@@ -58,6 +58,7 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
     torch.manual_seed(cfg.seed)
     agent = MultiActorAgent(cfg, spec, device)
     buffer = ReplayBuffer(plan.replay_capacity(cfg.buffer_size), spec.obs_dim, spec.act_dim, device, cfg.seed)
+    sample = agent.sampler(buffer, cfg.batch_size)  # on a GPU: indices staged for the CUDA graphs
     state = obsolescence_for(cfg, steps)
     rng = stream(cfg.seed, "allocation")
     actors = NumpyActors(cfg.actors, spec, cfg.hidden, cfg.stochastic)  # the newest actors: what the referee judges
@@ -134,7 +135,7 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
         # Lines 11-24: the updates, with the round and the elimination between critic and actor phases.
         if it.competes:
             compete(it)
-        plan.run_updates(it, agent, lambda: buffer.sample(cfg.batch_size, agent.batch_groups),
+        plan.run_updates(it, agent, sample,
                          lambda: agent.eliminate(state.survivor), log_update if log else None)
         if it.eliminate:
             result.survivor = state.survivor

@@ -86,8 +86,15 @@ def sac_contenders(shape: str, sizes: BenchSizes, device: str, seed: int = 0) ->
     spec = EnvSpec(obs_dim, act_dim, (max_action,) * act_dim)
     for name, algo, k in (("sac_k1", "sac", 1), ("sac_k2", "ma-sac", 2)):
         agent = MultiActorAgent(resolve(algo, actors=k, hidden=sizes.hidden, batch_size=batch, seed=seed), spec, device)
-        out[name] = (lambda a=agent: a.update(buf.sample(batch, a.batch_groups)))
+        out[name] = _update_step(agent, buf, batch)
     return out
+
+
+def _update_step(agent: Any, buf: Any, batch: int) -> Callable[[], Any]:
+    """One `agent.update` on a mini-batch drawn as the learner draws it (`agent.sampler`: on a
+    GPU, indices staged for the CUDA graphs)."""
+    sample = agent.sampler(buf, batch)
+    return lambda: agent.update(sample())
 
 
 def bench_sac(sizes: BenchSizes, device: str, log: Callable[[str], None], seed: int = 0,
@@ -155,8 +162,21 @@ def learner_contenders(shape: str, sizes: BenchSizes, device: str, seed: int = 0
                       shared_batch=True if "_shared" in name else None,
                       precision="bf16" if name.endswith("_bf16") else None)
         agent = MultiActorAgent(cfg, spec, device)
-        out[name] = (lambda a=agent: a.update(buf.sample(batch, a.batch_groups)))
+        out[name] = _update_step(agent, buf, batch)
+    if graphs_on(device):  # the same updates launched op by op, for the graphs' gain
+        for k in sizes.learner_ks:
+            cfg = resolve("ma-td3", actors=k, hidden=sizes.hidden, batch_size=batch, seed=seed)
+            agent = MultiActorAgent(cfg, spec, device)
+            out[f"k{k}_eager"] = (lambda a=agent: a.update(buf.sample(batch, a.batch_groups)))
     return out
+
+
+def graphs_on(device: str) -> bool:
+    """Does an agent on `device` update through CUDA graphs (mam_core/graphs.py)?"""
+    from mam_core import graphs
+    from mam_core.accel import for_device
+
+    return for_device(device).cuda_graphs and graphs.enabled()
 
 
 def interleaved_rates(steps: dict[str, Callable[[], Any]], rounds: int, per_round: int,
@@ -257,6 +277,9 @@ def bench_learner(sizes: BenchSizes, device: str = "cpu", threads: int = 1, log:
             out[f"learner_{shape}_{name}_vs_td3"] = ratio_of_medians_per_round(wall[name], wall["td3"])
             if "_" not in name:
                 out[f"learner_{shape}_{name}_vs_td3_cpu_time"] = ratio_of_medians_per_round(cpu[name], cpu["td3"])
+            if f"{name}_eager" in wall:  # CUDA graphs against the same update launched op by op
+                out[f"learner_{shape}_{name}_graph_vs_eager"] = ratio_of_medians_per_round(
+                    wall[name], wall[f"{name}_eager"])
             if f"{name}_shared" in wall and "_" not in name:
                 out[f"learner_{shape}_{name}_per_actor_vs_shared"] = ratio_of_medians_per_round(
                     wall[name], wall[f"{name}_shared"])

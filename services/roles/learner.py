@@ -62,6 +62,7 @@ class Learner:
         if cfg.learner_threads > 0:
             torch.set_num_threads(cfg.learner_threads)
         self.agent = MultiActorAgent(self.algo, self.spec, self.device)
+        self._sampler: Any = None  # made at the first update (`sample`)
         self.plan = Algorithm1.for_run(self.algo, cfg.steps)  # every "when" of the run
         self.schedule = self.plan.schedule
         self.iteration = 0  # iterations whose updates are done
@@ -190,7 +191,10 @@ class Learner:
             learner_files.checkpoint(self)
 
     def sample(self) -> Any:
-        return self.buffer.sample(self.algo.batch_size, self.agent.batch_groups)
+        """An update's mini-batch(es): `agent.sampler` (on a GPU, indices staged for the CUDA graphs)."""
+        if self._sampler is None:
+            self._sampler = self.agent.sampler(self.buffer, self.algo.batch_size)
+        return self._sampler()
 
     def idle_duties(self, awaited: str, since: float) -> None:
         """While the loop waits: stats, config and log rows; after HEARTBEAT_S, what a role may
