@@ -161,6 +161,7 @@ def test_accel_switch() -> None:
         False, False, False, True)
     assert (cuda.pin_memory, cuda.non_blocking, cuda.resident_replay, cuda.host_allocator_tuning) == (
         True, True, True, False)
+    assert cuda.cuda_graphs and not cpu.cuda_graphs and not for_device("meta").cuda_graphs
     assert for_device(torch.device("cpu")) is cpu and cpu.bf16_supported() is None and not cpu.cuda
     assert not for_device("meta").resident_replay and not for_device("meta").host_allocator_tuning
     buf = ReplayBuffer(64, 3, 2)
