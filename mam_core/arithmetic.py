@@ -37,6 +37,7 @@ from typing import Any
 
 ARITHMETIC_ENV = "MAM_ARITHMETIC"
 ARITHMETICS = ("portable", "native")
+GEMM_ENV = "MAM_PORTABLE_GEMM"  # "mkl": the learner's GEMMs in MKL's COMPATIBLE branch (the fallback)
 
 # NumPy names its AVX-512 dispatch targets X86_V4, AVX512_ICL, AVX512_SPR (2.4 and later) or
 # AVX512F, AVX512_SKX, ... (earlier): names a NumPy does not know are ignored (an ImportWarning).
@@ -47,6 +48,8 @@ PINS: dict[str, str] = {
     "ATEN_CPU_CAPABILITY": "avx2",
     "NPY_DISABLE_CPU_FEATURES": _NUMPY_AVX512,
     "OPENBLAS_CORETYPE": "Haswell",
+    "OPENBLAS_NUM_THREADS": "1",
+    "OPENBLAS_L2_SIZE": "1024",
 }
 
 _status: dict[str, Any] = {}
@@ -93,6 +96,29 @@ def pin() -> dict[str, Any]:
     _status.update(arithmetic=mode, portable=not why, machine_bound=why,
                    pins={k: os.environ.get(k, "") for k in PINS})
     return dict(_status)
+
+
+def portable_gemm() -> bool:
+    """Do the learner's float32 GEMMs run in `mam_core.gemm` (NumPy's pinned OpenBLAS)? Under
+    portable arithmetic where NumPy's BLAS is OpenBLAS; else torch's (MKL COMPATIBLE under
+    portable arithmetic, the fallback; the machine's own kernels under native)."""
+    if "gemm" not in _status:
+        pin()
+        forced = os.environ.get(GEMM_ENV, "") == "mkl"  # the fallback, on purpose (benchmarks, tests)
+        _status["gemm"] = "openblas-haswell" if _status["portable"] and not forced and _numpy_blas_is_openblas() \
+            else ("mkl-compatible" if _status["portable"] else "native")
+    return _status["gemm"] == "openblas-haswell"
+
+
+def _numpy_blas_is_openblas() -> bool:
+    try:
+        import numpy as np
+
+        blas = np.show_config(mode="dicts")["Build Dependencies"]["blas"]
+    except Exception:  # noqa: BLE001 - an unusual NumPy: the fallback kernels
+        return False
+    return "openblas" in str(blas.get("name", "")).lower() and "openblas" in str(
+        blas.get("openblas configuration", "openblas")).lower()
 
 
 def status() -> dict[str, Any]:

@@ -13,12 +13,21 @@ import numpy as np
 import torch
 from torch import nn
 
+from mam_core import arithmetic, gemm
 from mam_core.policy import LOG_STD_MAX, LOG_STD_MIN, member_shapes
 
 Members = slice | torch.Tensor | None
 
 
 FEATURE_MAJOR_MIN_ROWS = 32
+
+
+def _products(x: torch.Tensor) -> tuple:
+    """(baddbmm, addmm) for float32 layers on x's device: on a CPU under portable arithmetic the
+    pinned kernels of `mam_core.gemm` (the same bits on every CPU), else torch's."""
+    if x.device.type == "cpu" and arithmetic.portable_gemm():
+        return gemm.baddbmm, gemm.addmm
+    return torch.baddbmm, torch.addmm
 
 
 def run_layers(x: torch.Tensor, layers: Sequence[tuple[torch.Tensor, torch.Tensor]],
@@ -37,13 +46,14 @@ def run_layers(x: torch.Tensor, layers: Sequence[tuple[torch.Tensor, torch.Tenso
     which the CPU kernels run up to ~6x slower. A few rows stay row-major.
     """
     last = len(layers) - 1
+    baddbmm, _ = _products(x)
     if x.shape[-2] >= FEATURE_MAJOR_MIN_ROWS:
         h = x.mT
         for i, (w, b) in enumerate(layers):
             if low is not None and i < last:
                 h = torch.baddbmm(b.mT.to(low), w.mT.to(low), h.to(low))
             else:
-                h = torch.baddbmm(b.mT, w.mT, h.to(w.dtype))
+                h = baddbmm(b.mT, w.mT, h.to(w.dtype))
             if i < last:
                 h = torch.relu_(h)  # in place: baddbmm keeps its inputs for backward, not its output
         return h.mT
@@ -51,7 +61,7 @@ def run_layers(x: torch.Tensor, layers: Sequence[tuple[torch.Tensor, torch.Tenso
         if low is not None and i < last:
             x = torch.baddbmm(b.to(low), x.to(low), w.to(low))
         else:
-            x = torch.baddbmm(b, x.to(w.dtype), w)
+            x = baddbmm(b, x.to(w.dtype), w)
         if i < last:
             x = torch.relu_(x)
     return x
@@ -67,11 +77,12 @@ def run_member(x: torch.Tensor, weights: Sequence[torch.Tensor], biases: Sequenc
         x = x[0]
     h = x
     last = len(weights) - 1
+    _, addmm = _products(x)
     for i, (w, b) in enumerate(zip(weights, biases)):
         if low is not None and i < last:  # mixed precision as in run_layers
             h = torch.addmm(b[k].to(low), h.to(low), w[k].to(low))
         else:
-            h = torch.addmm(b[k], h.to(w.dtype), w[k])
+            h = addmm(b[k], h.to(w.dtype), w[k])
         if i < last:
             h = torch.relu_(h)  # in place: addmm keeps its inputs for backward, not its output
     return h.unsqueeze(0)

@@ -4,9 +4,11 @@
 
 * **learner** — MA-TD3 (K = 2) and TD3 updates/s, 256x256 networks, batch 256, HalfCheetah
   shapes, one torch thread, one process per arithmetic (each library reads its pins when it
-  loads): `native` (nothing pinned), `mkl-avx2` (the pins with MKL's Intel-only AVX2 branch),
-  `portable` (mam's default pins, `mam_core.arithmetic.PINS`). The processes take turns in
-  rounds whose order rotates; a ratio is the median over rounds of the within-round ratio.
+  loads): `native` (nothing pinned, the machine's own kernels), `portable` (mam's default: the
+  pins of `mam_core.arithmetic.PINS`, the GEMMs in `mam_core.gemm`), `portable-threads` (the same
+  with the GEMMs over 2 threads: the same bits), `portable-mkl` (the pins with the GEMMs in MKL's
+  COMPATIBLE branch: the fallback, and the default before `mam_core.gemm`). The processes take
+  turns in rounds whose order rotates; a ratio is the median over rounds of the within-round ratio.
 * **actor** — the workers' and referee's forward pass (HalfCheetah shapes, 256x256): `dense`
   (fixed order, `mam_core.policy`) against `x @ w + b` (BLAS), batch 1 and 10, interleaved in
   this process; and worker steps/s: a HalfCheetah-v5 `env.step` plus the actor forward.
@@ -26,10 +28,13 @@ import typer
 import services  # noqa: F401  (OPENBLAS_NUM_THREADS=1 as in a worker; mam_core pins first)
 from mam_core import arithmetic
 
-LEARNER_ARITHMETICS: dict[str, dict[str, str]] = {
-    "native": {},
-    "mkl-avx2": dict(arithmetic.PINS, MKL_CBWR="AVX2"),
-    "portable": dict(arithmetic.PINS),
+GEMM_THREADS_ENV = "MAM_BENCH_GEMM_THREADS"
+# name: (the child's MAM_ARITHMETIC, extra variables)
+LEARNER_ARITHMETICS: dict[str, tuple[str, dict[str, str]]] = {
+    "native": ("native", {}),
+    "portable": ("portable", {}),
+    "portable-threads": ("portable", {GEMM_THREADS_ENV: "2"}),
+    "portable-mkl": ("portable", {arithmetic.GEMM_ENV: "mkl"}),
 }
 
 
@@ -44,11 +49,14 @@ def learner_child() -> None:
     import numpy as np
     import torch
 
+    from mam_core import gemm
     from mam_core.agent import EnvSpec, MultiActorAgent
     from mam_core.config import resolve
     from mam_lab.bench_learner import random_replay
 
+    arithmetic.portable_gemm()  # decided now: the GEMMs this child computes with
     torch.set_num_threads(1)
+    gemm.set_threads(int(os.environ.get(GEMM_THREADS_ENV, "1")))
     buf = random_replay(17, 6, 1.0, 5120, "cpu")
     steps: dict[str, Callable[[], Any]] = {}
     for name, k in (("td3", 1), ("ma-td3", 2)):
@@ -58,7 +66,8 @@ def learner_child() -> None:
     for f in steps.values():
         for _ in range(4):
             f()
-    print(json.dumps({"ready": torch.backends.cpu.get_cpu_capability(), "numpy": np.__version__}), flush=True)
+    print(json.dumps({"ready": torch.backends.cpu.get_cpu_capability(), "numpy": np.__version__,
+                      "gemm": arithmetic.status().get("gemm"), "gemm_threads": gemm.threads()}), flush=True)
     for line in sys.stdin:
         n = int(line)
         out = {}
@@ -72,9 +81,9 @@ def learner_child() -> None:
 
 def bench_learner_arithmetic(rounds: int, updates: int, log: Callable[[str], None] = print) -> dict[str, Any]:
     procs = {}
-    for name, pins in LEARNER_ARITHMETICS.items():
-        env = {k: v for k, v in os.environ.items() if k not in arithmetic.PINS}
-        env.update(pins, **{arithmetic.ARITHMETIC_ENV: "native"})  # the child sets exactly `pins`
+    for name, (mode, extra) in LEARNER_ARITHMETICS.items():
+        env = {k: v for k, v in os.environ.items() if k not in arithmetic.PINS and k != arithmetic.GEMM_ENV}
+        env.update(extra, **{arithmetic.ARITHMETIC_ENV: mode})  # the child pins (or not) as it starts
         procs[name] = subprocess.Popen([sys.executable, "-m", "mam_lab.bench_arithmetic", "--child"], env=env,
                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:

@@ -21,6 +21,7 @@ from typing import Any
 import torch
 import typer
 
+from mam_core import gemm
 from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
 from mam_core.algorithm1 import Algorithm1
 from mam_core.pacing import CheckpointRule
@@ -59,8 +60,7 @@ class Learner:
         self.spec = EnvSpec.from_env_id(cfg.env_id, cfg.env_kwargs)
         self.device = pick_device(self.algo.device)
         torch.manual_seed(self.algo.seed)
-        if cfg.learner_threads > 0:
-            torch.set_num_threads(cfg.learner_threads)
+        self.threads = gemm.use_learner_threads(cfg.learner_threads)  # mam_core/gemm.py
         self.agent = MultiActorAgent(self.algo, self.spec, self.device)
         self._sampler: Any = None  # made at the first update (`sample`)
         self.plan = Algorithm1.for_run(self.algo, cfg.steps)  # every "when" of the run

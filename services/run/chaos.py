@@ -130,8 +130,8 @@ def compare_with_fault_free(run_dir: Path, figures: dict[str, Any]) -> None:
     """`exact` and `equal_to_fault_free` (with its wall time): the final policy against the
     one-process reference with the run's config and seed; a difference is a problem."""
     import numpy as np
-    import torch
 
+    from mam_core import gemm
     from mam_core.policy import read_policy_file
     from mam_core.reference import run_reference
     from services.run.config import RunConfig
@@ -143,8 +143,7 @@ def compare_with_fault_free(run_dir: Path, figures: dict[str, Any]) -> None:
     started = time.monotonic()
     try:
         cfg = RunConfig.from_dict(json.loads((run_dir / rundir.CONFIG).read_text()))
-        if cfg.learner_threads > 0:  # the learner's arithmetic (docs/DESIGN-DECISIONS.md, "Exact Algorithm 1")
-            torch.set_num_threads(cfg.learner_threads)
+        gemm.use_learner_threads(cfg.learner_threads)  # the learner's arithmetic (mam_core/gemm.py)
         ref = run_reference(cfg.env_id, cfg.algo, cfg.steps, cfg.env_kwargs)
         _, params = read_policy_file(run_dir / rundir.CHECKPOINTS / "policy.npz")
     except Exception as e:  # noqa: BLE001 - a comparison that cannot be made is a finding

@@ -40,8 +40,8 @@ class RunConfig:
     stall_timeout: float = 300.0  # no transition and no update for this long: stalled (0: no watchdog)
     send_batch: int = 32  # transitions per message from a worker
     save_replay: bool = True  # the replay buffer as append-only chunks beside the checkpoint
-    learner_threads: int = 1  # torch threads of the learner (0: torch's default); 1 avoids
-    # OpenMP spin contention with the workers on a small box
+    learner_threads: int = 0  # the learner's threads (mam_core/gemm.py): portable: its GEMMs over this many
+    # (0: every CPU it may use; the same bits for any count); native: torch threads (0: torch's default)
     endpoint: str = ""  # where clients connect (written to config.json)
     bias_every: int = 0  # Eq. 17 estimation bias every N transitions, measured by the learner (0: off)
     bias_rollouts: int = 20  # Monte-Carlo rollouts per bias point (the paper: 20)

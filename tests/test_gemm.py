@@ -1,0 +1,108 @@
+"""The learner's portable GEMMs (mam_core/gemm.py): right, the same bits for any thread count, and
+never in the form OpenBLAS runs with another kernel on AVX-512 CPUs."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from mam_core import arithmetic, gemm
+from mam_core.agent import EnvSpec, MultiActorAgent
+from mam_core.config import resolve
+from mam_lab.bench_learner import random_replay
+from tests.e2e import ROOT
+
+pytestmark = pytest.mark.skipif(not arithmetic.portable_gemm(), reason="the suite runs with portable arithmetic")
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    yield
+    gemm.set_threads(1)
+
+
+def layouts(e: int, m: int, k: int, n: int, rng: np.random.Generator) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """(a, b) pairs of one product in every layout the layers make: row- and column-major operands,
+    a member axis expanded from one shared input."""
+    a = torch.from_numpy(rng.standard_normal((e, m, k), dtype=np.float32))
+    b = torch.from_numpy(rng.standard_normal((e, k, n), dtype=np.float32))
+    shared = torch.from_numpy(rng.standard_normal((k, n), dtype=np.float32)).unsqueeze(0).expand(e, -1, -1)
+    return [(a, b), (a.mT.contiguous().mT, b), (a, b.mT.contiguous().mT), (a.mT.contiguous().mT, b.mT.contiguous().mT),
+            (a, shared), (a, shared.mT.contiguous().mT)]
+
+
+def test_products_match_float64() -> None:
+    rng = np.random.default_rng(0)
+    for e, m, k, n in [(4, 256, 23, 256), (2, 1, 256, 256), (2, 256, 256, 1), (3, 6, 256, 64), (1, 17, 5, 3)]:
+        for a, b in layouts(e, m, k, n, rng):
+            got = gemm.bmm(a, b)
+            want = torch.bmm(a.double(), b.double())
+            assert got.shape == (e, m, n) and got.dtype == torch.float32
+            torch.testing.assert_close(got.double(), want, rtol=1e-5, atol=1e-4)
+
+
+def test_gradients_match_torch() -> None:
+    rng = np.random.default_rng(1)
+    bias = torch.from_numpy(rng.standard_normal((3, 8, 1), dtype=np.float32)).requires_grad_()
+    a = torch.from_numpy(rng.standard_normal((3, 8, 5), dtype=np.float32)).requires_grad_()
+    x = torch.from_numpy(rng.standard_normal((3, 5, 40), dtype=np.float32)).requires_grad_()
+    upstream = torch.from_numpy(rng.standard_normal((3, 8, 40), dtype=np.float32))
+    ours = torch.autograd.grad((gemm.baddbmm(bias, a, x) * upstream).sum(), (bias, a, x))
+    theirs = torch.autograd.grad((torch.baddbmm(bias.double(), a.double(), x.double()) * upstream).sum(), (bias, a, x))
+    for got, want in zip(ours, theirs):
+        torch.testing.assert_close(got.double(), want.double(), rtol=1e-5, atol=1e-4)
+
+
+def trained(threads: int, algo: str = "ma-td3", updates: int = 6) -> dict[str, np.ndarray]:
+    gemm.set_threads(threads)
+    buf = random_replay(17, 6, 1.0, 2000, "cpu")
+    # big enough that the members' products do spread over the threads (gemm._PARALLEL_MIN_FLOPS)
+    cfg = resolve(algo, actors=2, hidden=(128, 128), batch_size=128, seed=4)
+    agent = MultiActorAgent(cfg, EnvSpec(17, 6, (1.0,) * 6), "cpu")
+    sample = agent.sampler(buf)
+    for _ in range(updates):
+        agent.update(sample())
+    state = agent.state_dict()
+    return {f"{net}.{name}": t.numpy().copy() for net in ("actor", "critic", "critic_target")
+            for name, t in state[net].items()}
+
+
+@pytest.mark.parametrize("algo", ["ma-td3", "ma-sac"])
+def test_the_same_bits_for_every_thread_count(algo: str) -> None:
+    assert 2 * 128 ** 3 >= gemm._PARALLEL_MIN_FLOPS
+    one, two, three = trained(1, algo), trained(2, algo), trained(3, algo)
+    for name in one:
+        assert np.array_equal(one[name], two[name]) and np.array_equal(one[name], three[name]), name
+
+
+def test_no_product_is_a_row_major_nn_call(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every operand pair an update hands to BLAS: at least one is transposed in BLAS's terms
+    (OpenBLAS would run row-major N·N products in its AVX-512 kernel on AVX-512 CPUs)."""
+    seen: list[tuple[bool, bool]] = []
+    mm = gemm._mm
+
+    def recording(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+        seen.append((gemm.row_major(a), gemm.row_major(b)))
+        mm(a, b, out)
+
+    monkeypatch.setattr(gemm, "_mm", recording)
+    trained(1, updates=2)
+    assert len(seen) > 20 and (True, True) not in seen
+
+
+def test_the_fallback_is_mkl_compatible() -> None:
+    """`MAM_PORTABLE_GEMM=mkl` puts the GEMMs back in torch (MKL's COMPATIBLE branch)."""
+    code = ("import mam_core; from mam_core import arithmetic; "
+            "print(arithmetic.portable_gemm(), arithmetic.status()['gemm'])")
+    env = {k: v for k, v in os.environ.items() if k not in arithmetic.PINS}
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60,
+                         env=dict(env, **{arithmetic.GEMM_ENV: "mkl", arithmetic.ARITHMETIC_ENV: "portable"}))
+    assert out.stdout.split() == ["False", "mkl-compatible"], out.stderr
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60,
+                         env=dict(env, **{arithmetic.ARITHMETIC_ENV: "portable"}))
+    assert out.stdout.split() == ["True", "openblas-haswell"], out.stderr
