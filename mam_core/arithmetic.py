@@ -98,6 +98,20 @@ def pin() -> dict[str, Any]:
     return dict(_status)
 
 
+def unpinned_environ() -> dict[str, str]:
+    """os.environ as it was before `pin()` set the pins: for a child that must choose its own
+    kernels (a yardstick that is not mam)."""
+    pin()
+    env = dict(os.environ)
+    for k, v in _before.items():
+        if v is None:
+            env.pop(k, None)
+        else:
+            env[k] = v
+    env.pop(ARITHMETIC_ENV, None)
+    return env
+
+
 def portable_gemm() -> bool:
     """Do the learner's float32 GEMMs run in `mam_core.gemm` (NumPy's pinned OpenBLAS)? Under
     portable arithmetic where NumPy's BLAS is OpenBLAS; else torch's (MKL COMPATIBLE under

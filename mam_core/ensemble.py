@@ -25,7 +25,7 @@ FEATURE_MAJOR_MIN_ROWS = 32
 def _products(x: torch.Tensor) -> tuple:
     """(baddbmm, addmm) for float32 layers on x's device: on a CPU under portable arithmetic the
     pinned kernels of `mam_core.gemm` (the same bits on every CPU), else torch's."""
-    if x.device.type == "cpu" and arithmetic.portable_gemm():
+    if x.device.type == "cpu" and x.dtype == torch.float32 and arithmetic.portable_gemm():
         return gemm.baddbmm, gemm.addmm
     return torch.baddbmm, torch.addmm
 
