@@ -63,7 +63,8 @@ def use_learner_threads(n: int) -> str:
     """A learner's threads (`--learner-threads`, RunConfig.learner_threads; 0: automatic). Under
     portable GEMMs torch keeps one thread (its reductions split by the thread count, which would
     change bits) and the GEMMs spread over n threads (0: every CPU this process may use); under
-    torch's own GEMMs (native or the MKL fallback) torch gets n threads (0: torch's default).
+    torch's own GEMMs (native or the MKL fallback) torch gets n threads (0: one, as before: torch's
+    OpenMP threads spin and contend with the workers on a small box).
     Returns what was set, for the log."""
     from mam_core import arithmetic
 
@@ -71,8 +72,7 @@ def use_learner_threads(n: int) -> str:
         torch.set_num_threads(1)
         set_threads(n if n > 0 else default_threads())
         return f"1 torch thread, GEMMs over {threads()} thread(s) (the same bits for any count)"
-    if n > 0:
-        torch.set_num_threads(n)
+    torch.set_num_threads(n if n > 0 else 1)
     return f"{torch.get_num_threads()} torch thread(s)"
 
 

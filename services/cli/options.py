@@ -147,7 +147,7 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
     # TOML only: knobs of the algorithm and the services that no command line needs
     _opt("send_batch", int, "transitions per message from a worker", target=RUN, cli=False),
     _opt("learner_threads", int, "the learner's threads: portable arithmetic spreads its GEMMs over them (0: every "
-         "CPU it may use; the bits do not depend on it), native gives them to torch (0: torch's default)",
+         "CPU it may use; the bits do not depend on it), native gives them to torch (0: one)",
          target=RUN, cli=False),
     _opt("critics_per_actor", int, "critics per actor", symbol="n", cli=False),
     _opt("lr", float, "actor, critic (and SAC's α) learning rate (Adam)", cli=False),

@@ -41,7 +41,7 @@ class RunConfig:
     send_batch: int = 32  # transitions per message from a worker
     save_replay: bool = True  # the replay buffer as append-only chunks beside the checkpoint
     learner_threads: int = 0  # the learner's threads (mam_core/gemm.py): portable: its GEMMs over this many
-    # (0: every CPU it may use; the same bits for any count); native: torch threads (0: torch's default)
+    # (0: every CPU it may use; the same bits for any count); native: torch threads (0: one)
     endpoint: str = ""  # where clients connect (written to config.json)
     bias_every: int = 0  # Eq. 17 estimation bias every N transitions, measured by the learner (0: off)
     bias_rollouts: int = 20  # Monte-Carlo rollouts per bias point (the paper: 20)
