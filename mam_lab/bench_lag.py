@@ -1,8 +1,13 @@
 """`mam bench --only lag`: `mam run` at lag 0 and at lag 2 against the one-process reference.
 
-HalfCheetah-v5 MA-TD3 (K = 2, M = 3, paper schedule) for the same number of iterations, three
-ways per round, interleaved (the order rotates every round) so a shared machine slows all of
-them alike: `run_reference` in a process of its own, `mam run --lag 0` and `mam run --lag 2`.
+HalfCheetah-v5 MA-TD3 (K = 2, paper schedule) for the same number of iterations, three ways per
+round, interleaved (the order rotates every round) so a shared machine slows all of them alike:
+`run_reference` in a process of its own, `mam run --lag 0` and `mam run --lag 2`. Two
+configurations (`CONFIGS`): **learner-bound** (M = 3, the bench's networks: the updates are nearly
+all of the reference's time) and **collection-heavy** (M = 6, 32×32 networks, batch 64, 4
+evaluation episodes a competition: stepping and evaluating take a third or more of it, so the
+lag has work to overlap). The reference reports the share of its wall time spent in updates
+(`reference_update_share`); the rest is stepping, acting and evaluating.
 The figure of each lag is a *speed*: the reference's wall time ÷ `mam run`'s wall time (above 1:
 the distributed run is faster than one process computing the same run), the median over rounds.
 The learner's wait share (the time its loop waited for an iteration's rows, learner.jsonl's
@@ -24,28 +29,46 @@ from typing import Any, Callable
 from mam_lab.bench_sizes import ROOT, BenchSizes, _child_env, _stop
 
 LAGS = (0, 2)
+# name: (key prefix, workers, hidden (None: the bench's), batch (None: the bench's), evaluation episodes)
+CONFIGS = {"learner-bound": ("", 3, None, None, 1), "collection-heavy": ("collection_", 6, (32, 32), 64, 4)}
 
 
-def run_args(sizes: BenchSizes, iterations: int, seed: int) -> list[str]:
+def run_args(sizes: BenchSizes, iterations: int, seed: int, config: str = "learner-bound") -> list[str]:
     """The run's options (shared by `mam run` and the reference)."""
+    _, workers, hidden, batch, episodes = CONFIGS[config]
     start, c = iterations // 4, iterations // 2
-    return ["--env", "HalfCheetah-v5", "--algo", "ma-td3", "--workers", "3", "--steps", str(iterations),
+    return ["--env", "HalfCheetah-v5", "--algo", "ma-td3", "--workers", str(workers), "--steps", str(iterations),
             "--start-steps", str(start), "--compete-every", str(c // 2), "--eliminate-at", str(c),
-            "--eval-episodes", "1", "--eval-every", str(10 * iterations), "--hidden", ",".join(map(str, sizes.hidden)),
-            "--batch-size", str(sizes.batch_size), "--seed", str(seed)]
+            "--eval-episodes", str(episodes), "--eval-every", str(10 * iterations),
+            "--hidden", ",".join(map(str, hidden or sizes.hidden)), "--batch-size", str(batch or sizes.batch_size),
+            "--seed", str(seed)]
 
 
 REFERENCE = """
-import sys, time, torch
+import json, sys, time
+import mam_core, torch
+from mam_core.algorithm1 import Algorithm1
 from mam_core.config import resolve
 from mam_core.reference import run_reference
 torch.set_num_threads(1)
 a = dict(zip(sys.argv[1::2], sys.argv[2::2]))
-cfg = resolve("ma-td3", workers=3, start_steps=int(a["--start-steps"]), compete_every=int(a["--compete-every"]),
-              eliminate_at=int(a["--eliminate-at"]), eval_episodes=1, eval_every=int(a["--eval-every"]),
+cfg = resolve("ma-td3", workers=int(a["--workers"]), start_steps=int(a["--start-steps"]),
+              compete_every=int(a["--compete-every"]), eliminate_at=int(a["--eliminate-at"]),
+              eval_episodes=int(a["--eval-episodes"]), eval_every=int(a["--eval-every"]),
               hidden=tuple(int(h) for h in a["--hidden"].split(",")), batch_size=int(a["--batch-size"]),
               seed=int(a["--seed"]))
+spent = [0.0]
+updates = Algorithm1.run_updates
+def timed_updates(*args, **kw):
+    t = time.perf_counter()
+    try:
+        return updates(*args, **kw)
+    finally:
+        spent[0] += time.perf_counter() - t
+Algorithm1.run_updates = timed_updates
+t0 = time.perf_counter()
 run_reference(a["--env"], cfg, int(a["--steps"]))
+print(json.dumps({"update_share": spent[0] / (time.perf_counter() - t0)}))
 """
 
 
@@ -74,21 +97,33 @@ def timed(cmd: list[str], out: Path, timeout: float) -> float:
 
 
 def bench_lag(sizes: BenchSizes, log: Callable[[str], None] = print, rounds: int = 2,
-              iterations: int | None = None) -> dict[str, Any]:
+              iterations: int | None = None, configs: tuple[str, ...] = tuple(CONFIGS)) -> dict[str, Any]:
     iterations = iterations or (400 if sizes.hidden[0] <= 32 else 3000)
-    log(f"lag: HalfCheetah-v5 ma-td3, K=2, M=3, paper schedule, {iterations} iterations: the one-process reference, "
-        f"mam run --lag {LAGS[0]} and --lag {LAGS[1]}, {rounds} interleaved rounds")
+    out: dict[str, Any] = {"lag_iterations": iterations, "lag_rounds": rounds}
+    for config in configs:
+        out.update(_bench_config(sizes, log, rounds, iterations, config))
+    return out
+
+
+def _bench_config(sizes: BenchSizes, log: Callable[[str], None], rounds: int, iterations: int,
+                  config: str) -> dict[str, Any]:
+    prefix, workers = CONFIGS[config][:2]
+    log(f"lag ({config}): HalfCheetah-v5 ma-td3, K=2, M={workers}, paper schedule, {iterations} iterations: the "
+        f"one-process reference, mam run --lag {LAGS[0]} and --lag {LAGS[1]}, {rounds} interleaved rounds")
     sides = ["reference", *(f"lag{b}" for b in LAGS)]
     walls: dict[str, list[float]] = {side: [] for side in sides}
     waits: dict[str, list[float]] = {side: [] for side in sides[1:]}
+    shares: list[float] = []
     with tempfile.TemporaryDirectory(prefix="mam-bench-lag-") as tmp:
         work = Path(tmp)
         for r in range(rounds):
-            args = run_args(sizes, iterations, seed=r)
+            args = run_args(sizes, iterations, seed=r, config=config)
             for side in sides[r % len(sides):] + sides[:r % len(sides)]:
                 if side == "reference":
                     cmd = [sys.executable, "-c", REFERENCE, *args]
                     walls[side].append(timed(cmd, work / f"ref-{r}.out", sizes.timeout_s * 4))
+                    shares.append(json.loads((work / f"ref-{r}.out").read_text().strip().splitlines()[-1])
+                                  ["update_share"])
                     continue
                 run = f"bench-{side}-{uuid.uuid4().hex[:6]}"
                 cmd = [sys.executable, "-m", "services.cli", "run", *args, "--lag", side[3:], "--run", run,
@@ -98,11 +133,11 @@ def bench_lag(sizes: BenchSizes, log: Callable[[str], None] = print, rounds: int
                 waits[side].append(wait_share(rows))
             log(f"round {r + 1}: " + ", ".join(f"{side} {walls[side][-1]:.1f} s" for side in sides))
     med = statistics.median
-    out: dict[str, Any] = {"lag_iterations": iterations, "lag_rounds": rounds,
-                           "lag_reference_wall_s": med(walls["reference"])}
+    out: dict[str, Any] = {f"{prefix}lag_reference_wall_s": med(walls["reference"]),
+                           f"{prefix}lag_reference_update_share": med(shares), f"{prefix}lag_workers": workers}
     for b in LAGS:
         side = f"lag{b}"
-        out[f"lag{b}_speed_vs_reference"] = med(ref / w for ref, w in zip(walls["reference"], walls[side]))
-        out[f"lag{b}_wall_s"] = med(walls[side])
-        out[f"lag{b}_learner_wait_share"] = med(waits[side])
+        out[f"{prefix}lag{b}_speed_vs_reference"] = med(ref / w for ref, w in zip(walls["reference"], walls[side]))
+        out[f"{prefix}lag{b}_wall_s"] = med(walls[side])
+        out[f"{prefix}lag{b}_learner_wait_share"] = med(waits[side])
     return out
