@@ -3,6 +3,7 @@ never in the form OpenBLAS runs with another kernel on AVX-512 CPUs."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -106,3 +107,29 @@ def test_the_fallback_is_mkl_compatible() -> None:
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60,
                          env=dict(env, **{arithmetic.ARITHMETIC_ENV: "portable"}))
     assert out.stdout.split() == ["True", "openblas-haswell"], out.stderr
+
+
+@pytest.mark.slow
+def test_a_run_whose_learner_uses_other_threads_equals_the_reference(tmp_path) -> None:
+    """`mam run` with `learner_threads = 2` (its GEMMs over two threads, products big enough to
+    spread) against `run_reference` in this process at one: the same evaluations and policy."""
+    from mam_core.reference import run_reference
+    from tests.e2e import mam, unique_run
+    from tests.test_exact import _record, _same_params
+
+    assert gemm.threads() == 1 and 2 * 128 * 128 * 64 >= gemm._PARALLEL_MIN_FLOPS
+    config = tmp_path / "threads.toml"
+    config.write_text("learner_threads = 2\n")
+    flags = dict(hidden=(128, 128), batch_size=64, start_steps=60, compete_every=60, eliminate_at=180, workers=3,
+                 actors=2, eval_episodes=1, eval_every=60)
+    run_dir = tmp_path / "run"
+    mam("run", "--config", str(config), "--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--steps", "240",
+        "--workers", "3", "--actors", "2", "--start-steps", "60", "--compete-every", "60", "--eliminate-at", "180",
+        "--eval-episodes", "1", "--eval-every", "60", "--hidden", "128,128", "--batch-size", "64", "--seed", "5",
+        "--run", unique_run("threads"), "--run-dir", str(run_dir), timeout=300)
+    assert json.loads((run_dir / "config.json").read_text())["learner_threads"] == 2
+    got = _record(run_dir)
+    ref = run_reference("AppleCollect-v1", resolve("ma-ddpg", seed=5, **flags), 240)
+    assert got["summary"]["exact"] is True and got["summary"]["survivor"] == ref.survivor
+    assert got["evals"] == [(e["iterations"], e["purpose"], e["returns"]) for e in ref.evaluations]
+    assert _same_params(got["params"], ref.policy)
