@@ -190,10 +190,8 @@ class Learner:
         if not self.mid_iteration:
             learner_files.checkpoint(self)
 
-    def sample(self) -> Any:
-        """An update's mini-batch(es): `agent.sampler` (on a GPU, indices staged for the CUDA graphs)."""
-        if self._sampler is None:
-            self._sampler = self.agent.sampler(self.buffer, self.algo.batch_size)
+    def sample(self) -> Any:  # `agent.sampler`: on a GPU, indices staged for the CUDA graphs
+        self._sampler = self._sampler or self.agent.sampler(self.buffer, self.algo.batch_size)
         return self._sampler()
 
     def idle_duties(self, awaited: str, since: float) -> None:
