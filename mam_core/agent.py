@@ -222,18 +222,26 @@ class MultiActorAgent:
         # takes them; `structure` counts the changes that invalidate a captured graph.
         self.graphs: Any = None
         self.structure = 0
+        self._sampler: tuple[tuple[int, int], Callable[[], Any]] | None = None  # `sampler`'s last (key, function)
 
     def sampler(self, buffer: Any, batch_size: int | None = None) -> Callable[[], Any]:
         """What Algorithm 1 calls for each update's mini-batch(es) from `buffer` (a ReplayBuffer):
         `buffer.sample(B, batch_groups)`, or on a device that takes CUDA graphs (mam_core/accel.py)
-        the same indices staged for the graphed update, which gathers the rows itself."""
+        the same indices staged for the graphed update, which gathers the rows itself. Made once
+        per buffer and batch size, then the same function."""
         batch_size = batch_size or self.cfg.batch_size
+        key = (id(buffer), batch_size)
+        if self._sampler is not None and self._sampler[0] == key:
+            return self._sampler[1]
         from mam_core import graphs
 
         if graphs.usable(self, buffer):
             self.graphs = graphs.UpdateGraphs(self, buffer, batch_size)
-            return self.graphs.stage
-        return lambda: buffer.sample(batch_size, self.batch_groups)
+            sample = self.graphs.stage
+        else:
+            sample = lambda: buffer.sample(batch_size, self.batch_groups)  # noqa: E731
+        self._sampler = (key, sample)
+        return sample
 
     # -- the update step -------------------------------------------------------------------
     def update(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:

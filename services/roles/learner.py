@@ -60,9 +60,8 @@ class Learner:
         self.spec = EnvSpec.from_env_id(cfg.env_id, cfg.env_kwargs)
         self.device = pick_device(self.algo.device)
         torch.manual_seed(self.algo.seed)
-        self.threads = gemm.use_learner_threads(cfg.learner_threads)  # mam_core/gemm.py
+        gemm.use_learner_threads(cfg.learner_threads)  # mam_core/gemm.py
         self.agent = MultiActorAgent(self.algo, self.spec, self.device)
-        self._sampler: Any = None  # made at the first update (`sample`)
         self.plan = Algorithm1.for_run(self.algo, cfg.steps)  # every "when" of the run
         self.schedule = self.plan.schedule
         self.iteration = 0  # iterations whose updates are done
@@ -191,8 +190,7 @@ class Learner:
             learner_files.checkpoint(self)
 
     def sample(self) -> Any:  # `agent.sampler`: on a GPU, indices staged for the CUDA graphs
-        self._sampler = self._sampler or self.agent.sampler(self.buffer, self.algo.batch_size)
-        return self._sampler()
+        return self.agent.sampler(self.buffer, self.algo.batch_size)()
 
     def idle_duties(self, awaited: str, since: float) -> None:
         """While the loop waits: stats, config and log rows; after HEARTBEAT_S, what a role may
