@@ -1,7 +1,8 @@
 """The docs stay true: every command they show parses, every path, test and section they cite
 exists, every run option is documented where a user looks, and no removed option is named.
 
-Everything here reads files and the command objects typer builds (its own copy of click) (no subprocess, no run): the fast suite.
+Everything here reads files and the command objects typer builds (its own copy of click): no
+subprocess, no run, the fast suite.
 """
 
 from __future__ import annotations

@@ -83,6 +83,15 @@ def with_noise(pi: TrainedPolicy, sigma: float, seed: int):
     return policy
 
 
+def lengths_text(lengths: Any) -> str:
+    """The episode lengths in one phrase: "length 200 (every episode)", or their range and mean (each
+    episode's own is on its line above)."""
+    lengths = [int(n) for n in lengths]
+    if len(set(lengths)) == 1:
+        return f"length {lengths[0]} ({'every episode' if len(lengths) > 1 else 'one episode'})"
+    return f"lengths {min(lengths)}–{max(lengths)} (mean {sum(lengths) / len(lengths):.1f})"
+
+
 def record_episodes(policy: Any, env_id: str, env_kwargs: dict[str, Any], episodes: int, seed: int,
                     video: Path) -> tuple[np.ndarray, np.ndarray, int]:
     """Episodes one at a time with rgb_array frames into an MP4 (H.264); (returns, lengths, frames)."""
@@ -204,8 +213,8 @@ def eval_command(
                f"seed {seed}")
     for i, (ret, n) in enumerate(zip(returns, lengths)):
         typer.echo(f"  episode {i:3d}  return {ret:12.3f}  length {n:5d}")
-    typer.echo(f"return {result['mean']:.3f} ± {result['std']:.3f} over {episodes} episode(s); lengths "
-               f"{', '.join(str(int(n)) for n in lengths)} (mean {np.mean(lengths):.1f})")
+    typer.echo(f"return {result['mean']:.3f} ± {result['std']:.3f} (std) over {episodes} episode(s); "
+               f"{lengths_text(lengths)}")
     if video is not None:
         typer.echo(f"video {video} ({frames} frames)")
     sys.stdout.flush()
