@@ -6,7 +6,7 @@ no learner, no torch. By default it reproduces the run's final evaluation: the s
 same episodes (episode i is reset with seed + i) and deterministic actions, so the returns equal
 the final returns in summary.json and the last row of eval.jsonl. `--video` renders the
 episodes to an MP4 (episodes run one at a time then, with `render_mode="rgb_array"`; MuJoCo
-tasks render offscreen with EGL, see README.md "Use your trained policy").
+tasks render offscreen with EGL, see docs/GUIDE.md, "Use your trained policy").
 """
 
 from __future__ import annotations
