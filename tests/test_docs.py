@@ -356,3 +356,24 @@ def test_the_removed_keys_are_the_ones_the_code_retires():
     from services.run.config import RETIRED_KEYS
 
     assert {k for k in RETIRED_KEYS} == {r[2:].replace("-", "_") for r in REMOVED if r.startswith("--")}
+
+
+# -- the README as a newcomer reads it -------------------------------------------------------------
+def test_the_readme_s_first_screen_leads_to_running_across_machines():
+    readme = _text(ROOT / "README.md")
+    assert "(#across-machines)" in "\n".join(readme.splitlines()[:8])
+    assert "across-machines" in anchors("README.md")
+
+
+def test_the_readme_indexes_every_doc_and_the_licence():
+    readme = _text(ROOT / "README.md")
+    for doc in (ROOT / "docs").glob("*.md"):
+        assert f"](docs/{doc.name})" in readme, doc.name
+    assert "](LICENSE)" in readme and "MIT" in (ROOT / "LICENSE").read_text()
+
+
+def test_results_says_which_deviation_its_spread_is():
+    from mam_lab.tables import SPREAD_TEXT
+
+    head = "\n".join(_text(ROOT / "docs" / "RESULTS.md").splitlines()[:30])
+    assert "divisor n" in head and "divisor n" in SPREAD_TEXT
