@@ -238,3 +238,29 @@ def test_a_learning_curve_of_few_points_names_the_flag():
     assert curve_points(few).endswith("--eval-every 400 gives 10"), curve_points(few)
     many = build_run_config({"env": "AppleCollect-v1", "algo": "ma-ddpg", "steps": 4000, "eval_every": 400}, None)
     assert curve_points(many) == ""
+
+
+def test_the_demo_config_shows_everything_it_promises():
+    """`make run`'s deploy/demo.toml: updates, rounds, the elimination, a learning curve of more than
+    a few points: no budget note, no refusal (the demo's run itself is a slow test's business)."""
+    from services.run.config import curve_points, no_updates
+
+    cfg = build_run_config({}, ROOT / "deploy" / "demo.toml")
+    assert (cfg.env_id, cfg.algo.algo, cfg.steps) == ("AppleCollect-v1", "ma-ddpg", 3400)
+    assert budget_warnings(cfg) == [] and no_updates(cfg) == "" and curve_points(cfg) == ""
+
+
+def test_a_grid_s_plan_says_what_its_budgets_leave_out():
+    """`mam experiment --dry-run` prints the notes `mam run` would: here SAC's random phase (25,000)
+    covers a 3,000-iteration budget."""
+    from rich.console import Console
+
+    from mam_lab.grid import make_grid, plan
+    from mam_lab.view import describe_plan
+
+    grid = make_grid({"name": "g", "envs": ["Pendulum-v1"], "algos": ["sac"], "seeds": 1, "steps": 3000})
+    console = Console(record=True, width=300)
+    describe_plan(plan(grid), {}, ROOT / "runs" / "none", console)
+    text = _flat(console.export_text())
+    assert "note: Pendulum-v1 sac: no update: the budget (--steps 3,000 iterations)" in text, text
+    assert "--eval-every" in text
