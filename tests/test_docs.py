@@ -277,7 +277,9 @@ def anchors(doc: str) -> set[str]:
 
 
 LINK = re.compile(r"\]\(([^)\s]*?)(?:#([\w-]+))?\)")
-NAMED = re.compile(r"((?:docs/)?[A-Z-]+\.md)[`,]*\s*,?\s+\"([^\"]+)\"")
+DOC_NAMES = "README|GUIDE|DESIGN-DECISIONS|RESULTS|RELIABILITY|PERFORMANCE|DEPLOY|APPLECOLLECT|ZENOH-NOTES"
+# `docs/RESULTS.md, "Reference returns"`, `DESIGN-DECISIONS "Lock-step across processes"`, `README's "Layout"`
+NAMED = re.compile(r"((?:docs/)?(?:" + DOC_NAMES + r")(?:\.md)?)(?:'s)?[`,]*\s*,?\s+\"([^\"]+)\"")
 
 
 def test_every_link_and_its_anchor_exists():
@@ -302,6 +304,7 @@ def test_every_section_cited_by_name_is_a_heading():
     sources = {**_doc_texts(), **code}
     for source, text in sources.items():
         for file, section in NAMED.findall(re.sub(r"\s+", " ", text)):
+            file = file if file.endswith(".md") else f"{file}.md"
             doc = file if file.startswith("docs/") or file == "README.md" else f"docs/{file}"
             if not (ROOT / doc).is_file():
                 bad.append(f"{source}: {file} does not exist")
