@@ -122,6 +122,12 @@ def command_mentions() -> list[tuple[str, str, str]]:
                 if exe == "mam" and re.fullmatch(r"[a-z]+", sub):
                     words, rest = f"mam {sub}", rest[len(sub):].strip()
                 found.append((name, words, rest))
+    for unit in sorted((ROOT / "deploy" / "systemd").glob("*.service")):  # the units' commands too
+        for line in re.findall(r"^ExecStart=\S*/bin/(.*)$", _text(unit), re.M):
+            exe, _, rest = line.partition(" ")
+            sub = rest.split()[0] if exe == "mam" else ""
+            words = f"mam {sub}" if sub else exe
+            found.append((unit.relative_to(ROOT).as_posix(), words, rest[len(sub):].strip()))
     return found
 
 
@@ -129,7 +135,8 @@ def test_the_docs_show_commands():
     """The collector finds what the README shows (a guard: an empty list would pass everything)."""
     words = {w for _, w, _ in command_mentions()}
     assert {"mam run", "mam watch", "mam eval", "mam experiment", "mam report", "mam-worker", "mam-learner",
-            "mam router"} <= words
+            "mam router", "mam-referee"} <= words
+    assert any(doc.endswith(".service") for doc, _, _ in command_mentions())
 
 
 def test_every_documented_command_and_flag_exists():
