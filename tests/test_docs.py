@@ -343,6 +343,18 @@ def test_every_run_option_is_in_help_or_in_the_table_of_file_only_keys():
     assert documented <= {o.name for o in options.RUN_OPTIONS if not o.cli}, "the table lists a key that is no option"
 
 
+def test_every_run_config_field_is_a_run_option():
+    """What a run's config.json holds is settable and so documented: the run options, less the
+    resolved algorithm (its own fields are options) and the endpoint `mam run` picks."""
+    import dataclasses
+
+    from services.cli import options
+    from services.run.config import RunConfig
+
+    names = {alias for o in options.RUN_OPTIONS for alias in (o.name, *o.aliases)}
+    assert {f.name for f in dataclasses.fields(RunConfig)} - {"algo", "endpoint"} <= names
+
+
 def test_mam_run_help_names_the_file_only_keys():
     from services.cli import options
 
