@@ -224,6 +224,18 @@ def test_every_cited_path_exists():
     assert not bad, "\n".join(bad)
 
 
+OTHER_PROJECTS_FILES = {"pyproject.toml", "main.py"}  # main.py: sfujim/TD3's training loop (PERFORMANCE.md)
+
+
+def test_every_module_named_by_its_file_name_exists():
+    """`pacing.py`, `learner_files.py`: a file name without its folder names a file of the repository."""
+    files = {p.name for d in TOP for p in (ROOT / d).rglob("*") if p.is_file()}
+    bad = [f"{doc}: {name}" for doc, text in _doc_texts().items()
+           for name in set(re.findall(r"(?<![\w/.-])([a-z_0-9]+\.(?:py|sh|toml|json5))(?![\w/])", text))
+           if name not in files | OTHER_PROJECTS_FILES]
+    assert not bad, "\n".join(bad)
+
+
 def _test_names(path: Path) -> set[str]:
     tree = ast.parse(path.read_text())
     return {n.name for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.ClassDef))}
