@@ -142,19 +142,3 @@ def test_the_learner_does_import_torch():
             "except SystemExit:\n    pass\nprint('torch' in sys.modules)\n")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert out.stdout.strip().splitlines()[-1] == "True"
-
-
-def test_the_router_says_where_it_listens(caplog):
-    """`mam router` logs its endpoints, so a user knows what the other hosts --connect to."""
-    import logging
-    import threading
-
-    from services.messaging import bus
-    from services.roles import router
-
-    endpoint = bus.loopback_endpoint(bus.free_tcp_port())
-    stop = threading.Event()
-    stop.set()  # up, say so, and return
-    with caplog.at_level(logging.INFO, logger="mam.router"):
-        router.serve(bus.make_config(listen=[endpoint], mode="router"), stop, [endpoint])
-    assert f"listening on {endpoint}" in caplog.text

@@ -25,11 +25,9 @@ log = logging.getLogger("mam.router")
 app = typer.Typer(add_completion=False, help=__doc__)
 
 
-def serve(conf, stop: threading.Event, listen: list[str] | None = None) -> None:
+def serve(conf, stop: threading.Event) -> None:
     with bus.session_scope(conf) as session:
-        where = ", ".join(listen or []) or "the --zenoh-config endpoints"
-        log.info("router %s up, listening on %s (other hosts: --connect with this host's address)",
-                 session.zid(), where)
+        log.info("router %s up", session.zid())
         stop.wait()
 
 
@@ -43,7 +41,7 @@ def router_command(
     conf = bus.make_config(connect=connect, listen=listen, config_file=zenoh_config, mode="router")
     stop = threading.Event()
     role.stop_on_signals(stop.set)
-    serve(conf, stop, listen)
+    serve(conf, stop)
 
 
 cli = app  # `mam router`
