@@ -98,7 +98,7 @@ def experiment_command(
 
     Every run option of `mam run` but the grid's own dimensions (env, algo, steps, seed, run name)
     is a flag here too. The multi-actor flags (--actors, --workers, --eliminate-at, --compete-every,
-    --eta, --after-elimination, ...) apply to ma-td3 / ma-ddpg only; the others to every run.
+    --eta, --after-elimination, ...) apply to ma-td3, ma-ddpg and ma-sac only; the others to every run.
     """
     import logging
 

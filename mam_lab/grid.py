@@ -248,8 +248,10 @@ def load_grid_file(path: Path) -> dict[str, Any]:
     data = {_norm_key(k): v for k, v in data.items()}
     unknown = set(data) - GRID_KEYS
     if unknown:
-        raise GridError(f"{path}: unknown key(s) {sorted(unknown)}; algorithm options go in [common] or "
-                        f"[algo.NAME]")
+        dims = {"seed": "seeds", "env": "envs", "eta": "etas", "ablation": "ablations"}  # in the singular
+        said = "; ".join(f"{k!r}: the grid dimension is {dims[k]!r} (a list)" for k in sorted(unknown) if k in dims)
+        raise GridError(f"{path}: unknown key(s) {sorted(unknown)}; " + (said + "; " if said else "")
+                        + "run options go in [common] or [algo.NAME] (deploy/experiments/README.md)")
     data.setdefault("name", path.stem)
     return data
 

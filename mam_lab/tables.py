@@ -66,6 +66,11 @@ def _p(x: float) -> str:
     return f"{x:.3f}" if x >= 0.001 else f"{x:.1e}"
 
 
+# What every `±` of the report is (the paper's ± is a std over seeds too, without saying which).
+SPREAD_TEXT = ("Every ± is the standard deviation over seeds with divisor n (numpy's default), not the sample "
+               "deviation (divisor n − 1), which is √(n/(n − 1)) times larger: 12% for 5 seeds, 5% for 10.")
+
+
 def _mean_std(a: np.ndarray) -> str:
     a = np.asarray(a, dtype=float)
     a = a[np.isfinite(a)]
@@ -245,6 +250,7 @@ def render_markdown(report: Report, figures: dict[str, list[Path]], out: Path) -
         lines += ["", "**Notes:**", ""] + [f"- {n}" for n in report.notes]
     lines += ["", f"Tables on the x-axis: **{AXIS_TEXT.get(report.axis, report.axis)}**; learning curves on "
               + " and on ".join(report.axes) + ".",
+              "", SPREAD_TEXT,
               "", "*Deployed final return* and *deployed AUC*: the verdict's scores (above), mean ± std over "
               "seeds. The *best-of-K* columns (secondary: before C they take a max over the K actors, on the "
               "episodes that selected them) score an evaluation as the mean return of the best live actor (the "
@@ -329,6 +335,7 @@ def print_tables(report: Report, console: Any) -> None:
     """The report's tables on the console: rich tables on a terminal, Markdown otherwise (print_table)."""
     if report.verdicts or report.pending:
         header, rows = verdict_rows(report.verdicts, report.pending)
+        console.print(SPREAD_TEXT, highlight=False)
         print_table(console, "Verdict (the deployed actor's final return; rules and more columns in report.md)",
                     header[:TERMINAL_COLUMNS], [r[:TERMINAL_COLUMNS] for r in rows], fold=True)
     for r in report.pending:
@@ -342,7 +349,8 @@ def print_tables(report: Report, console: Any) -> None:
     for env, bs in report.bias.items():
         print_table(console, f"Estimation bias (Eq. 17), {env}", *bias_rows(bs))
     if report.comparisons:
-        print_table(console, "Probability of improvement (best-of-K last-10 scores, secondary)",
+        print_table(console, "Probability of improvement on another score: the best live actor's last-10 mean "
+                    "(best-of-K, secondary; the verdict's P scores the deployed actor's final return)",
                     *comparison_rows(report.comparisons))
     if report.aggregate:
         rows = [[name, str(n), _fmt(i.value, 3), _ci(i, 3)] for name, n, i in report.aggregate]

@@ -194,6 +194,15 @@ def estimate_text(estimate_s: float | None) -> str:
     return "no estimate" if estimate_s is None else f"est. {hms(estimate_s)}"
 
 
+def budget_notes(spec: RunSpec) -> list[str]:
+    """The budget notes of `mam run` (services/run/config.py) for one planned run: no update, no
+    round, no elimination, M < K, a learning curve of fewer than 3 points."""
+    from services.run.config import budget_warnings, curve_points
+
+    cfg = spec.run_config("plan")
+    return [*budget_warnings(cfg), *filter(None, [curve_points(cfg)])]
+
+
 def describe_plan(specs: Sequence[RunSpec], aliases: Mapping[str, str], exp_dir: Path, console: Console,
                   ledger: Path | None = None, estimates: Mapping[tuple[str, str], Sequence[float]] | None = None,
                   ) -> None:
@@ -214,3 +223,6 @@ def describe_plan(specs: Sequence[RunSpec], aliases: Mapping[str, str], exp_dir:
                 ("env", "variant", "seeds", "budget (T)", "options", "finished", "wall/run"), rows, fold=True)
     for dup, same in aliases.items():
         console.print(f"[dim]{dup} is the same configuration as {same}: run once[/]")
+    for (env, variant), ss in groups.items():  # what a variant's budget leaves out, as `mam run` says it
+        for line in budget_notes(ss[0]):
+            console.print(f"note: {env} {variant}: {line}", highlight=False)

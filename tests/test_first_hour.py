@@ -128,7 +128,8 @@ def test_mam_run_says_at_start_what_the_budget_leaves_out(tmp_path: Path) -> Non
     thing left out, and the run still ends normally."""
     run = unique_run("noop")
     r = _mam(tmp_path, "run", *TINY, "--steps", "60", "--start-steps", "80", "--compete-every", "100",
-             "--eliminate-at", "200", "--workers", "1", "--actors", "3", "--run", run, "--run-dir",
+             "--eliminate-at", "200", "--workers", "1", "--actors", "3", "--allow-no-updates",
+             "--run", run, "--run-dir",
              str(tmp_path / "run"), "--no-plot")
     text = _flat(r.stdout + r.stderr)
     assert r.returncode == 0, text
@@ -200,3 +201,66 @@ def test_mujoco_warnings_stay_out_of_the_terminal_and_the_working_directory(tmp_
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "made" and "settotalmass" not in r.stdout + r.stderr
     assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
+
+
+def test_a_budget_that_trains_nothing_is_refused_with_the_flags_unless_asked(tmp_path: Path):
+    """`mam run --algo sac --steps 3000`: the whole budget is the random phase (25,000): refused at once,
+    naming --steps, --start-steps and --allow-no-updates; with --allow-no-updates it gets past the check."""
+    from typer.testing import CliRunner
+
+    from services.cli.app import app
+
+    args = ["run", "--env", "Pendulum-v1", "--algo", "sac", "--steps", "3000", "--run-dir", str(tmp_path / "r")]
+    r = CliRunner().invoke(app, args, env={"COLUMNS": "300"})
+    text = _flat(r.output)
+    assert r.exit_code == 2 and "no update" in text and "--start-steps 25,000" in text, text
+    assert "--allow-no-updates" in text and "raise --steps" in text
+    assert not (tmp_path / "r").exists()
+    ran = []
+    import services.run.launcher as launcher
+
+    def fake_run_local(cfg, run_dir, **kw):
+        ran.append(cfg.steps)
+        return {"ok": True}
+
+    original, launcher.run_local = launcher.run_local, fake_run_local
+    try:
+        r = CliRunner().invoke(app, [*args, "--allow-no-updates"], env={"COLUMNS": "300"})
+    finally:
+        launcher.run_local = original
+    assert r.exit_code == 0 and ran == [3000], r.output
+
+
+def test_a_learning_curve_of_few_points_names_the_flag():
+    from services.run.config import curve_points
+
+    few = build_run_config({"env": "AppleCollect-v1", "algo": "ma-ddpg", "steps": 4000}, None)
+    assert curve_points(few).endswith("--eval-every 400 gives 10"), curve_points(few)
+    many = build_run_config({"env": "AppleCollect-v1", "algo": "ma-ddpg", "steps": 4000, "eval_every": 400}, None)
+    assert curve_points(many) == ""
+
+
+def test_the_demo_config_shows_everything_it_promises():
+    """`make run`'s deploy/demo.toml: updates, rounds, the elimination, a learning curve of more than
+    a few points: no budget note, no refusal (the demo's run itself is a slow test's business)."""
+    from services.run.config import curve_points, no_updates
+
+    cfg = build_run_config({}, ROOT / "deploy" / "demo.toml")
+    assert (cfg.env_id, cfg.algo.algo, cfg.steps) == ("AppleCollect-v1", "ma-ddpg", 3400)
+    assert budget_warnings(cfg) == [] and no_updates(cfg) == "" and curve_points(cfg) == ""
+
+
+def test_a_grid_s_plan_says_what_its_budgets_leave_out():
+    """`mam experiment --dry-run` prints the notes `mam run` would: here SAC's random phase (25,000)
+    covers a 3,000-iteration budget."""
+    from rich.console import Console
+
+    from mam_lab.grid import make_grid, plan
+    from mam_lab.view import describe_plan
+
+    grid = make_grid({"name": "g", "envs": ["Pendulum-v1"], "algos": ["sac"], "seeds": 1, "steps": 3000})
+    console = Console(record=True, width=300)
+    describe_plan(plan(grid), {}, ROOT / "runs" / "none", console)
+    text = _flat(console.export_text())
+    assert "note: Pendulum-v1 sac: no update: the budget (--steps 3,000 iterations)" in text, text
+    assert "--eval-every" in text

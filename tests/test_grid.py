@@ -147,6 +147,15 @@ def test_grid_file_rejects_unknown_keys(tmp_path):
         make_grid(load_grid_file(f))
 
 
+def test_a_top_level_seed_is_told_the_grid_dimension(tmp_path):
+    """`seed = 3` at the top of a grid file: seeds are a grid dimension, not a run option."""
+    f = tmp_path / "g.toml"
+    f.write_text('envs = ["Hopper-v5"]\nalgos = ["td3"]\nsteps = 10\nseed = 3\n')
+    with pytest.raises(GridError, match="'seed': the grid dimension is 'seeds'") as e:
+        load_grid_file(f)
+    assert "algorithm options" not in str(e.value)
+
+
 
 def test_named_variants_in_a_grid_file(tmp_path):
     f = tmp_path / "g.toml"

@@ -196,3 +196,24 @@ def test_a_toml_typo_gets_did_you_mean_and_points_to_help(tmp_path: Path):
     message = str(e.value)
     assert "unknown option 'eliminate-att'; did you mean 'eliminate-at'?" in message
     assert "mam run --help" in message and "services/cli/options.py" not in message
+
+
+def test_help_names_what_is_true_today():
+    """The help items of issue 40: MA-SAC named, bf16's layers, --env and --steps required, the
+    --arithmetic default shown, and no generated run name offered to a process that joins a run."""
+    import typer
+
+    from mam_lab.experiment import experiment_command
+    from services.cli import options
+    from services.cli.app import app
+    from services.roles import monitor, referee, worker
+
+    assert "MA-SAC" in (app.info.help or "")
+    assert "ma-sac" in (experiment_command.__doc__ or "")
+    assert "every layer but the head" in options.OPTION["precision"].help_text
+    for name in ("env", "steps"):
+        assert "required" in options.OPTION[name].help_text
+    assert "[default: portable" in options.OPTION["arithmetic"].help_text
+    for role in (worker, referee, monitor):
+        run = next(p for p in typer.main.get_command(role.app).params if p.name == "run")
+        assert "ALGO-ENV" not in (run.help or "") and not run.default, role.__name__

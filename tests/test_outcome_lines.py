@@ -59,3 +59,14 @@ def test_the_last_progress_line_agrees_with_the_done_line_and_the_referee_logs_o
     log = (run_dir / "logs" / "referee.log").read_text()
     points = re.findall(r"(?:eval|allocation \(\w+\)) at ([^:]+):", log)
     assert points and all(re.fullmatch(r"iteration [\d,]+ \([\d,]+ transitions\)", p) for p in points), points
+
+
+def test_a_resumed_run_s_done_line_says_which_clock_is_which():
+    """After a resume the wall time counts both parts, the bar's clock only the last: the line says so."""
+    cfg = build_run_config({"env": "AppleCollect-v1", "algo": "ma-ddpg", "steps": 400}, None)
+    cluster = LocalCluster(cfg, Path("/nonexistent"), "tcp/127.0.0.1:1")
+    cluster.done_at = cluster.started_at + 54
+    text = done_text(cfg, {"launcher_wall_time_s": 100.0, "final_returns": [1.0], "survivor": 0, "parts": 2}, cluster)
+    assert text.startswith("[bold green]done[/] in 100 s over 2 parts (this part reached the budget 0:00:54 after "
+                           "it started"), text
+    assert "budget reached at" not in text

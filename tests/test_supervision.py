@@ -129,7 +129,8 @@ def test_a_child_that_keeps_dying_stops_the_run_naming_it_and_its_log(tmp_path: 
     run, run_dir = unique_run("keeps-dying"), tmp_path / "run"
     # Every reset of this env raises in worker processes: the worker gives up, is restarted, gives up ...
     proc, out = start_mam_run(run, run_dir, "--env", "tests.faulty_env:BrokenResetWorkers-v0", "--algo", "td3",
-                              "--steps", "5000", "--workers", "1", "--max-restarts", "2", "--restart-window", "300",
+                              "--steps", "5000", "--allow-no-updates", "--workers", "1", "--max-restarts", "2",
+                              "--restart-window", "300",
                               *SMALL)
     try:
         proc.wait(300)

@@ -313,3 +313,11 @@ def test_after_a_short_mujoco_run_mam_eval_matches_and_records_a_video(tmp_path:
     rec = json.loads(mam("eval", str(run_dir), "--episodes", "1", "--video", str(video), "--json").stdout)
     assert _playable(video) == (rec["frames"], (480, 480, 3)) and rec["frames"] == rec["lengths"][0] + 1
     assert rec["returns"][0] == pytest.approx(out["returns"][0], abs=1e-6)
+
+
+def test_mam_eval_says_the_episode_lengths_in_one_phrase():
+    from services.cli.eval_command import lengths_text
+
+    assert lengths_text([200] * 20) == "length 200 (every episode)"
+    assert lengths_text([12, 200, 100]) == "lengths 12–200 (mean 104.0)"
+    assert lengths_text([7]) == "length 7 (one episode)"

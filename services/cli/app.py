@@ -10,12 +10,14 @@ import typer
 
 from services.cli import options
 from services.run import cpu
+from services.run.config import curve_points, no_updates
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
-                  help="Multi-actor mechanism (MA-TD3, MA-DDPG) over Zenoh: run, watch and plot training runs.")
+                  help="Multi-actor mechanism (MA-TD3, MA-DDPG, MA-SAC) over Zenoh: run, watch and plot training "
+                       "runs, on one box or across machines.")
 
 
-@app.command(cls=options.PlainFlags)
+@app.command(cls=options.PlainFlags, epilog=options.FILE_ONLY_EPILOG)
 @options.run_options()
 def run(
     run_opts: dict[str, Any], config: options.ConfigFile = None, run_dir: options.RunDir = None,
@@ -29,6 +31,10 @@ def run(
                                           help="continue the stopped run in RUN_DIR (Ctrl-C, a killed `mam run`, "
                                                "a reboot) to its budget, with the options it started with",
                                           rich_help_panel=options.RUN_PANEL),
+    allow_no_updates: bool = typer.Option(False, "--allow-no-updates", show_default=False,
+                                          help="run a budget that ends within the random start phase (no update: "
+                                               "the policy stays random); refused without it",
+                                          rich_help_panel=options.SCHEDULE_PANEL),
 ) -> None:
     """Train on this box: learner + referee + M workers over an embedded loopback Zenoh."""
     from services.run.launcher import RestartPolicy, run_local
@@ -44,11 +50,18 @@ def run(
         cfg = options.build_run_config(run_opts, config)
     cpu.check_precision(cfg)
     run_dir = run_dir or Path("runs") / cfg.run
+    made = not run_dir.exists()
     try:  # a configuration error stops here, before any process starts (services/run/preflight.py)
         preflight.check_device(cfg.algo.device)
         preflight.check_run_dir(run_dir)
     except preflight.ConfigError as e:
         raise typer.BadParameter(str(e)) from None
+    if resume is None and no_updates(cfg) and not allow_no_updates:  # a random policy's return, said as a result
+        if made:
+            run_dir.rmdir()  # the check above made it; nothing else is there
+        raise typer.BadParameter(f"{no_updates(cfg)}, or pass --allow-no-updates to run it anyway")
+    if resume is None and curve_points(cfg):
+        typer.echo(f"note: {curve_points(cfg)}", err=True)
     outcome: dict[str, Any] = {}
     summary = run_local(cfg, run_dir, plot=not no_plot, outcome=outcome,
                         policy=RestartPolicy(max_restarts=max_restarts, window_s=restart_window))

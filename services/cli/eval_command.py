@@ -6,7 +6,7 @@ no learner, no torch. By default it reproduces the run's final evaluation: the s
 same episodes (episode i is reset with seed + i) and deterministic actions, so the returns equal
 the final returns in summary.json and the last row of eval.jsonl. `--video` renders the
 episodes to an MP4 (episodes run one at a time then, with `render_mode="rgb_array"`; MuJoCo
-tasks render offscreen with EGL, see README.md "Use your trained policy").
+tasks render offscreen with EGL, see docs/GUIDE.md, "Use your trained policy").
 """
 
 from __future__ import annotations
@@ -81,6 +81,15 @@ def with_noise(pi: TrainedPolicy, sigma: float, seed: int):
         return np.clip(a + rng.normal(size=a.shape).astype(np.float32) * scale, -pi.max_action, pi.max_action)
 
     return policy
+
+
+def lengths_text(lengths: Any) -> str:
+    """The episode lengths in one phrase: "length 200 (every episode)", or their range and mean (each
+    episode's own is on its line above)."""
+    lengths = [int(n) for n in lengths]
+    if len(set(lengths)) == 1:
+        return f"length {lengths[0]} ({'every episode' if len(lengths) > 1 else 'one episode'})"
+    return f"lengths {min(lengths)}–{max(lengths)} (mean {sum(lengths) / len(lengths):.1f})"
 
 
 def record_episodes(policy: Any, env_id: str, env_kwargs: dict[str, Any], episodes: int, seed: int,
@@ -204,8 +213,8 @@ def eval_command(
                f"seed {seed}")
     for i, (ret, n) in enumerate(zip(returns, lengths)):
         typer.echo(f"  episode {i:3d}  return {ret:12.3f}  length {n:5d}")
-    typer.echo(f"return {result['mean']:.3f} ± {result['std']:.3f} over {episodes} episode(s); lengths "
-               f"{', '.join(str(int(n)) for n in lengths)} (mean {np.mean(lengths):.1f})")
+    typer.echo(f"return {result['mean']:.3f} ± {result['std']:.3f} (std) over {episodes} episode(s); "
+               f"{lengths_text(lengths)}")
     if video is not None:
         typer.echo(f"video {video} ({frames} frames)")
     sys.stdout.flush()

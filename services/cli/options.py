@@ -86,14 +86,16 @@ _SCHEDULE_HELP = (f"{' or '.join(SCHEDULES)}: paper = Algorithm 1, --steps, --st
                   "and --utd gives updates per transition")
 
 RUN_OPTIONS: tuple[RunOption, ...] = (
-    _opt("env", str, "Gymnasium env id, e.g. HalfCheetah-v5 or AppleCollect-v0, or module.path:EnvId (the module "
-         "registers the env when imported; it must import on every host)", target=RUN, aliases=("env_id",)),
+    _opt("env", str, "required (a flag or the --config file): Gymnasium env id, e.g. HalfCheetah-v5 or "
+         "AppleCollect-v1, or module.path:EnvId (the module registers the env when imported; it must import on every "
+         "host)", target=RUN, aliases=("env_id",)),
     _opt("env_kwargs", str, 'JSON object of keyword arguments for gym.make, e.g. \'{"ctrl_cost_weight": 0.05}\' '
          "(in TOML: a table)", target=RUN),
     _opt("algo", str, f"one of {', '.join(ALGOS)}; defaults: the paper's Table 3 (TD3 family) and Table 1 (DDPG "
          "family); sac and ma-sac: SAC v2 (Haarnoja et al. 2018: lr 3e-4, batch 256, 256x256, τ 0.005, d = 1, "
          "α tuned towards entropy −|A|) with MA-TD3's K, M, C, A, η for ma-sac"),
-    _opt("steps", int, "budget in schedule steps: iterations (--schedule paper) or transitions (equal-data)",
+    _opt("steps", int, "required (a flag or the --config file): the budget in schedule steps, iterations "
+         "(--schedule paper) or transitions (equal-data)",
          symbol="T", target=RUN),
     _opt("actors", int, "number of actors", symbol="K"),
     _opt("workers", int, "environment slots (worker processes)", symbol="M"),
@@ -113,7 +115,8 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
     _opt("seed", int, "random seed"),
     _opt("device", str, "the learner's: auto, cpu, cuda or cuda:N (CUDA_VISIBLE_DEVICES picks the GPUs torch sees)"),
     _opt("hidden", str, "hidden layer sizes, e.g. 256,256"),
-    _opt("precision", str, "learner GEMMs: fp32, or bf16 (mixed precision: hidden-to-hidden layers in bfloat16)"),
+    _opt("precision", str, "learner GEMMs: fp32, or bf16 (mixed precision: every layer but the head computes in "
+         "bfloat16; parameters, optimiser and the head stay float32)"),
     _opt("single_env_after_elimination", bool, "the survivor runs one slot only (implied by --schedule paper)",
          multi_actor=True),
     _opt("schedule", str, _SCHEDULE_HELP),
@@ -161,6 +164,10 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
     _opt("buffer_size", int, "replay buffer capacity", cli=False),
 )
 OPTION = {o.name: o for o in RUN_OPTIONS}
+# `mam run --help`'s closing lines: the keys only a --config file takes (README, "Run options a file only takes").
+FILE_ONLY_EPILOG = ("Keys only a --config TOML file takes (no flag): "
+                    + ", ".join(o.name for o in RUN_OPTIONS if not o.cli)
+                    + ". Defaults and meaning: README, \"Run options a file only takes\".")
 _KEYS = {alias: o.name for o in RUN_OPTIONS for alias in (o.name, *o.aliases)}
 
 # The `--help` panel of each run option without a `panel` of its own (an option in neither: RUN_PANEL).
@@ -205,6 +212,8 @@ def default_text(option: RunOption) -> str:
         return ""
     if option.name == "run":
         return "ALGO-ENV-DATE-TIME-PID"
+    if option.name == "arithmetic":  # a default_factory: what MAM_ARITHMETIC says, else portable
+        return "portable (or $MAM_ARITHMETIC)"
     fields = {f.name: f for f in dataclasses.fields(run_config)}
     f = fields.get(option.name)
     if f is None or f.default is dataclasses.MISSING:
@@ -283,7 +292,11 @@ class PlainFlags(TyperCommand):
 
 
 # -- network flags ----------------------------------------------------------------------------
-Run = OPTION["run"].annotation
+# The processes that join a run (worker, referee, monitor) name it: no generated default, which could
+# never match a run. `mam run` and `mam-learner` take OPTION["run"], whose default is a new name.
+Run = Annotated[Optional[str], typer.Option(
+    "--run", metavar="NAME", help="the run to join: the learner's --run (`mam run` prints it at start)",
+    rich_help_panel=RUN_PANEL)]
 Connect = Annotated[Optional[list[str]], typer.Option(
     "--connect", metavar="ENDPOINT", help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447 (repeatable)",
     rich_help_panel=DISTRIBUTION_PANEL)]

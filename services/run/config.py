@@ -98,9 +98,8 @@ def budget_warnings(cfg: RunConfig) -> list[str]:
     clock = _schedule.Schedule.for_run(algo, steps)
     unit = "iterations" if clock.paper else "transitions"
     lines = []
-    if algo.start_steps >= steps:
-        lines.append(f"no update: the budget (--steps {steps:,} {unit}) ends within the random start phase "
-                     f"(--start-steps {algo.start_steps:,}); lower --start-steps or raise --steps")
+    if no_updates(cfg):
+        lines.append(no_updates(cfg))
     c = clock.eliminate_at
     if c is not None:
         first = clock.first_round()
@@ -117,6 +116,28 @@ def budget_warnings(cfg: RunConfig) -> list[str]:
     if algo.actors > 1 and algo.workers < algo.actors:
         lines.append(actors_without_slots(algo))
     return lines
+
+
+def no_updates(cfg: RunConfig) -> str:
+    """What is wrong with a budget that ends within the random start phase (no update, a random
+    policy's return at the end), with the flags to change; "" for a budget that trains."""
+    algo, steps = cfg.algo, cfg.steps
+    if algo.start_steps < steps:
+        return ""
+    unit = "iterations" if _schedule.Schedule.for_run(algo, steps).paper else "transitions"
+    return (f"no update: the budget (--steps {steps:,} {unit}) ends within the random start phase "
+            f"(--start-steps {algo.start_steps:,}); lower --start-steps or raise --steps")
+
+
+def curve_points(cfg: RunConfig) -> str:
+    """A note when the learning curve would have fewer than 3 points (the default --eval-every is
+    the paper's, made for budgets of 10^5 and more), with the flag that gives more; else ""."""
+    every = cfg.algo.eval_every
+    points = cfg.steps // every if every > 0 else 0
+    if points >= 3:
+        return ""
+    return (f"the learning curve gets {points} point{'s' if points != 1 else ''} (--eval-every {every:,} in "
+            f"--steps {cfg.steps:,}); --eval-every {max(cfg.steps // 10, 1):,} gives 10")
 
 
 def actors_without_slots(algo: AlgoConfig) -> str:

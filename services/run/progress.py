@@ -29,10 +29,14 @@ from services.run.config import RunConfig
 
 def done_text(cfg: RunConfig, summary: dict[str, Any], cluster: LocalCluster) -> str:
     """The done line: wall time (and when the budget was reached: the progress bar's last time),
-    the final returns, the survivor or "no elimination in this budget"."""
-    wall = summary["launcher_wall_time_s"]
+    the final returns, the survivor or "no elimination in this budget". A resumed run's wall time
+    counts every part; the bar's clock only the last, and the line says so."""
+    wall, parts = summary["launcher_wall_time_s"], int(summary.get("parts") or 1)
     text = f"[bold green]done[/] in {wall:.0f} s"
-    if cluster.done_at is not None:
+    if cluster.done_at is not None and parts > 1:  # the wall time counts every part, the bar's clock this one
+        text += (f" over {parts} parts (this part reached the budget {clock_text(cluster.done_at - cluster.started_at)}"
+                 " after it started, then the final evaluation)")
+    elif cluster.done_at is not None:
         text += f" (budget reached at {clock_text(cluster.done_at - cluster.started_at)}, then the final evaluation)"
     returns = ", ".join("—" if r is None else f"{r:.2f}" for r in summary.get("final_returns") or [])
     text += f": final returns [{returns}]"

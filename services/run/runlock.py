@@ -1,4 +1,5 @@
-"""One run per run directory and per run name (docs/RELIABILITY.md, "One run at a time").
+"""One run per run directory and per run name (docs/RELIABILITY.md, "Faults beyond kills", the row
+"two runs with one name or one run directory").
 
 A run directory is locked by the processes that own it, with `fcntl.flock` on lock files in it
 (held for the process's lifetime; the kernel releases them when it dies, even by SIGKILL):
