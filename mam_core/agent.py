@@ -14,6 +14,7 @@ import copy
 import ctypes
 import math
 import sys
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -218,6 +219,7 @@ class MultiActorAgent:
         self.updates = 0
         self.actor_updates = 0
         self.versions = [0] * k  # bumped on every actor step of a live actor
+        self.update_s = 0.0  # seconds in update_critics / update_actors (on a GPU: issuing the work)
         # CUDA graphs of the two phases (mam_core/graphs.py), made by `sampler` where the device
         # takes them; `structure` counts the changes that invalidate a captured graph.
         self.graphs: Any = None
@@ -261,13 +263,14 @@ class MultiActorAgent:
         """Algorithm 1, lines 11-13: every live actor's critics regress on its Eq. 9 targets.
         Between this and `update_actors` Algorithm 1 places the round and the elimination.
         `batch` is a dict of tensors, or a `graphs.Staged` mini-batch (`sampler`)."""
+        started = time.perf_counter()
         if self.graphs is not None and self.graphs.staged(batch):
-            values = self.graphs.critics()
-            self.updates += 1
-            return self.graphs.metrics(self.critic_metric_names(), values)
-        values = self.critic_step(batch)
+            metrics: Any = self.graphs.metrics(self.critic_metric_names(), self.graphs.critics())
+        else:
+            metrics = dict(zip(self.critic_metric_names(), self.critic_step(batch).tolist()))
         self.updates += 1
-        return dict(zip(self.critic_metric_names(), values.tolist()))
+        self.update_s += time.perf_counter() - started
+        return metrics
 
     def critic_metric_names(self) -> list[str]:
         """The names of `critic_step`'s values, in order."""
@@ -297,6 +300,7 @@ class MultiActorAgent:
         """Algorithm 1, lines 21-24: actor k follows its first critic Q_k1 (Eq. 7), then the
         soft target update (Eq. 4); eliminated members and their targets stay frozen. SAC: actor
         k follows min_i Q_ki with its entropy bonus, then α_k steps (`_update_soft_actors`)."""
+        started = time.perf_counter()
         if self.graphs is not None and self.graphs.staged(batch):
             metrics = self.graphs.metrics(self.actor_metric_names(), self.graphs.actors())
         else:
@@ -305,6 +309,7 @@ class MultiActorAgent:
         for j, alive in enumerate(self._live_flags):  # a Python list: no device sync
             if alive:
                 self.versions[j] += 1
+        self.update_s += time.perf_counter() - started
         return metrics
 
     def actor_metric_names(self) -> list[str]:

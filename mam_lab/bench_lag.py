@@ -72,14 +72,14 @@ print(json.dumps({"update_share": spent[0] / (time.perf_counter() - t0)}))
 """
 
 
-def wait_share(rows: list[dict[str, Any]]) -> float:
+def wait_share(rows: list[dict[str, Any]], field: str = "exact_wait_s") -> float:
     """The share of its training time (from the first learner.jsonl row with updates to the last)
-    the learner's loop waited for rows."""
+    the learner's loop waited for rows (`field` "update_s": spent in its updates)."""
     train = [r for r in rows if r.get("updates", 0) > 0 and "t" in r]
-    if len(train) < 2 or "exact_wait_s" not in train[0]:
+    if len(train) < 2 or field not in train[0]:
         return float("nan")
     a, b = train[0], train[-1]
-    return (b["exact_wait_s"] - a["exact_wait_s"]) / max(b["t"] - a["t"], 1e-9)
+    return (b[field] - a[field]) / max(b["t"] - a["t"], 1e-9)
 
 
 def timed(cmd: list[str], out: Path, timeout: float) -> float:
@@ -113,6 +113,7 @@ def _bench_config(sizes: BenchSizes, log: Callable[[str], None], rounds: int, it
     sides = ["reference", *(f"lag{b}" for b in LAGS)]
     walls: dict[str, list[float]] = {side: [] for side in sides}
     waits: dict[str, list[float]] = {side: [] for side in sides[1:]}
+    busy: dict[str, list[float]] = {side: [] for side in sides[1:]}
     shares: list[float] = []
     with tempfile.TemporaryDirectory(prefix="mam-bench-lag-") as tmp:
         work = Path(tmp)
@@ -131,6 +132,7 @@ def _bench_config(sizes: BenchSizes, log: Callable[[str], None], rounds: int, it
                 walls[side].append(timed(cmd, work / f"{run}.out", sizes.timeout_s * 4))
                 rows = [json.loads(line) for line in (work / run / "learner.jsonl").read_text().splitlines() if line]
                 waits[side].append(wait_share(rows))
+                busy[side].append(wait_share(rows, "update_s"))
             log(f"round {r + 1}: " + ", ".join(f"{side} {walls[side][-1]:.1f} s" for side in sides))
     med = statistics.median
     out: dict[str, Any] = {f"{prefix}lag_reference_wall_s": med(walls["reference"]),
@@ -140,4 +142,6 @@ def _bench_config(sizes: BenchSizes, log: Callable[[str], None], rounds: int, it
         out[f"{prefix}lag{b}_speed_vs_reference"] = med(ref / w for ref, w in zip(walls["reference"], walls[side]))
         out[f"{prefix}lag{b}_wall_s"] = med(walls[side])
         out[f"{prefix}lag{b}_learner_wait_share"] = med(waits[side])
+        # the rest of the learner's time, besides waiting and updating: receiving, inserting, publishing, logging
+        out[f"{prefix}lag{b}_learner_update_share"] = med(busy[side])
     return out

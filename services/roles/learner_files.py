@@ -94,7 +94,7 @@ def write_log(lr: Learner, now: float | None = None) -> None:
            "lost": tracker.lost, "duplicates": tracker.duplicates,
            "rejected": lr.intake.rejects.total, "buffer": len(lr.buffer),
            "received": {w: t.received for w, t in lr.intake.workers.items()},
-           "exact_wait_s": round(getattr(lr, "wait_s", 0.0), 3)}
+           "exact_wait_s": round(getattr(lr, "wait_s", 0.0), 3), "update_s": round(lr.agent.update_s, 3)}
     row.update(lr.metrics)
     if lr.intake.episode_returns:
         row["train_return"] = float(np.mean(lr.intake.episode_returns))
