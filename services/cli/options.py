@@ -136,9 +136,9 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
          "printed). Every B is one deterministic run of its seed, equal to mam_core.reference with the same B",
          symbol="B"),
     _opt("arithmetic", str, "portable (default): kernels pinned, so the run reruns from --seed on any x86-64 CPU "
-         "with AVX2 (the learner's updates run 2-3x slower, docs/PERFORMANCE.md); native: the fastest kernels "
-         "of this CPU, the run reruns only here (sets MAM_ARITHMETIC for the children; for roles started by hand "
-         "export MAM_ARITHMETIC=native)", target=RUN),
+         "with AVX2 (the learner at ~0.8x its native updates/s on one thread, more on two: docs/PERFORMANCE.md); "
+         "native: the fastest kernels of this CPU, the run reruns only here (sets MAM_ARITHMETIC for the children; "
+         "for roles started by hand export MAM_ARITHMETIC=native)", target=RUN),
     _opt("run", str, "run name: the key-expression namespace mam/<run>/...", target=RUN),
     _opt("save_replay", bool, "persist the replay buffer beside the checkpoint as append-only chunks",
          target=RUN, flags=("--save-replay/--no-save-replay",)),
