@@ -96,6 +96,7 @@ class Learner:
         self.episodes = SlotEpisodes(self.plan)  # per slot, where its current episode began (a takeover's replay)
         self.awaiting: tuple[int, ...] = ()  # slots whose rows the loop waits for; -1: the referee's decision
         self.digests = PublishedDigests()  # of the versions a slot may act with (checked per batch)
+        self.kept_weights: list[tuple[int, int, int, Any]] = []  # a resume: the older versions it publishes
         if resume is not None:
             learner_files.restore(self, resume)
 
@@ -129,6 +130,7 @@ class Learner:
         """Iterations of the plan: iteration i's rows in slot order, then its updates."""
         plan = self.plan
         stage = self.stage = SlotStage(self.algo.workers, start=self.iteration + 1)
+        self.out.restore_weights(self.kept_weights)  # resumed at lag B > 0: the B versions before its own
         self.out.weights(all_actors=True)
         self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
         learner_files.checkpoint(self)  # at once: a learner killed early resumes from here
@@ -339,8 +341,9 @@ def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None
         except CheckpointCorrupt as e:  # every generation is damaged: nothing to resume from
             log.error("stopping: %s", e)
             raise SystemExit(EXIT_CORRUPT) from None
-        if state is not None:
-            cfg = RunConfig.from_dict({**json.loads(state["config"]), "steps": cfg.steps})
+        if state is not None:  # this part's endpoint (`mam run` gave it a new port): a later restart listens there
+            cfg = RunConfig.from_dict({**json.loads(state["config"]), "steps": cfg.steps,
+                                       **({"endpoint": cfg.endpoint} if cfg.endpoint else {})})
         try:
             runlock.refuse_live_learner(session, cfg.run)
         except runlock.RunInUse as e:

@@ -9,6 +9,7 @@ import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import torch
 
 from mam_core.evaluation import estimation_bias
 from mam_core.seeding import bias_seed
@@ -31,13 +32,38 @@ def checkpoint(lr: Learner) -> None:
                 "digests": lr.digests.to_json(),
                 "wall_s": round(lr.wall_before + time.monotonic() - lr.started, 3)}
     path = save_checkpoint(lr.run_dir, lr.agent, lr.buffer, counters, lr.cfg, lr.replay_log,
-                           survivor=lr.survivor)  # with policy.npz, in a verified generation
+                           survivor=lr.survivor,  # with policy.npz, in a verified generation
+                           extra={"kept_weights": kept_weights_state(lr.out.kept_weights())})
     lr.checkpoints.mark(lr.agent.updates, lr.env_steps, time.monotonic())
     if lr.replay_log is not None:  # only now on disk: workers may drop what the previous one holds
         lr.acked, lr.acked_newest = lr.acked_newest, lr.intake.checkpointed_prefixes()
     log.info("checkpoint %s at iteration %d, %d updates, %d transitions (%.2f s)", path, lr.iteration,
              lr.agent.updates, lr.env_steps, time.monotonic() - started)
 
+
+
+def kept_weights_state(kept: list[tuple[int, int, int, dict[str, np.ndarray]]]) -> list[list[Any]]:
+    """The versions a slot may still act with (Outbox.kept_weights) as checkpoint entries:
+    [plan version, actor, its version, {name: tensor}]."""
+    return [[key, k, version, {name: torch.from_numpy(a) for name, a in params.items()}]
+            for key, k, version, params in kept]
+
+
+def kept_weights_from(rows: Any, shapes: dict[str, tuple[int, ...]], actors: int) \
+        -> list[tuple[int, int, int, dict[str, np.ndarray]]]:
+    """`kept_weights_state` read back, every entry checked (ValueError naming the first that is not
+    an actor of this run's shapes)."""
+    out = []
+    for row in rows if isinstance(rows, list) else [rows]:
+        if not (isinstance(row, list) and len(row) == 4 and all(isinstance(x, int) for x in row[:3])
+                and isinstance(row[3], dict)):
+            raise ValueError(f"checkpoint kept_weights: not [version, actor, version, params]: {type(row).__name__}")
+        key, k, version, params = row
+        got = {name: tuple(t.shape) for name, t in params.items() if isinstance(t, torch.Tensor)}
+        if not 0 <= k < actors or got != {name: tuple(s) for name, s in shapes.items()}:
+            raise ValueError(f"checkpoint kept_weights: actor {k} version {version} is not of this run's shapes")
+        out.append((key, k, version, {name: t.numpy().astype(np.float32) for name, t in params.items()}))
+    return out
 
 
 def restore(lr: Learner, state: dict[str, Any]) -> None:
@@ -71,6 +97,11 @@ def restore(lr: Learner, state: dict[str, Any]) -> None:
     # Every stream and the staging point are in the checkpoint; the workers resend the rows after
     # it: the resumed learner recomputes the same updates (exact unless the run was inexact already).
     lr.inexact = str(c.get("inexact", ""))
+    # The versions before its own that the workers' next iterations act with (lag B > 0).
+    lr.kept_weights = kept_weights_from(state.get("kept_weights", []), lr.agent.actor_shapes(), lr.algo.actors)
+    if lr.algo.lag > 0 and "kept_weights" not in state:
+        log.warning("the checkpoint keeps no older actor versions (written before they were kept): at lag %d the "
+                    "workers may wait for a version this learner cannot publish", lr.algo.lag)
     live = lr.agent.live_actors
     if sum(live) == 1 and lr.algo.actors > 1:
         lr.survivor = lr.decided_survivor = live.index(True)

@@ -14,6 +14,8 @@ import logging
 import time
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from mam_core.policy import params_digest
 from services.messaging import bus, keys
 from services.messaging.codec import Done, LearnerStats, MessageError, TransitionBatch, Weights, decode, encode
@@ -78,6 +80,9 @@ class Outbox:
         self.done_pub = bus.declare_latest_publisher(s, keys.done(run))
         self.snapshot_pubs = [bus.declare_reliable_publisher(s, keys.eval_weights(run, a)) for a in range(k)]
         self.recent_weights: dict[int, list[tuple[int, bytes]]] = {}  # version -> (actor, message)
+        # ... and what those messages hold, for the checkpoint: a resumed learner at lag B > 0
+        # publishes the B versions before its own too (the workers' next iterations act with them)
+        self.recent_params: dict[int, list[tuple[int, int, dict[str, np.ndarray]]]] = {}  # -> (actor, version, params)
         self.snapshots: dict[int, list[tuple[int, bytes]]] = {}
         self.digests = learner.digests  # what it published (and its predecessor, from the checkpoint)
         self.referee_events = 0  # evaluations the referee reports done
@@ -87,27 +92,58 @@ class Outbox:
         self.seq += 1
         return self.seq
 
-    def weights_message(self, k: int) -> bytes:
+    def weights_message(self, k: int, version: int | None = None, params: dict[str, np.ndarray] | None = None) -> bytes:
+        """Actor `k`'s weights message: its current parameters, or `params` as its `version`."""
         lr = self.learner
-        params = lr.agent.actor_params(k)
-        self.digests.record(k, lr.agent.versions[k], params)
-        return Weights(k, lr.agent.versions[k], params, lr.spec.obs_dim, lr.spec.act_dim,
+        if params is None or version is None:
+            version, params = lr.agent.versions[k], lr.agent.actor_params(k)
+        self.digests.record(k, version, params)
+        return Weights(k, version, params, lr.spec.obs_dim, lr.spec.act_dim,
                        max(lr.spec.max_action), tuple(lr.algo.hidden), lr.incarnation).to_bytes(lr.id, self.next_seq())
 
     def weights(self, all_actors: bool = False) -> None:
         """The live actors' weights (all with `all_actors`), kept while a slot may act with them."""
         lr, plan = self.learner, self.learner.plan
-        msgs = []
+        msgs, params = [], []
         for k, alive in enumerate(lr.agent.live_actors):
             if alive or all_actors:
-                msg = self.weights_message(k)
+                params.append((k, lr.agent.versions[k], lr.agent.actor_params(k)))
+                msg = self.weights_message(k, *params[-1][1:])
                 self.weights_pubs[k].put(msg)
                 msgs.append((k, msg))
         self.recent_weights[plan.version_after(lr.iteration)] = msgs
+        self.recent_params[plan.version_after(lr.iteration)] = params
+        self.prune_weights()
+
+    def prune_weights(self) -> None:
+        """Forget the versions no slot acts with again (before the next iteration's)."""
+        lr, plan = self.learner, self.learner.plan
         needed = plan.version_for(min(lr.iteration + 1, plan.iterations))
         for old in [v for v in self.recent_weights if v < needed]:
             del self.recent_weights[old]
+            self.recent_params.pop(old, None)
         self.digests.prune(needed, lr.agent.live_actors)
+
+    def restore_weights(self, kept: list[tuple[int, int, int, dict[str, np.ndarray]]]) -> None:
+        """A resumed learner: publish the versions its predecessor kept for the workers' next
+        iterations (`kept_weights`, from the checkpoint), as its own messages, before its current
+        one. Without them a run at lag B > 0 waits forever: a worker's first iteration after the
+        resume acts with the version B iterations older than the learner's."""
+        current = self.learner.plan.version_after(self.learner.iteration)  # `weights` publishes that one
+        for key, k, version, params in sorted(kept, key=lambda row: (row[0], row[1])):
+            if key >= current:
+                continue
+            msg = self.weights_message(k, version, params)
+            self.weights_pubs[k].put(msg)
+            self.recent_weights.setdefault(key, []).append((k, msg))
+            self.recent_params.setdefault(key, []).append((k, version, params))
+        self.prune_weights()
+
+    def kept_weights(self) -> list[tuple[int, int, int, dict[str, np.ndarray]]]:
+        """(plan version, actor, its version, params) of every version a slot may still act with:
+        kept in the checkpoint for `restore_weights`."""
+        return [(key, k, version, params) for key, rows in sorted(self.recent_params.items())
+                for k, version, params in rows]
 
     def snapshots_after(self, index: int) -> None:
         """The versions the referee's next evaluations judge, once each (`snapshot_versions`)."""

@@ -1,0 +1,126 @@
+"""Issue 38: recovery without holes. A resume at any lag, a learner restarted after a resume,
+... end exact and equal to the fault-free run (the one-process reference), or stop with a clear
+error. Real `mam run` processes on loopback, real signals."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mam_core.config import resolve
+from mam_core.policy import read_policy_file
+from mam_core.reference import run_reference
+from services.cli.plot import read_jsonl
+from services.run.chaos import children_of
+from tests.e2e import ROOT, processes_of, unique_run
+
+ENV = dict(os.environ, COLUMNS="200", PYTHONWARNINGS="ignore")
+# AppleCollect-v1 MA-DDPG, K=2, M=3, 4,000 iterations with the elimination at 2,400: about 30 s a part.
+SMALL = dict(workers=3, actors=2, start_steps=200, compete_every=600, eliminate_at=2400, eval_episodes=2,
+             eval_every=600, hidden=(16, 16), batch_size=16, seed=4)
+STEPS = 4000
+ARGS = ["--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--steps", str(STEPS), "--workers", "3", "--actors", "2",
+        "--start-steps", "200", "--compete-every", "600", "--eliminate-at", "2400", "--eval-episodes", "2",
+        "--eval-every", "600", "--hidden", "16,16", "--batch-size", "16", "--seed", "4", "--checkpoint-seconds", "2",
+        "--no-plot"]
+
+
+def start(run_dir: Path, *args: str, out: Path) -> subprocess.Popen:
+    """`mam run ARGS` in its own process group (a group kill takes every child with it)."""
+    with open(out, "ab") as f:
+        return subprocess.Popen([sys.executable, "-m", "services.cli", "run", *args], cwd=ROOT, env=ENV, stdout=f,
+                                stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def iterations(run_dir: Path) -> int:
+    rows = read_jsonl(run_dir / "learner.jsonl") if (run_dir / "learner.jsonl").is_file() else []
+    return max((r.get("iterations", 0) for r in rows), default=0)
+
+
+def wait_until(predicate, timeout: float, what: str, proc: subprocess.Popen, out: Path) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert proc.poll() is None, f"mam run exited ({proc.returncode}) while waiting for {what}: " \
+            f"{out.read_text(errors='replace')[-3000:]}"
+        assert time.monotonic() < deadline, f"timed out waiting for {what}: {out.read_text(errors='replace')[-3000:]}"
+        time.sleep(0.2)
+
+
+def kill_group(proc: subprocess.Popen) -> None:
+    """SIGKILL `mam run` and every child, as a reboot would."""
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(30)
+
+
+def learner_pid(proc: subprocess.Popen) -> int:
+    pids = [pid for pid, role in children_of(proc.pid) if role == "learner"]
+    assert pids, children_of(proc.pid)
+    return pids[0]
+
+
+def resumed_at(run_dir: Path) -> list[int]:
+    """The iterations each resume of the learner started at (its log)."""
+    text = (run_dir / "logs" / "learner.log").read_text(errors="replace")
+    return [int(m) for m in re.findall(r"resumed at iteration (\d+)", text)]
+
+
+def assert_equals_reference(run_dir: Path, **changes) -> None:
+    """Exact, and every evaluation's returns and every final policy array equal the reference's."""
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["exact"] is True, summary
+    ref = run_reference("AppleCollect-v1", resolve("ma-ddpg", **{**SMALL, **changes}), STEPS)
+    assert [e["returns"] for e in read_jsonl(run_dir / "eval.jsonl")] == [e["returns"] for e in ref.evaluations]
+    _, params = read_policy_file(run_dir / "checkpoints" / "policy.npz")
+    assert all(np.array_equal(a[n], b[n]) for a, b in zip(params, ref.policy) for n in a)
+    transport = json.loads((run_dir / "transport.json").read_text())
+    assert transport["lost"] == 0 and transport["duplicates"] == 0, transport
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_lag_1_group_kill_resume_then_a_learner_kill_in_the_resumed_part_equals_the_reference(tmp_path: Path) -> None:
+    """Items 1 and 2: at `--lag 1` the resumed learner publishes the version before its own (the
+    workers' first iteration acts with it), and the learner killed in the resumed part comes back
+    on that part's endpoint, not the first part's."""
+    run, run_dir, out = unique_run("lag1-resume"), tmp_path / "run", tmp_path / "mam.out"
+    args = [*ARGS, "--lag", "1", "--stall-timeout", "60"]
+    proc = start(run_dir, *args, "--run", run, "--run-dir", str(run_dir), out=out)
+    try:
+        wait_until(lambda: iterations(run_dir) >= 300 and list((run_dir / "checkpoints").glob("manifest-*.json")),
+                   180, "iteration 300 and a checkpoint", proc, out)
+        time.sleep(2.5)  # a checkpoint past the random phase
+        kill_group(proc)
+        first_endpoint = json.loads((run_dir / "config.json").read_text())["endpoint"]
+        proc = start(run_dir, "--resume", str(run_dir), out=out)
+        wait_until(lambda: (run_dir / "logs" / "learner.log").is_file() and resumed_at(run_dir), 120,
+                   "the resume", proc, out)
+        resumed = resumed_at(run_dir)[-1]
+        assert resumed > 200, resumed  # past the random phase: its first iteration acts with a learned version
+        endpoint = json.loads((run_dir / "config.json").read_text())["endpoint"]
+        assert endpoint != first_endpoint  # the resumed part's own port, in config.json for a later restart
+        wait_until(lambda: iterations(run_dir) >= resumed + 150, 120, "progress after the resume", proc, out)
+        os.kill(learner_pid(proc), signal.SIGKILL)
+        wait_until(lambda: len(resumed_at(run_dir)) >= 2, 120, "the learner's restart", proc, out)
+        proc.wait(300)
+    finally:
+        if proc.poll() is None:
+            kill_group(proc)
+    text = out.read_text(errors="replace")
+    assert proc.returncode == 0, text[-3000:]
+    assert json.loads((run_dir / "config.json").read_text())["endpoint"] == endpoint
+    log = (run_dir / "logs" / "learner.log").read_text(errors="replace")
+    assert f"listening on {endpoint}" in log.split("restart 1 ---")[-1], log[-3000:]
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["parts"] == 2 and summary["restarts"]["learner"] == 1, summary
+    assert "stalled" not in text, text[-3000:]
+    assert_equals_reference(run_dir, lag=1)
+    assert processes_of(run) == []
