@@ -28,10 +28,14 @@ ENV = dict(os.environ, COLUMNS="200", PYTHONWARNINGS="ignore")
 SMALL = dict(workers=3, actors=2, start_steps=200, compete_every=600, eliminate_at=2400, eval_episodes=2,
              eval_every=600, hidden=(16, 16), batch_size=16, seed=4)
 STEPS = 4000
-ARGS = ["--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--steps", str(STEPS), "--workers", "3", "--actors", "2",
-        "--start-steps", "200", "--compete-every", "600", "--eliminate-at", "2400", "--eval-episodes", "2",
-        "--eval-every", "600", "--hidden", "16,16", "--batch-size", "16", "--seed", "4", "--checkpoint-seconds", "2",
-        "--no-plot"]
+
+
+def apple(steps: int = STEPS, compete_every: int = 600, eliminate_at: int = 2400, eval_every: int = 600) -> list[str]:
+    """`mam run`'s flags for SMALL (checkpoints at the default cadence unless a test adds its own)."""
+    return ["--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--steps", str(steps), "--workers", "3", "--actors", "2",
+            "--start-steps", "200", "--compete-every", str(compete_every), "--eliminate-at", str(eliminate_at),
+            "--eval-episodes", "2", "--eval-every", str(eval_every), "--hidden", "16,16", "--batch-size", "16",
+            "--seed", "4", "--no-plot"]
 
 
 def start(run_dir: Path, *args: str, out: Path) -> subprocess.Popen:
@@ -92,7 +96,7 @@ def test_lag_1_group_kill_resume_then_a_learner_kill_in_the_resumed_part_equals_
     workers' first iteration acts with it), and the learner killed in the resumed part comes back
     on that part's endpoint, not the first part's."""
     run, run_dir, out = unique_run("lag1-resume"), tmp_path / "run", tmp_path / "mam.out"
-    args = [*ARGS, "--lag", "1", "--stall-timeout", "60"]
+    args = [*apple(), "--checkpoint-seconds", "2", "--lag", "1", "--stall-timeout", "60"]
     proc = start(run_dir, *args, "--run", run, "--run-dir", str(run_dir), out=out)
     try:
         wait_until(lambda: iterations(run_dir) >= 300 and list((run_dir / "checkpoints").glob("manifest-*.json")),
@@ -123,4 +127,52 @@ def test_lag_1_group_kill_resume_then_a_learner_kill_in_the_resumed_part_equals_
     assert summary["parts"] == 2 and summary["restarts"]["learner"] == 1, summary
     assert "stalled" not in text, text[-3000:]
     assert_equals_reference(run_dir, lag=1)
+    assert processes_of(run) == []
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_a_learner_killed_long_after_its_checkpoint_at_the_default_cadence_stays_exact(tmp_path: Path) -> None:
+    """Item 4: at the default 60 s checkpoint cadence the learner is killed 20 s after its first
+    checkpoint. The workers resend thousands of rows; none decides it is out of step while the
+    learner catches up (no slot is stepped again), the run ends exact and equal to the
+    reference, and progress never stops for 30 s."""
+    run, run_dir, out = unique_run("cadence"), tmp_path / "run", tmp_path / "mam.out"
+    steps, small = 12000, {**SMALL, "compete_every": 1500, "eliminate_at": 9000, "eval_every": 3000}
+    args = apple(steps, compete_every=1500, eliminate_at=9000, eval_every=3000)
+    proc = start(run_dir, *args, "--run", run, "--run-dir", str(run_dir), out=out)
+    try:
+        log = run_dir / "logs" / "learner.log"
+        wait_until(lambda: log.is_file() and "checkpoint " in log.read_text(errors="replace"), 120,
+                   "the learner's first checkpoint", proc, out)
+        time.sleep(20)
+        assert len(list((run_dir / "checkpoints").glob("manifest-*.json"))) == 1  # still the first one
+        os.kill(learner_pid(proc), signal.SIGKILL)
+        longest, last, changed = 0.0, None, time.monotonic()
+        deadline = changed + 400
+        while proc.poll() is None and time.monotonic() < deadline:  # how long progress stops at most
+            rows = read_jsonl(run_dir / "learner.jsonl")
+            now = time.monotonic()
+            if rows and rows[-1]["env_steps"] != last:
+                last, changed = rows[-1]["env_steps"], now
+            longest = max(longest, now - changed)
+            time.sleep(0.5)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            kill_group(proc)
+    text = out.read_text(errors="replace")
+    assert proc.returncode == 0, text[-3000:]
+    assert resumed_at(run_dir) == [0], resumed_at(run_dir)  # everything after it came from the workers' resend
+    reports = [json.loads(p.read_text()) for p in (run_dir / "workers").glob("*.json")]
+    assert sum(r["resent_rows"] for r in reports) > 3000, reports
+    workers = " ".join(p.read_text(errors="replace") for p in (run_dir / "logs").glob("worker-*.log"))
+    assert "rebuilding the slot there" not in workers
+    assert longest < 30, longest  # the kill, the restart and the catch-up included
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["exact"] is True, summary
+    ref = run_reference("AppleCollect-v1", resolve("ma-ddpg", **small), steps)
+    assert [e["returns"] for e in read_jsonl(run_dir / "eval.jsonl")] == [e["returns"] for e in ref.evaluations]
+    _, params = read_policy_file(run_dir / "checkpoints" / "policy.npz")
+    assert all(np.array_equal(a[n], b[n]) for a, b in zip(params, ref.policy) for n in a)
     assert processes_of(run) == []

@@ -49,6 +49,9 @@ log = logging.getLogger("mam.learner")
 STATS_PERIOD_S = 0.1  # stats this often while updating; four times as often while waiting for data
 LOG_PERIOD_S = 1.0
 HEARTBEAT_S = 2.0  # config re-published this often
+# More queued batches than this after an iteration: stage them all at once (the workers' resend to a
+# restarted learner, thousands of batches at a long checkpoint cadence, fits the inbox only so)
+INBOX_STAGE_AHEAD = 1024
 
 
 class Learner:
@@ -97,6 +100,7 @@ class Learner:
         self.awaiting: tuple[int, ...] = ()  # slots whose rows the loop waits for; -1: the referee's decision
         self.digests = PublishedDigests()  # of the versions a slot may act with (checked per batch)
         self.kept_weights: list[tuple[int, int, int, Any]] = []  # a resume: the older versions it publishes
+        self.kept_snapshots: list[tuple[int, int, int, Any]] = []  # ... and the referee's pending snapshots
         if resume is not None:
             learner_files.restore(self, resume)
 
@@ -131,6 +135,7 @@ class Learner:
         plan = self.plan
         stage = self.stage = SlotStage(self.algo.workers, start=self.iteration + 1)
         self.out.restore_weights(self.kept_weights)  # resumed at lag B > 0: the B versions before its own
+        self.out.restore_snapshots(self.kept_snapshots)  # a referee behind the checkpoint judges these
         self.out.weights(all_actors=True)
         self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
         learner_files.checkpoint(self)  # at once: a learner killed early resumes from here
@@ -186,6 +191,8 @@ class Learner:
                 self.out.config()
             if self.checkpoints.due(self.agent.updates, self.env_steps, now):
                 learner_files.checkpoint(self)
+            if self.inbox.qsize() > INBOX_STAGE_AHEAD:  # a resend of thousands of batches: staged before the
+                self.receive(stage, timeout=0.0, max_items=self.inbox.qsize())  # inbox sheds any of it
         # Stopped by a signal: keep a usable checkpoint (of the last whole iteration); the run is not done.
         learner_files.write_log(self)
         if not self.mid_iteration:
@@ -212,10 +219,10 @@ class Learner:
             log.warning("waiting %.0f s for %s; %d workers live, referee %s", waited, awaited,
                         len(self.workers.live()), "live" if self.referees.live() else "gone")
 
-    def receive(self, stage: SlotStage, timeout: float) -> None:
+    def receive(self, stage: SlotStage, timeout: float, max_items: int = 256) -> None:
         """Stage what arrived; follow the referee."""
-        items = self.inbox.drain(max_items=256)
-        if not items:
+        items = self.inbox.drain(max_items=max_items)
+        if not items and timeout > 0:
             item = self.inbox.get(timeout=timeout)
             items = [item] if item is not None else []
         for item in items:

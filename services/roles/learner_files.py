@@ -33,7 +33,8 @@ def checkpoint(lr: Learner) -> None:
                 "wall_s": round(lr.wall_before + time.monotonic() - lr.started, 3)}
     path = save_checkpoint(lr.run_dir, lr.agent, lr.buffer, counters, lr.cfg, lr.replay_log,
                            survivor=lr.survivor,  # with policy.npz, in a verified generation
-                           extra={"kept_weights": kept_weights_state(lr.out.kept_weights())})
+                           extra={"kept_weights": kept_weights_state(lr.out.kept_weights()),
+                                  "kept_snapshots": kept_weights_state(lr.out.kept_snapshots())})
     lr.checkpoints.mark(lr.agent.updates, lr.env_steps, time.monotonic())
     if lr.replay_log is not None:  # only now on disk: workers may drop what the previous one holds
         lr.acked, lr.acked_newest = lr.acked_newest, lr.intake.checkpointed_prefixes()
@@ -99,6 +100,8 @@ def restore(lr: Learner, state: dict[str, Any]) -> None:
     lr.inexact = str(c.get("inexact", ""))
     # The versions before its own that the workers' next iterations act with (lag B > 0).
     lr.kept_weights = kept_weights_from(state.get("kept_weights", []), lr.agent.actor_shapes(), lr.algo.actors)
+    # ... and the snapshots of the evaluations the referee had not reported done (it may be behind)
+    lr.kept_snapshots = kept_weights_from(state.get("kept_snapshots", []), lr.agent.actor_shapes(), lr.algo.actors)
     if lr.algo.lag > 0 and "kept_weights" not in state:
         log.warning("the checkpoint keeps no older actor versions (written before they were kept): at lag %d the "
                     "workers may wait for a version this learner cannot publish", lr.algo.lag)

@@ -84,6 +84,7 @@ class Outbox:
         # publishes the B versions before its own too (the workers' next iterations act with them)
         self.recent_params: dict[int, list[tuple[int, int, dict[str, np.ndarray]]]] = {}  # -> (actor, version, params)
         self.snapshots: dict[int, list[tuple[int, bytes]]] = {}
+        self.snapshot_params: dict[int, list[tuple[int, int, dict[str, np.ndarray]]]] = {}  # as recent_params
         self.digests = learner.digests  # what it published (and its predecessor, from the checkpoint)
         self.referee_events = 0  # evaluations the referee reports done
         self.seq = 0
@@ -149,30 +150,56 @@ class Outbox:
         """The versions the referee's next evaluations judge, once each (`snapshot_versions`)."""
         lr = self.learner
         for version in sorted(snapshot_versions(lr.plan, index) - set(self.snapshots)):
-            self.snapshots[version] = [(k, self.weights_message(k)) for k, alive in enumerate(lr.agent.live_actors)
-                                       if alive]
+            self.snapshot_params[version] = [(k, lr.agent.versions[k], lr.agent.actor_params(k))
+                                             for k, alive in enumerate(lr.agent.live_actors) if alive]
+            self.snapshots[version] = [(k, self.weights_message(k, v, params))
+                                       for k, v, params in self.snapshot_params[version]]
             for k, msg in self.snapshots[version]:
                 self.snapshot_pubs[k].put(msg)
 
-    def resend(self) -> None:
-        """Once more what a late role may have missed: the weights of the versions the slots act
-        with next, and the snapshots of the evaluations the referee has not reported done.
-        Versions a role holds are not loaded again, so this changes nothing for a role that had them."""
+    def restore_snapshots(self, kept: list[tuple[int, int, int, dict[str, np.ndarray]]]) -> None:
+        """A resumed learner: publish the snapshots its predecessor kept for evaluations the
+        referee had not reported done (`kept_snapshots`, from the checkpoint). A referee behind
+        the checkpoint (killed with the learner mid-evaluation, or slow) judges versions older
+        than the resumed learner's, which only these hold."""
+        for key, k, version, params in sorted(kept, key=lambda row: (row[0], row[1])):
+            self.snapshot_params.setdefault(key, []).append((k, version, params))
+            self.snapshots.setdefault(key, []).append((k, self.weights_message(k, version, params)))
+            self.snapshot_pubs[k].put(self.snapshots[key][-1][1])
+
+    def kept_snapshots(self) -> list[tuple[int, int, int, dict[str, np.ndarray]]]:
+        """(plan version, actor, its version, params) of every snapshot an evaluation the referee
+        has not reported done judges: kept in the checkpoint for `restore_snapshots`."""
+        self.pending_snapshots()
+        return [(key, k, version, params) for key, rows in sorted(self.snapshot_params.items())
+                for k, version, params in rows]
+
+    def pending_snapshots(self) -> set[int]:
+        """The versions of the evaluations the referee has not reported done (its role stats'
+        `events`); the snapshots before them are forgotten."""
         plan = self.learner.plan
-        for version in sorted(self.recent_weights):
-            for k, msg in self.recent_weights[version]:
-                self.weights_pubs[k].put(msg)
         for item in self.learner.referee_reports.snapshot().values():
             try:
                 self.referee_events = max(self.referee_events, int(decode(item.payload).get("events", 0)))
             except (MessageError, TypeError, ValueError):
                 continue
         pending = {plan.judged_version(i, purpose) for i, purpose in plan.events()[self.referee_events:]}
+        for old in [v for v in self.snapshots if v < min(pending, default=0)]:
+            del self.snapshots[old]
+            self.snapshot_params.pop(old, None)
+        return pending
+
+    def resend(self) -> None:
+        """Once more what a late role may have missed: the weights of the versions the slots act
+        with next, and the snapshots of the evaluations the referee has not reported done.
+        Versions a role holds are not loaded again, so this changes nothing for a role that had them."""
+        for version in sorted(self.recent_weights):
+            for k, msg in self.recent_weights[version]:
+                self.weights_pubs[k].put(msg)
+        pending = self.pending_snapshots()
         for version in sorted(pending & set(self.snapshots)):
             for k, msg in self.snapshots[version]:
                 self.snapshot_pubs[k].put(msg)
-        for old in [v for v in self.snapshots if v < min(pending, default=0)]:
-            del self.snapshots[old]
 
     def config(self) -> None:
         lr = self.learner

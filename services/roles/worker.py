@@ -199,7 +199,13 @@ class Worker(GuardedSimulator):
                 st.incarnation == self.synced_with:
             return False
         since = max(waiting_since, self.flushed_at, self.learner_seen_at)  # stats must be newer than all three
-        return time.monotonic() - since > RESYNC_S and self.stats_at - since > RESYNC_S / 2
+        if not (time.monotonic() - since > RESYNC_S and self.stats_at - since > RESYNC_S / 2):
+            return False
+        # A learner still catching up: the rows it needs next are in the kept batches resent to it
+        # (a resend of a long checkpoint interval takes it longer than RESYNC_S). One lost in flight
+        # goes again (resend_lost); stepping the iterations again would end exactness for nothing.
+        need = st.slots_next[self.slot]
+        return not (need < index and self.kept.holds(need))
 
     def take_weights(self, item: bus.Received | None, index: int | None) -> None:
         """Keep the versions this slot may still act with (none below iteration `index`'s)."""
