@@ -60,7 +60,11 @@ def wait_until(predicate, timeout: float, what: str, proc: subprocess.Popen, out
 
 
 def kill_group(proc: subprocess.Popen) -> None:
-    """SIGKILL `mam run` and every child, as a reboot would."""
+    """SIGKILL `mam run` and every child, as a reboot would (the children run in sessions of their
+    own: a kill of the launcher's group alone would let them stop on SIGTERM, checkpointing)."""
+    os.kill(proc.pid, signal.SIGSTOP)  # restarts nothing meanwhile
+    for pid, _role in children_of(proc.pid):
+        os.kill(pid, signal.SIGKILL)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait(30)
 
@@ -173,6 +177,51 @@ def test_a_learner_killed_long_after_its_checkpoint_at_the_default_cadence_stays
     assert summary["exact"] is True, summary
     ref = run_reference("AppleCollect-v1", resolve("ma-ddpg", **small), steps)
     assert [e["returns"] for e in read_jsonl(run_dir / "eval.jsonl")] == [e["returns"] for e in ref.evaluations]
+    _, params = read_policy_file(run_dir / "checkpoints" / "policy.npz")
+    assert all(np.array_equal(a[n], b[n]) for a, b in zip(params, ref.policy) for n in a)
+    assert processes_of(run) == []
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_a_group_kill_while_the_referee_is_behind_the_checkpoint_resumes_exactly(tmp_path: Path) -> None:
+    """Item 3: the referee falls behind (SIGSTOPped after the elimination) while the learner
+    checkpoints past a curve point; the whole group is killed. The resumed learner publishes the
+    snapshots of the evaluations the referee had not reported done (from its checkpoint): the
+    resumed run ends exact and equal to the reference."""
+    run, run_dir, out = unique_run("referee-behind"), tmp_path / "run", tmp_path / "mam.out"
+    steps = 6000
+    proc = start(run_dir, *apple(steps), "--checkpoint-seconds", "2", "--stall-timeout", "60", "--run", run,
+                 "--run-dir", str(run_dir), out=out)
+    log = run_dir / "logs" / "learner.log"
+
+    def checkpointed() -> int:
+        found = re.findall(r"checkpoint \S+ at iteration (\d+)", log.read_text(errors="replace"))
+        return int(found[-1]) if found else 0
+
+    try:
+        wait_until(lambda: any(a["reason"] == "elimination" for a in read_jsonl(run_dir / "allocation.jsonl")), 180,
+                   "the elimination", proc, out)
+        referee = [pid for pid, role in children_of(proc.pid) if role == "referee"][0]
+        os.kill(referee, signal.SIGSTOP)  # alive, behind: the learner goes on past the curve point at 3,000
+        wait_until(lambda: checkpointed() > 3100, 120, "a checkpoint past iteration 3,100", proc, out)
+        kill_group(proc)
+        state = json.loads((run_dir / "referee_state.json").read_text())
+        assert checkpointed() < steps  # killed mid-run ...
+        assert state["events_done"] <= 8, state  # ... with the referee behind: the curve point at 3,000 not done
+        proc = start(run_dir, "--resume", str(run_dir), out=out)
+        proc.wait(300)
+    finally:
+        if proc.poll() is None:
+            kill_group(proc)
+    text = out.read_text(errors="replace")
+    assert proc.returncode == 0, text[-3000:]
+    assert resumed_at(run_dir)[-1] > 3100
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["parts"] == 2, summary
+    ref = run_reference("AppleCollect-v1", resolve("ma-ddpg", **SMALL), steps)
+    assert [e["returns"] for e in read_jsonl(run_dir / "eval.jsonl")] == [e["returns"] for e in ref.evaluations]
+    assert summary["exact"] is True, summary
     _, params = read_policy_file(run_dir / "checkpoints" / "policy.npz")
     assert all(np.array_equal(a[n], b[n]) for a, b in zip(params, ref.policy) for n in a)
     assert processes_of(run) == []

@@ -189,6 +189,7 @@ class Learner:
                 learner_files.write_log(self, now)
             if self.heartbeat.due(now):
                 self.out.config()
+                self.out.remind_referee()
             if self.checkpoints.due(self.agent.updates, self.env_steps, now):
                 learner_files.checkpoint(self)
             if self.inbox.qsize() > INBOX_STAGE_AHEAD:  # a resend of thousands of batches: staged before the

@@ -174,6 +174,19 @@ class Outbox:
         return [(key, k, version, params) for key, rows in sorted(self.snapshot_params.items())
                 for k, version, params in rows]
 
+    def remind_referee(self) -> None:
+        """On the heartbeat: the snapshots of the evaluations the referee has not reported done,
+        again, when it reported none done since the previous heartbeat. A referee restarted with
+        the learner (a resume) connects after their first put, and the learner may never wait
+        long enough for `resend` (after C nothing waits for the referee)."""
+        before = self.referee_events
+        pending = self.pending_snapshots() & set(self.snapshots)
+        if self.referee_events != before:
+            return
+        for version in sorted(pending):
+            for k, msg in self.snapshots[version]:
+                self.snapshot_pubs[k].put(msg)
+
     def pending_snapshots(self) -> set[int]:
         """The versions of the evaluations the referee has not reported done (its role stats'
         `events`); the snapshots before them are forgotten."""

@@ -131,12 +131,29 @@ def read_jsonl(path: Path | str) -> list[dict[str, Any]]:
     return rows
 
 
-def write_json(path: Path, data: Any) -> None:
-    """Atomic write: a reader never sees half a file."""
+def write_json(path: Path, data: Any, durable: bool = False) -> None:
+    """Atomic write: a reader never sees half a file. `durable`: on disk once this returns (fsync
+    of the file before the rename, of the directory after it), for a state a restarted role goes
+    on from (the referee's): after a power cut it is the new file or the old one, never empty."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=True))
+    with open(tmp, "w", encoding="utf-8") as f:
+        f.write(json.dumps(data, indent=2, sort_keys=True))
+        if durable:
+            f.flush()
+            os.fsync(f.fileno())
     os.replace(tmp, path)
+    if durable:
+        try:
+            fd = os.open(path.parent, os.O_RDONLY)
+        except OSError:
+            return
+        try:
+            os.fsync(fd)
+        except OSError:  # some file systems refuse a directory fsync
+            pass
+        finally:
+            os.close(fd)
 
 
 class JsonlWriter:
