@@ -64,3 +64,57 @@ def test_the_referee_state_is_fsynced_with_its_directory(tmp_path: Path, monkeyp
     # the file before the rename, then its directory
     assert synced == [str(state.with_suffix(".json.tmp")), str(tmp_path)]
     assert referee_role.Referee(cfg, None, tmp_path).resumed  # a successor reads it back
+
+
+def _stopped_run(run_dir: Path, save_replay: bool = True) -> RunConfig:
+    """A run directory as a killed `mam run` leaves it: config.json and a verified checkpoint at
+    iteration 40 (120 transitions), its replay on disk or not (--no-save-replay)."""
+    from services.run.rundir import write_json
+
+    algo = resolve("ma-ddpg", actors=2, workers=3, hidden=(8, 8), start_steps=60)
+    cfg = RunConfig(run="stopped", env_id=ENV, steps=300, algo=algo, save_replay=save_replay)
+    spec = EnvSpec.from_env_id(ENV)
+    write_json(run_dir / "config.json", cfg.to_dict())
+    buffer = ReplayBuffer(1000, spec.obs_dim, spec.act_dim)
+    save_checkpoint(run_dir, MultiActorAgent(algo, spec), buffer, {"env_steps": 120, "iteration": 40}, cfg)
+    return cfg
+
+
+def test_a_resume_without_the_replay_says_so_and_is_not_exact(tmp_path: Path) -> None:
+    from services.roles.learner import Learner
+
+    cfg = _stopped_run(tmp_path, save_replay=False)
+    learner = Learner(cfg, None, tmp_path, load_checkpoint(tmp_path))
+    assert learner.iteration == 40 and len(learner.buffer) == 0
+    assert "empty replay buffer" in learner.inexact and "--no-save-replay" in learner.inexact, learner.inexact
+    assert "120 transitions" in learner.inexact
+
+
+def test_a_resume_onto_other_library_versions_is_refused_naming_both(tmp_path: Path) -> None:
+    import json
+    import subprocess
+    import sys
+
+    from services.run import codecheck
+    from tests.e2e import ROOT
+
+    _stopped_run(tmp_path)
+    codecheck.record(tmp_path)  # what the first part ran: this code ...
+    data = json.loads((tmp_path / "code.json").read_text())
+    now = data["versions"]["torch"]
+    data["versions"]["torch"] = "0.0.1"  # ... but another torch
+    (tmp_path / "code.json").write_text(json.dumps(data))
+    got = subprocess.run([sys.executable, "-m", "services.cli", "run", "--resume", str(tmp_path)], cwd=ROOT, text=True,
+                         capture_output=True, timeout=120, env=dict(os.environ, COLUMNS="300"))
+    text = " ".join(got.stderr.replace("│", " ").split())
+    assert got.returncode == 2, got.stdout + got.stderr
+    assert f"torch 0.0.1 (the run's) vs {now} (this code)" in text and "--allow-other-code" in text, text
+    assert not (tmp_path / "logs").exists()  # refused before anything started
+    assert codecheck.differences(tmp_path) == [f"torch 0.0.1 (the run's) vs {now} (this code)"]
+    # Forced: the record keeps what was accepted, and the resumed learner is not exact from then on.
+    codecheck.record(tmp_path, codecheck.differences(tmp_path))
+    from services.roles.learner import Learner
+
+    cfg = RunConfig.from_dict(json.loads((tmp_path / "config.json").read_text()))
+    learner = Learner(cfg, None, tmp_path, load_checkpoint(tmp_path))
+    assert "resumed with other code" in learner.inexact and "torch 0.0.1" in learner.inexact, learner.inexact

@@ -15,6 +15,7 @@ from mam_core.evaluation import estimation_bias
 from mam_core.seeding import bias_seed
 from services.roles.checkpoint import save_checkpoint
 from services.roles.outbox import PublishedDigests
+from services.run import codecheck
 
 if TYPE_CHECKING:
     from services.roles.learner import Learner
@@ -98,6 +99,12 @@ def restore(lr: Learner, state: dict[str, Any]) -> None:
     # Every stream and the staging point are in the checkpoint; the workers resend the rows after
     # it: the resumed learner recomputes the same updates (exact unless the run was inexact already).
     lr.inexact = str(c.get("inexact", ""))
+    if not lr.inexact and (why := codecheck.inexact_reason(lr.run_dir)):  # resumed onto other code, forced
+        lr.break_exact(why)
+    if lr.env_steps > 0 and len(lr.buffer) == 0:  # --no-save-replay: nothing of the replay is on disk
+        lr.break_exact(f"resumed at iteration {lr.iteration:,} with an empty replay buffer: the run keeps no replay "
+                       f"(--no-save-replay), so the {lr.env_steps:,} transitions before it and the sampling "
+                       "stream's state are gone")
     # The versions before its own that the workers' next iterations act with (lag B > 0).
     lr.kept_weights = kept_weights_from(state.get("kept_weights", []), lr.agent.actor_shapes(), lr.algo.actors)
     # ... and the snapshots of the evaluations the referee had not reported done (it may be behind)

@@ -27,7 +27,7 @@ from rich.console import Console
 from mam_core import arithmetic
 from services.messaging import bus
 from services.messaging.codec import LearnerStats
-from services.run import preflight, registry, rundir, runlock
+from services.run import codecheck, preflight, registry, rundir, runlock
 from services.run.audit import audit_transport
 from services.run.config import RunConfig, budget_warnings
 from services.run.progress import budget_text, command_name, done_text, follow, outcome_text
@@ -380,9 +380,11 @@ class LocalCluster:
 
 
 def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plot: bool = True,
-              outcome: dict[str, Any] | None = None, policy: RestartPolicy | None = None) -> dict[str, Any]:
+              outcome: dict[str, Any] | None = None, policy: RestartPolicy | None = None,
+              forced_code: list[str] | None = None) -> dict[str, Any]:
     """Train `cfg` on this box; returns summary.json's content (empty if the run was stopped
-    or did not finish). Children that die are restarted (`policy`).
+    or did not finish). Children that die are restarted (`policy`). `forced_code`: how this
+    code differs from a resumed run's, accepted (`mam run --resume --allow-other-code`).
 
     `outcome`, when given, gets "interrupted": whether SIGINT / SIGTERM stopped the run."""
     console = console or Console()
@@ -395,13 +397,13 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
             outcome["interrupted"] = False
         return {}
     try:
-        return _run_locked(cfg, run_dir, console, plot, outcome, policy, lock)
+        return _run_locked(cfg, run_dir, console, plot, outcome, policy, lock, forced_code or [])
     finally:
         lock.release()
 
 
 def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, outcome: dict[str, Any] | None,
-                policy: RestartPolicy | None, lock: runlock.DirLock) -> dict[str, Any]:
+                policy: RestartPolicy | None, lock: runlock.DirLock, forced_code: list[str]) -> dict[str, Any]:
     port = bus.free_tcp_port()
     endpoint = bus.loopback_endpoint(port)
     cfg = RunConfig.from_dict({**cfg.to_dict(), "endpoint": endpoint})
@@ -410,6 +412,16 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
     except OSError as e:
         console.print(f"[red]cannot write {run_dir / rundir.CONFIG}: {e.strerror or e} ({disk_free(run_dir)} free)[/]")
         return {}
+    try:  # the code this part runs (a fresh run: recorded anew; a resume: kept, forced differences added)
+        if not rundir.has_checkpoint(run_dir):
+            (run_dir / rundir.CODE).unlink(missing_ok=True)
+        codecheck.record(run_dir, forced_code)
+    except OSError as e:
+        console.print(f"[red]cannot write {run_dir / rundir.CODE}: {e.strerror or e} ({disk_free(run_dir)} free)[/]")
+        return {}
+    if forced_code:
+        console.print(f"[yellow]resuming with other code (--allow-other-code): {'; '.join(forced_code)}; the run is "
+                      "no longer exact[/]", highlight=False)
     cluster = LocalCluster(cfg, run_dir, endpoint, policy=policy or RestartPolicy(), console=console,
                            lock_token=lock.token)
     console.print(f"[bold]run[/] {cfg.run}  [bold]env[/] {cfg.env_id}  [bold]algo[/] {cfg.algo.algo} "
