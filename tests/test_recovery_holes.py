@@ -45,9 +45,10 @@ def start(run_dir: Path, *args: str, out: Path) -> subprocess.Popen:
                                 stderr=subprocess.STDOUT, start_new_session=True)
 
 
-def iterations(run_dir: Path) -> int:
+def iterations(run_dir: Path, after: int = 0) -> int:
+    """The most iterations learner.jsonl shows in its rows after the first `after`."""
     rows = read_jsonl(run_dir / "learner.jsonl") if (run_dir / "learner.jsonl").is_file() else []
-    return max((r.get("iterations", 0) for r in rows), default=0)
+    return max((r.get("iterations", 0) for r in rows[after:]), default=0)
 
 
 def wait_until(predicate, timeout: float, what: str, proc: subprocess.Popen, out: Path) -> None:
@@ -73,6 +74,13 @@ def learner_pid(proc: subprocess.Popen) -> int:
     pids = [pid for pid, role in children_of(proc.pid) if role == "learner"]
     assert pids, children_of(proc.pid)
     return pids[0]
+
+
+def checkpointed(run_dir: Path) -> int:
+    """The iteration of the learner's last checkpoint (its log), 0 before the first."""
+    log = run_dir / "logs" / "learner.log"
+    found = re.findall(r"checkpoint \S+ at iteration (\d+)", log.read_text(errors="replace")) if log.is_file() else []
+    return int(found[-1]) if found else 0
 
 
 def resumed_at(run_dir: Path) -> list[int]:
@@ -111,13 +119,15 @@ def test_lag_1_group_kill_resume_then_a_learner_kill_in_the_resumed_part_equals_
         proc = start(run_dir, "--resume", str(run_dir), out=out)
         wait_until(lambda: (run_dir / "logs" / "learner.log").is_file() and resumed_at(run_dir), 120,
                    "the resume", proc, out)
-        resumed = resumed_at(run_dir)[-1]
+        resumed, rows = resumed_at(run_dir)[-1], len(read_jsonl(run_dir / "learner.jsonl"))
         assert resumed > 200, resumed  # past the random phase: its first iteration acts with a learned version
         endpoint = json.loads((run_dir / "config.json").read_text())["endpoint"]
         assert endpoint != first_endpoint  # the resumed part's own port, in config.json for a later restart
-        wait_until(lambda: iterations(run_dir) >= resumed + 150, 120, "progress after the resume", proc, out)
+        wait_until(lambda: iterations(run_dir, after=rows) >= resumed + 300 and
+                   checkpointed(run_dir) > resumed + 100, 120, "progress and a checkpoint after the resume", proc, out)
         os.kill(learner_pid(proc), signal.SIGKILL)
         wait_until(lambda: len(resumed_at(run_dir)) >= 2, 120, "the learner's restart", proc, out)
+        assert resumed_at(run_dir)[-1] > resumed + 100  # from a checkpoint the resumed part wrote
         proc.wait(300)
     finally:
         if proc.poll() is None:
@@ -193,21 +203,15 @@ def test_a_group_kill_while_the_referee_is_behind_the_checkpoint_resumes_exactly
     steps = 6000
     proc = start(run_dir, *apple(steps), "--checkpoint-seconds", "2", "--stall-timeout", "60", "--run", run,
                  "--run-dir", str(run_dir), out=out)
-    log = run_dir / "logs" / "learner.log"
-
-    def checkpointed() -> int:
-        found = re.findall(r"checkpoint \S+ at iteration (\d+)", log.read_text(errors="replace"))
-        return int(found[-1]) if found else 0
-
     try:
         wait_until(lambda: any(a["reason"] == "elimination" for a in read_jsonl(run_dir / "allocation.jsonl")), 180,
                    "the elimination", proc, out)
         referee = [pid for pid, role in children_of(proc.pid) if role == "referee"][0]
         os.kill(referee, signal.SIGSTOP)  # alive, behind: the learner goes on past the curve point at 3,000
-        wait_until(lambda: checkpointed() > 3100, 120, "a checkpoint past iteration 3,100", proc, out)
+        wait_until(lambda: checkpointed(run_dir) > 3100, 120, "a checkpoint past iteration 3,100", proc, out)
         kill_group(proc)
         state = json.loads((run_dir / "referee_state.json").read_text())
-        assert checkpointed() < steps  # killed mid-run ...
+        assert checkpointed(run_dir) < steps  # killed mid-run ...
         assert state["events_done"] <= 8, state  # ... with the referee behind: the curve point at 3,000 not done
         proc = start(run_dir, "--resume", str(run_dir), out=out)
         proc.wait(300)
