@@ -53,7 +53,7 @@ from rich.console import Console
 from mam_core.algorithm1 import Algorithm1
 from mam_lab.grid import RunSpec
 from mam_lab.ledger import RECORD, backfill_ledger, estimate_wall_s, make_record, run_state, write_ledger_record
-from mam_lab.provenance import ROOT, code_fingerprint, code_version
+from mam_lab.provenance import ROOT, code_fingerprint, code_version, run_code
 from mam_lab.view import GridView, hms
 from services.run import codecheck, config, rundir, runlock
 from services.run.config import RunConfig
@@ -196,7 +196,7 @@ def continuable(run_dir: Path, cfg: RunConfig, code: str) -> RunConfig | None:
         return None
     if launch.get("failed") or not code or launch.get("code") != code:
         return None
-    if codecheck.differences(run_dir):  # other library versions than the run's (services/run/codecheck.py)
+    if codecheck.differences(run_dir, run_code()):  # other library versions (services/run/codecheck.py)
         return None
     try:
         have = RunConfig.from_dict(saved)

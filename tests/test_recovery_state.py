@@ -95,11 +95,12 @@ def test_a_resume_onto_other_library_versions_is_refused_naming_both(tmp_path: P
     import subprocess
     import sys
 
+    from mam_lab.provenance import run_code
     from services.run import codecheck
     from tests.e2e import ROOT
 
     _stopped_run(tmp_path)
-    codecheck.record(tmp_path)  # what the first part ran: this code ...
+    codecheck.record(tmp_path, run_code())  # what the first part ran: this code ...
     data = json.loads((tmp_path / "code.json").read_text())
     now = data["versions"]["torch"]
     data["versions"]["torch"] = "0.0.1"  # ... but another torch
@@ -110,11 +111,38 @@ def test_a_resume_onto_other_library_versions_is_refused_naming_both(tmp_path: P
     assert got.returncode == 2, got.stdout + got.stderr
     assert f"torch 0.0.1 (the run's) vs {now} (this code)" in text and "--allow-other-code" in text, text
     assert not (tmp_path / "logs").exists()  # refused before anything started
-    assert codecheck.differences(tmp_path) == [f"torch 0.0.1 (the run's) vs {now} (this code)"]
+    assert codecheck.differences(tmp_path, run_code()) == [f"torch 0.0.1 (the run's) vs {now} (this code)"]
     # Forced: the record keeps what was accepted, and the resumed learner is not exact from then on.
-    codecheck.record(tmp_path, codecheck.differences(tmp_path))
+    codecheck.record(tmp_path, run_code(), codecheck.differences(tmp_path, run_code()))
     from services.roles.learner import Learner
 
     cfg = RunConfig.from_dict(json.loads((tmp_path / "config.json").read_text()))
     learner = Learner(cfg, None, tmp_path, load_checkpoint(tmp_path))
     assert "resumed with other code" in learner.inexact and "torch 0.0.1" in learner.inexact, learner.inexact
+
+
+def test_a_batch_acted_with_a_learned_version_and_no_weights_digest_is_refused() -> None:
+    """Issue 38 item 8, in part: a batch that does not say which weights it acted with is refused
+    (counted by reason, its rows told back as rejected), not trusted; the random phase's rows
+    (version -1) carry none and are taken."""
+    import time
+
+    from services.messaging import bus
+    from services.messaging.codec import TransitionBatch, TransitionSpec
+    from services.roles.intake import Intake
+
+    spec = TransitionSpec(3, 2, 1, max_rows=64, max_action=1.0)
+    intake = Intake(ReplayBuffer(100, 3, 2), spec, 1 << 20)
+    z = np.zeros
+
+    def batch(version: int, digest: str) -> bus.Received:
+        b = TransitionBatch("w0", "a", 0, 0, version, z((2, 3), np.float32), z((2, 2), np.float32),
+                            z(2, np.float32), z((2, 3), np.float32), z(2, np.bool_), iteration=1, slot=0,
+                            policy_digest=digest)
+        return bus.Received("mam/r/transitions/w0", b.to_bytes(), None, time.monotonic())
+
+    assert intake.validate(batch(2, ""), [5]) is None
+    assert intake.rejects.counts() == {"no_digest": 1}
+    assert intake.workers["w0"].rejected_rows == 2
+    assert intake.validate(batch(2, "ab" * 16), [5]) is not None
+    assert intake.validate(batch(-1, ""), [5]) is not None  # the random phase

@@ -38,12 +38,14 @@ def run(
     from services.run.launcher import RestartPolicy, run_local
 
     logging.basicConfig(level=logging.WARNING)
+    from mam_lab.provenance import run_code
     from services.run import preflight
 
+    code = run_code()  # what RUN_DIR/code.json records (a resume compares it)
     if resume is not None:
         if run_dir is not None and run_dir.resolve() != resume.resolve():
             raise typer.BadParameter(f"--run-dir {run_dir} contradicts --resume {resume}")
-        (cfg, forced), run_dir = options.resume_config(resume, run_opts, config, allow_other_code), resume
+        (cfg, forced), run_dir = options.resume_config(resume, run_opts, config, code, allow_other_code), resume
     else:
         forced = []
         cfg = options.build_run_config(run_opts, config)
@@ -56,7 +58,8 @@ def run(
         raise typer.BadParameter(str(e)) from None
     outcome: dict[str, Any] = {}
     summary = run_local(cfg, run_dir, plot=not no_plot, outcome=outcome,
-                        policy=RestartPolicy(max_restarts=max_restarts, window_s=restart_window), forced_code=forced)
+                        policy=RestartPolicy(max_restarts=max_restarts, window_s=restart_window), code=code,
+                        forced_code=forced)
     if not summary:  # 130 / 143 when SIGINT / SIGTERM stopped it (128 + the signal), else 1
         raise typer.Exit(128 + int(outcome["signal"]) if outcome.get("signal") else 1)
 

@@ -385,9 +385,10 @@ def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig
 
 
 def resume_config(run_dir: Path, cli: dict[str, Any], config_file: Path | None,
-                  allow_other_code: bool = False) -> tuple[RunConfig, list[str]]:
+                  code: dict[str, Any], allow_other_code: bool = False) -> tuple[RunConfig, list[str]]:
     """The config of the stopped run in `run_dir` (its config.json), for `mam run --resume`, and
-    how this code differs from the run's (services/run/codecheck.py): typer.BadParameter naming
+    how `code` (this code: mam_lab.provenance.run_code) differs from the run's
+    (services/run/codecheck.py): typer.BadParameter naming
     the file when there is nothing to continue (no run, a finished run, no verified checkpoint),
     when a given option contradicts the run's, or when the run ran other code or libraries
     (naming both) unless `allow_other_code`."""
@@ -418,7 +419,7 @@ def resume_config(run_dir: Path, cli: dict[str, Any], config_file: Path | None,
         flag = "--" + name.replace("_", "-")
         raise typer.BadParameter(f"--resume {run_dir}: {flag} {value} contradicts the run's {have[name]} ({path}); "
                                  "a resumed run keeps the options it started with")
-    other = codecheck.differences(run_dir)
+    other = codecheck.differences(run_dir, code)
     if other and not allow_other_code:
         raise typer.BadParameter(f"--resume {run_dir}: the run ran other code ({run_dir / rundir.CODE}): "
                                  f"{'; '.join(other)}. A resumed run equals the uninterrupted one only on the same "

@@ -48,7 +48,7 @@ class PublishedDigests:
         """Why `batch`'s rows were acted with other weights than this learner's of their version
         (a dead incarnation's that computed otherwise), or "" (the same, or not known here)."""
         mine = self.known.get((batch.actor, batch.version)) if batch.version >= 0 else None
-        if mine is None or not batch.policy_digest or batch.policy_digest == mine:
+        if mine is None or batch.policy_digest == mine:  # (a batch without a digest is refused by the intake)
             return ""
         return (f"slot {batch.slot} acted at iteration {batch.iteration} with actor {batch.actor}'s version "
                 f"{batch.version} of learner {batch.policy_from or '?'}, not this learner's")

@@ -2,11 +2,11 @@
 
 A resumed run is the uninterrupted one bit for bit only when it runs the same code and the same
 libraries: another commit, a modified tree or another torch, numpy, gymnasium or MuJoCo may
-compute otherwise. The first part of a run records its code fingerprint (mam_lab.provenance:
-the commit, with a hash of the diff for a modified tree) and the versions of the libraries
-behind its results; `mam run --resume` refuses other code, naming both, unless forced
-(`--allow-other-code`), which the record keeps and the resumed learner reads: the run is then
-no longer exact (`inexact_reason`).
+compute otherwise. The first part of a run records its code fingerprint and the versions of
+the libraries behind its results (`mam_lab.provenance.run_code`: the CLI and the lab compute it
+and hand it to `mam run`'s launcher); `mam run --resume` refuses other code, naming both,
+unless forced (`--allow-other-code`), which the record keeps and the resumed learner reads: the
+run is then no longer exact (`inexact_reason`).
 """
 
 from __future__ import annotations
@@ -17,15 +17,6 @@ from typing import Any
 
 from services.run import rundir
 from services.run.rundir import write_json
-
-FORMAT = 1
-
-
-def current() -> dict[str, Any]:
-    """This code's fingerprint ("" without git) and library versions."""
-    from mam_lab.provenance import ROOT, code_fingerprint, versions
-
-    return {"format": FORMAT, "fingerprint": code_fingerprint(ROOT), "versions": versions(commit=False)}
 
 
 def recorded(run_dir: Path) -> dict[str, Any] | None:
@@ -39,29 +30,28 @@ def recorded(run_dir: Path) -> dict[str, Any] | None:
     return data
 
 
-def differences(run_dir: Path, now: dict[str, Any] | None = None) -> list[str]:
-    """How this code differs from the run's (one phrase each, the run's value first); [] when the
-    same, or when the run recorded nothing to compare with."""
+def differences(run_dir: Path, now: dict[str, Any]) -> list[str]:
+    """How `now` (this code: `mam_lab.provenance.run_code`) differs from the run's code (one phrase
+    each, the run's value first); [] when the same, or when the run recorded nothing to compare with."""
     was = recorded(run_dir)
     if was is None:
         return []
-    now = now or current()
     out = []
     if was.get("fingerprint") != now["fingerprint"]:
         out.append(f"code {was.get('fingerprint') or 'unknown'} (the run's) vs {now['fingerprint'] or 'unknown'} "
                    "(this code)")
-    old, new = was["versions"], now["versions"]
+    old, new = was["versions"], now.get("versions", {})
     for name in sorted(set(old) | set(new)):
         if old.get(name) != new.get(name):
             out.append(f"{name} {old.get(name, 'absent')} (the run's) vs {new.get(name, 'absent')} (this code)")
     return out
 
 
-def record(run_dir: Path, forced: list[str] | None = None) -> None:
-    """At the start of a part: the run's code, if not recorded yet; with `forced`, the
+def record(run_dir: Path, now: dict[str, Any], forced: list[str] | None = None) -> None:
+    """At the start of a part: the run's code (`now`), if not recorded yet; with `forced`, the
     differences a forced resume accepted (the run is no longer exact from then on)."""
     was = recorded(run_dir)
-    data = was if was is not None else current()
+    data = was if was is not None else dict(now)
     if forced:
         data.setdefault("forced", []).append({"part": rundir.earlier_parts(run_dir)["parts"] + 1,
                                               "differences": forced})

@@ -381,10 +381,11 @@ class LocalCluster:
 
 def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plot: bool = True,
               outcome: dict[str, Any] | None = None, policy: RestartPolicy | None = None,
-              forced_code: list[str] | None = None) -> dict[str, Any]:
+              code: dict[str, Any] | None = None, forced_code: list[str] | None = None) -> dict[str, Any]:
     """Train `cfg` on this box; returns summary.json's content (empty if the run was stopped
-    or did not finish). Children that die are restarted (`policy`). `forced_code`: how this
-    code differs from a resumed run's, accepted (`mam run --resume --allow-other-code`).
+    or did not finish). Children that die are restarted (`policy`). `code`: the code this part
+    runs (mam_lab.provenance.run_code), recorded in RUN_DIR/code.json; `forced_code`: how it
+    differs from a resumed run's, accepted (`mam run --resume --allow-other-code`).
 
     `outcome`, when given, gets "interrupted": whether SIGINT / SIGTERM stopped the run."""
     console = console or Console()
@@ -397,13 +398,14 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
             outcome["interrupted"] = False
         return {}
     try:
-        return _run_locked(cfg, run_dir, console, plot, outcome, policy, lock, forced_code or [])
+        return _run_locked(cfg, run_dir, console, plot, outcome, policy, lock, code, forced_code or [])
     finally:
         lock.release()
 
 
 def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, outcome: dict[str, Any] | None,
-                policy: RestartPolicy | None, lock: runlock.DirLock, forced_code: list[str]) -> dict[str, Any]:
+                policy: RestartPolicy | None, lock: runlock.DirLock, code: dict[str, Any] | None,
+                forced_code: list[str]) -> dict[str, Any]:
     port = bus.free_tcp_port()
     endpoint = bus.loopback_endpoint(port)
     cfg = RunConfig.from_dict({**cfg.to_dict(), "endpoint": endpoint})
@@ -413,9 +415,10 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
         console.print(f"[red]cannot write {run_dir / rundir.CONFIG}: {e.strerror or e} ({disk_free(run_dir)} free)[/]")
         return {}
     try:  # the code this part runs (a fresh run: recorded anew; a resume: kept, forced differences added)
-        if not rundir.has_checkpoint(run_dir):
+        if code is not None and not rundir.has_checkpoint(run_dir):
             (run_dir / rundir.CODE).unlink(missing_ok=True)
-        codecheck.record(run_dir, forced_code)
+        if code is not None:
+            codecheck.record(run_dir, code, forced_code)
     except OSError as e:
         console.print(f"[red]cannot write {run_dir / rundir.CODE}: {e.strerror or e} ({disk_free(run_dir)} free)[/]")
         return {}
