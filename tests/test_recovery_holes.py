@@ -229,3 +229,63 @@ def test_a_group_kill_while_the_referee_is_behind_the_checkpoint_resumes_exactly
     _, params = read_policy_file(run_dir / "checkpoints" / "policy.npz")
     assert all(np.array_equal(a[n], b[n]) for a, b in zip(params, ref.policy) for n in a)
     assert processes_of(run) == []
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_a_paused_worker_whose_slot_a_spare_took_is_told_and_leaves(tmp_path: Path) -> None:
+    """Item 5, in part: w1 is SIGSTOPped until its token lapses and a spare takes slot 1 over, then
+    SIGCONT. The learner's stats name each slot's owner: w1 sees another owner of its slot, says
+    so and exits 0 instead of waiting forever; none of its rows after the takeover is inserted,
+    and the run is exact and equal to the reference."""
+    from services.messaging import bus
+    from tests.e2e import spawn, stop
+
+    run, endpoint = unique_run("stale-owner"), bus.loopback_endpoint(bus.free_tcp_port())
+    steps, small = 3000, {**SMALL, "compete_every": 600, "eliminate_at": 2400, "eval_every": 600}
+    learner = spawn("learner", *apple(steps)[:-1], "--run", run, "--listen", endpoint, "--run-dir", str(tmp_path),
+                    log=tmp_path / "learner.log")
+    referee = spawn("referee", "--run", run, "--connect", endpoint, "--run-dir", str(tmp_path),
+                    log=tmp_path / "referee.log")
+    ws = {f"w{i}": spawn("worker", "--run", run, "--connect", endpoint, "--id", f"w{i}", "--slot", str(i),
+                         "--run-dir", str(tmp_path), log=tmp_path / f"w{i}.log") for i in range(3)}
+    spare_log, w1_log = tmp_path / "spare.log", tmp_path / "w1.log"
+    spare = spawn("worker", "--run", run, "--connect", endpoint, "--id", "spare-0", "--spare", "--take-over-after",
+                  "3", "--run-dir", str(tmp_path), log=spare_log)
+    procs = [*ws.values(), spare, referee, learner]
+    try:
+        deadline = time.monotonic() + 180
+        while iterations(tmp_path) < 300:
+            assert time.monotonic() < deadline and learner.poll() is None, "the run did not reach iteration 300"
+            time.sleep(0.2)
+        ws["w1"].send_signal(signal.SIGSTOP)  # its token lapses after the 10 s lease; the spare takes slot 1
+        deadline = time.monotonic() + 60
+        while "takes over slot 1" not in spare_log.read_text(errors="replace"):
+            assert time.monotonic() < deadline, spare_log.read_text(errors="replace")[-2000:]
+            time.sleep(0.2)
+        time.sleep(2.0)  # the spare's rows are in: it owns the slot
+        ws["w1"].send_signal(signal.SIGCONT)
+        assert ws["w1"].wait(30) == 0, w1_log.read_text(errors="replace")[-2000:]
+        deadline = time.monotonic() + 240
+        while not (tmp_path / "summary.json").is_file():
+            assert time.monotonic() < deadline and learner.poll() in (None, 0), "the run did not finish"
+            time.sleep(0.3)
+        assert learner.wait(60) == 0
+    finally:
+        for p in procs:
+            if p.poll() is None and p is ws["w1"]:
+                p.send_signal(signal.SIGCONT)
+        stop(*procs)
+    text = w1_log.read_text(errors="replace")
+    assert "slot 1 was taken over by spare-0/" in text and "this worker leaves the slot and exits" in text, text[-2000:]
+    took = int(re.findall(r"taking slot 1 over at iteration (\d+)", spare_log.read_text(errors="replace"))[0])
+    transport = json.loads((tmp_path / "transport.json").read_text())
+    w1 = [rows for stream, rows in transport["rows_per_stream"].items() if stream.startswith("w1/")]
+    assert w1 == [took - 1], (w1, took)  # slot 1's rows of iterations 1..took-1 only: none after the takeover
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["exact"] is True, summary
+    ref = run_reference("AppleCollect-v1", resolve("ma-ddpg", **small), steps)
+    assert [e["returns"] for e in read_jsonl(tmp_path / "eval.jsonl")] == [e["returns"] for e in ref.evaluations]
+    _, params = read_policy_file(tmp_path / "checkpoints" / "policy.npz")
+    assert all(np.array_equal(a[n], b[n]) for a, b in zip(params, ref.policy) for n in a)
+    assert processes_of(run) == []

@@ -49,9 +49,7 @@ log = logging.getLogger("mam.learner")
 STATS_PERIOD_S = 0.1  # stats this often while updating; four times as often while waiting for data
 LOG_PERIOD_S = 1.0
 HEARTBEAT_S = 2.0  # config re-published this often
-# More queued batches than this after an iteration: stage them all at once (the workers' resend to a
-# restarted learner, thousands of batches at a long checkpoint cadence, fits the inbox only so)
-INBOX_STAGE_AHEAD = 1024
+INBOX_STAGE_AHEAD = 1024  # more queued after an iteration: all staged at once (a resend of thousands of batches)
 
 
 class Learner:
@@ -99,8 +97,9 @@ class Learner:
         self.episodes = SlotEpisodes(self.plan)  # per slot, where its current episode began (a takeover's replay)
         self.awaiting: tuple[int, ...] = ()  # slots whose rows the loop waits for; -1: the referee's decision
         self.digests = PublishedDigests()  # of the versions a slot may act with (checked per batch)
-        self.kept_weights: list[tuple[int, int, int, Any]] = []  # a resume: the older versions it publishes
-        self.kept_snapshots: list[tuple[int, int, int, Any]] = []  # ... and the referee's pending snapshots
+        # From a checkpoint: the older versions it publishes, the referee's pending snapshots (Outbox.restore),
+        # the (worker, incarnation) that lost their slot
+        self.kept_weights, self.kept_snapshots, self.retired = [], [], set()
         if resume is not None:
             learner_files.restore(self, resume)
 
@@ -134,8 +133,8 @@ class Learner:
         """Iterations of the plan: iteration i's rows in slot order, then its updates."""
         plan = self.plan
         stage = self.stage = SlotStage(self.algo.workers, start=self.iteration + 1)
-        self.out.restore_weights(self.kept_weights)  # resumed at lag B > 0: the B versions before its own
-        self.out.restore_snapshots(self.kept_snapshots)  # a referee behind the checkpoint judges these
+        stage.retired |= self.retired  # (from the checkpoint) a stale owner never takes its slot back
+        self.out.restore(self.kept_weights, self.kept_snapshots)  # lag B > 0, a referee behind the checkpoint
         self.out.weights(all_actors=True)
         self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
         learner_files.checkpoint(self)  # at once: a learner killed early resumes from here
@@ -322,17 +321,7 @@ class Learner:
         self.inbox.close()
         self.count_late(self.inbox.drain())
         self.out.wait_for_referee(msg)
-        tracker = self.intake.tracker
-        write_json(self.run_dir / rundir.TRANSPORT, {
-            "env_steps": self.env_steps, "iterations": self.iterations, "updates": self.agent.updates,
-            "lost": tracker.lost, "duplicates": tracker.duplicates, "rejected": self.rejected(),
-            "recovered": tracker.recovered, "redundant": tracker.redundant,
-            "replay_rows": self.buffer.inserted if self.replay_log is not None else None,
-            "wall_s": round(self.wall_before + time.monotonic() - self.started, 3),
-            **self.intake.transport(),
-            "inbox_dropped": self.inbox.dropped})  # shed before decoding when the inbox overflowed
-        log.info("done: %d transitions, %d updates, lost %d, duplicates %d, rejected %d", self.env_steps,
-                 self.agent.updates, tracker.lost, tracker.duplicates, self.intake.rejects.total)
+        learner_files.write_transport(self)
 
     def count_late(self, items: list[bus.Received]) -> None:
         """Batches that arrive after the last iteration (a resend): counted, never inserted."""

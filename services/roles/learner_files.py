@@ -15,7 +15,8 @@ from mam_core.evaluation import estimation_bias
 from mam_core.seeding import bias_seed
 from services.roles.checkpoint import save_checkpoint
 from services.roles.outbox import PublishedDigests
-from services.run import codecheck
+from services.run import codecheck, rundir
+from services.run.rundir import write_json
 
 if TYPE_CHECKING:
     from services.roles.learner import Learner
@@ -31,6 +32,8 @@ def checkpoint(lr: Learner) -> None:
                 "stream_partial": json.dumps(lr.intake.stream_partial), "referee_seen": int(lr.referee_seen),
                 "iteration": lr.iteration, "inexact": lr.inexact, "episodes": lr.episodes.to_json(),
                 "digests": lr.digests.to_json(),
+                "retired": json.dumps(sorted(lr.stage.retired | lr.retired) if lr.stage is not None
+                                      else sorted(lr.retired)),
                 "wall_s": round(lr.wall_before + time.monotonic() - lr.started, 3)}
     path = save_checkpoint(lr.run_dir, lr.agent, lr.buffer, counters, lr.cfg, lr.replay_log,
                            survivor=lr.survivor,  # with policy.npz, in a verified generation
@@ -42,6 +45,21 @@ def checkpoint(lr: Learner) -> None:
     log.info("checkpoint %s at iteration %d, %d updates, %d transitions (%.2f s)", path, lr.iteration,
              lr.agent.updates, lr.env_steps, time.monotonic() - started)
 
+
+
+def write_transport(lr: Learner) -> None:
+    """transport.json at the end: the counters `mam run`'s audit holds against the workers' logs."""
+    tracker = lr.intake.tracker
+    write_json(lr.run_dir / rundir.TRANSPORT, {
+        "env_steps": lr.env_steps, "iterations": lr.iterations, "updates": lr.agent.updates,
+        "lost": tracker.lost, "duplicates": tracker.duplicates, "rejected": lr.rejected(),
+        "recovered": tracker.recovered, "redundant": tracker.redundant,
+        "replay_rows": lr.buffer.inserted if lr.replay_log is not None else None,
+        "wall_s": round(lr.wall_before + time.monotonic() - lr.started, 3),
+        **lr.intake.transport(),
+        "inbox_dropped": lr.inbox.dropped})  # shed before decoding when the inbox overflowed
+    log.info("done: %d transitions, %d updates, lost %d, duplicates %d, rejected %d", lr.env_steps,
+             lr.agent.updates, tracker.lost, tracker.duplicates, lr.intake.rejects.total)
 
 
 def kept_weights_state(kept: list[tuple[int, int, int, dict[str, np.ndarray]]]) -> list[list[Any]]:
@@ -105,6 +123,8 @@ def restore(lr: Learner, state: dict[str, Any]) -> None:
         lr.break_exact(f"resumed at iteration {lr.iteration:,} with an empty replay buffer: the run keeps no replay "
                        f"(--no-save-replay), so the {lr.env_steps:,} transitions before it and the sampling "
                        "stream's state are gone")
+    # Slot owners that lost their slot (a stale worker back from a pause): their batches stay refused.
+    lr.retired = {(str(w), str(i)) for w, i in json.loads(c.get("retired", "[]"))}
     # The versions before its own that the workers' next iterations act with (lag B > 0).
     lr.kept_weights = kept_weights_from(state.get("kept_weights", []), lr.agent.actor_shapes(), lr.algo.actors)
     # ... and the snapshots of the evaluations the referee had not reported done (it may be behind)

@@ -125,6 +125,12 @@ class Outbox:
             self.recent_params.pop(old, None)
         self.digests.prune(needed, lr.agent.live_actors)
 
+    def restore(self, weights: list[tuple[int, int, int, dict[str, np.ndarray]]],
+                snapshots: list[tuple[int, int, int, dict[str, np.ndarray]]]) -> None:
+        """A resumed learner: what its predecessor's checkpoint kept, published again."""
+        self.restore_weights(weights)
+        self.restore_snapshots(snapshots)
+
     def restore_weights(self, kept: list[tuple[int, int, int, dict[str, np.ndarray]]]) -> None:
         """A resumed learner: publish the versions its predecessor kept for the workers' next
         iterations (`kept_weights`, from the checkpoint), as its own messages, before its current
@@ -235,7 +241,8 @@ class Outbox:
             live=tuple(lr.agent.live_actors), workers=max(len(lr.workers.live()), lr.intake.active(now)),
             steps=lr.schedule.budget, incarnation=lr.incarnation, exact=not lr.inexact,
             iteration=lr.iteration, inexact=lr.inexact, awaiting=lr.awaiting,
-            slots_next=tuple(lr.stage.end) if lr.stage is not None else ())
+            slots_next=tuple(lr.stage.end) if lr.stage is not None else (),
+            owners=tuple(f"{o[0]}/{o[1]}" if o else "" for o in lr.stage.owner) if lr.stage is not None else ())
 
     def wait_for_referee(self, msg: Done) -> None:
         """Stay up (repeating done) until the referee has written its final evaluation.

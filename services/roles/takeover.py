@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 
 from mam_core.slot import SlotStreams, replay_episode
 from services.messaging import bus, keys
-from services.messaging.codec import MessageError, SlotEpisode
+from services.messaging.codec import LearnerStats, MessageError, SlotEpisode
 
 if TYPE_CHECKING:
     from services.roles.worker import Worker
@@ -25,6 +25,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("mam.worker")
 
 ASK_TIMEOUT_S = 5.0
+RESYNC_S = 2.0  # waiting this long while a restarted learner needs another iteration of this slot: go there
 
 
 def ask_episode(w: Worker) -> SlotEpisode | None:
@@ -45,6 +46,37 @@ def ask_episode(w: Worker) -> SlotEpisode | None:
         if episode.slot == w.slot:
             return episode
     return None
+
+
+def out_of_step(w: Worker, index: int, waiting_since: float) -> bool:
+    """The slot waits, and a learner restarted since its position was set still needs another
+    iteration of it well after this worker's resends (and not one its kept batches hold: a learner
+    still catching up on a long resend): the slot is rebuilt there (`take_over`)."""
+    st = w.stats  # (rows still pending here, after a pause: no resync)
+    if st is None or w.slot >= len(st.slots_next) or st.slots_next[w.slot] == index or w.p_n or \
+            st.incarnation == w.synced_with:
+        return False
+    since = max(waiting_since, w.flushed_at, w.learner_seen_at)  # stats must be newer than all three
+    if not (time.monotonic() - since > RESYNC_S and w.stats_at - since > RESYNC_S / 2):
+        return False
+    # The catch-up of a long checkpoint interval's resend takes the learner longer than RESYNC_S; one
+    # batch lost in flight goes again (Worker.resend_lost). Stepping again would end exactness for nothing.
+    need = st.slots_next[w.slot]
+    return not (need < index and w.kept.holds(need))
+
+
+def follow_owner(w: Worker, st: LearnerStats) -> None:
+    """Fencing: the learner's stats name each slot's owner. Once they named this incarnation, another
+    owner means a worker took the slot over while this one was away (paused, cut off): this one is
+    stale, its rows are refused, and it leaves (`lost_to`) instead of waiting forever."""
+    owner = st.owners[w.slot] if w.slot < len(st.owners) else ""
+    if owner == f"{w.id}/{w.incarnation}":
+        w.owned = True
+    elif owner and w.owned and not w.lost_to:
+        w.lost_to = owner
+        log.warning("slot %d was taken over by %s while this worker (incarnation %s) was away (paused or cut off): "
+                    "the learner takes that one's rows now; this worker leaves the slot and exits", w.slot, owner,
+                    w.incarnation)
 
 
 def take_over(w: Worker, index: int) -> int:

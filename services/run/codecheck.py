@@ -59,6 +59,20 @@ def record(run_dir: Path, now: dict[str, Any], forced: list[str] | None = None) 
         write_json(run_dir / rundir.CODE, data, durable=True)
 
 
+def record_part(run_dir: Path, now: dict[str, Any], forced: list[str]) -> str:
+    """At the start of `mam run`'s part: a fresh run records `now` anew, a resumed one keeps its
+    record (with the `forced` differences). What to print: the forced differences, or why the
+    record could not be written (the run then stops); "" otherwise."""
+    try:
+        if not rundir.has_checkpoint(run_dir):
+            (run_dir / rundir.CODE).unlink(missing_ok=True)
+        record(run_dir, now, forced)
+    except OSError as e:
+        return f"[red]cannot write {run_dir / rundir.CODE}: {e.strerror or e} ({rundir.disk_free(run_dir)} free)[/]"
+    return (f"[yellow]resuming with other code (--allow-other-code): {'; '.join(forced)}; the run is no longer "
+            "exact[/]") if forced else ""
+
+
 def inexact_reason(run_dir: Path) -> str:
     """Why the run is not exact by its code record (a resume forced onto other code), or ""."""
     data = recorded(run_dir) or {}

@@ -383,9 +383,8 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
               outcome: dict[str, Any] | None = None, policy: RestartPolicy | None = None,
               code: dict[str, Any] | None = None, forced_code: list[str] | None = None) -> dict[str, Any]:
     """Train `cfg` on this box; returns summary.json's content (empty if the run was stopped
-    or did not finish). Children that die are restarted (`policy`). `code`: the code this part
-    runs (mam_lab.provenance.run_code), recorded in RUN_DIR/code.json; `forced_code`: how it
-    differs from a resumed run's, accepted (`mam run --resume --allow-other-code`).
+    or did not finish). Children that die are restarted (`policy`). `code`, `forced_code`: what
+    RUN_DIR/code.json records (services/run/codecheck.py: `record_part`).
 
     `outcome`, when given, gets "interrupted": whether SIGINT / SIGTERM stopped the run."""
     console = console or Console()
@@ -404,8 +403,7 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
 
 
 def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, outcome: dict[str, Any] | None,
-                policy: RestartPolicy | None, lock: runlock.DirLock, code: dict[str, Any] | None,
-                forced_code: list[str]) -> dict[str, Any]:
+                policy: RestartPolicy | None, lock: runlock.DirLock, code: Any, forced_code: list) -> dict[str, Any]:
     port = bus.free_tcp_port()
     endpoint = bus.loopback_endpoint(port)
     cfg = RunConfig.from_dict({**cfg.to_dict(), "endpoint": endpoint})
@@ -414,17 +412,10 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
     except OSError as e:
         console.print(f"[red]cannot write {run_dir / rundir.CONFIG}: {e.strerror or e} ({disk_free(run_dir)} free)[/]")
         return {}
-    try:  # the code this part runs (a fresh run: recorded anew; a resume: kept, forced differences added)
-        if code is not None and not rundir.has_checkpoint(run_dir):
-            (run_dir / rundir.CODE).unlink(missing_ok=True)
-        if code is not None:
-            codecheck.record(run_dir, code, forced_code)
-    except OSError as e:
-        console.print(f"[red]cannot write {run_dir / rundir.CODE}: {e.strerror or e} ({disk_free(run_dir)} free)[/]")
-        return {}
-    if forced_code:
-        console.print(f"[yellow]resuming with other code (--allow-other-code): {'; '.join(forced_code)}; the run is "
-                      "no longer exact[/]", highlight=False)
+    if code is not None and (why := codecheck.record_part(run_dir, code, forced_code)):
+        console.print(why, highlight=False)  # the forced differences, or why code.json cannot be written
+        if why.startswith("[red]"):
+            return {}
     cluster = LocalCluster(cfg, run_dir, endpoint, policy=policy or RestartPolicy(), console=console,
                            lock_token=lock.token)
     console.print(f"[bold]run[/] {cfg.run}  [bold]env[/] {cfg.env_id}  [bold]algo[/] {cfg.algo.algo} "
