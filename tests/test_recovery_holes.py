@@ -266,6 +266,7 @@ def test_a_paused_worker_whose_slot_a_spare_took_is_told_and_leaves(tmp_path: Pa
         time.sleep(2.0)  # the spare's rows are in: it owns the slot
         ws["w1"].send_signal(signal.SIGCONT)
         assert ws["w1"].wait(30) == 0, w1_log.read_text(errors="replace")[-2000:]
+        assert not (tmp_path / "summary.json").exists()  # it left at once, not when the run was done
         deadline = time.monotonic() + 240
         while not (tmp_path / "summary.json").is_file():
             assert time.monotonic() < deadline and learner.poll() in (None, 0), "the run did not finish"
