@@ -146,3 +146,15 @@ def test_a_batch_acted_with_a_learned_version_and_no_weights_digest_is_refused()
     assert intake.workers["w0"].rejected_rows == 2
     assert intake.validate(batch(2, "ab" * 16), [5]) is not None
     assert intake.validate(batch(-1, ""), [5]) is not None  # the random phase
+
+
+def test_learner_epochs_rise_at_every_start_and_order_incarnations(tmp_path: Path) -> None:
+    """Item 5, in part: each start of a run's learner takes the next epoch from
+    RUN_DIR/learner_epoch.json (durably, whatever checkpoint it resumes from), and every role
+    orders learner incarnations by it."""
+    from services.roles.learner_files import next_epoch
+    from services.roles.role import learner_order
+
+    assert [next_epoch(tmp_path) for _ in range(3)] == [1, 2, 3]
+    assert learner_order("e10-aa") > learner_order("e9-ff") > learner_order("e9-00") > learner_order("0123abc")
+    assert learner_order("") == (0, "") and learner_order("e-1") == (0, "e-1") and learner_order("ex-1")[0] == 0

@@ -56,7 +56,9 @@ class Learner:
     def __init__(self, cfg: RunConfig, session: Any, run_dir: Path, resume: dict[str, Any] | None = None) -> None:
         self.cfg, self.algo, self.session, self.run_dir = cfg, cfg.algo, session, run_dir
         self.id = f"{socket.gethostname()}-{os.getpid()}"
-        self.incarnation = uuid.uuid4().hex[:12]
+        # raised durably at every start; roles follow the highest epoch; a learner that sees a higher one stops
+        self.epoch = learner_files.next_epoch(run_dir)
+        self.incarnation = f"e{self.epoch}-{uuid.uuid4().hex[:12]}"
         self.spec = EnvSpec.from_env_id(cfg.env_id, cfg.env_kwargs)
         self.device = pick_device(self.algo.device)
         torch.manual_seed(self.algo.seed)
@@ -110,6 +112,7 @@ class Learner:
         self.referees = bus.watch_alive(s, run, "referee")
         self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
         self.referee_reports = bus.Latest(late_join=False).subscribe(s, keys.role_stats_all(run, "referee"))
+        self.rivals = bus.Latest(late_join=False).subscribe(s, keys.learner_stats(run))  # a higher epoch: stale
         self.inbox = bus.Inbox(maxsize=8192).subscribe(s, keys.transitions_all(run))
         self.episode_queries = bus.Answers(s, keys.episode_all(run))
         self.out = Outbox(self)
@@ -123,7 +126,8 @@ class Learner:
             self._loop()
         finally:
             workers.close()
-            for closable in (self.inbox, self.episode_queries, self.allocation, self.referee_reports, self.workers,
+            for closable in (self.inbox, self.episode_queries, self.allocation, self.referee_reports, self.rivals,
+                             self.workers,
                              self.referees, self.log_writer, self.bias_writer, self.board):
                 if closable is not None:
                     closable.close()
@@ -189,6 +193,7 @@ class Learner:
             if self.heartbeat.due(now):
                 self.out.config()
                 self.out.remind_referee()
+                learner_files.fence(self)
             if self.checkpoints.due(self.agent.updates, self.env_steps, now):
                 learner_files.checkpoint(self)
             if self.inbox.qsize() > INBOX_STAGE_AHEAD:  # a resend of thousands of batches: staged before the
@@ -209,6 +214,7 @@ class Learner:
             self.out.stats()
         if self.heartbeat.due(now):
             self.out.config()
+            learner_files.fence(self)
             if time.perf_counter() - since > HEARTBEAT_S:  # late: something may be lost
                 self.out.resend()
         if self.log_row.due(now):
@@ -316,19 +322,13 @@ class Learner:
             self.out.stats(done=True)
             if not self.workers.live() or time.monotonic() > deadline:
                 break
-            self.count_late(self.inbox.drain())
+            learner_files.count_late(self, self.inbox.drain())
             time.sleep(0.1)
         self.inbox.close()
-        self.count_late(self.inbox.drain())
+        learner_files.count_late(self, self.inbox.drain())
         self.out.wait_for_referee(msg)
         learner_files.write_transport(self)
 
-    def count_late(self, items: list[bus.Received]) -> None:
-        """Batches that arrive after the last iteration (a resend): counted, never inserted."""
-        for item in items:
-            batch = self.intake.validate(item, self.agent.versions)
-            if batch is not None:
-                self.intake.admit(batch)
 
 
 def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -13,9 +14,11 @@ import torch
 
 from mam_core.evaluation import estimation_bias
 from mam_core.seeding import bias_seed
+from services.messaging.codec import LearnerStats, MessageError
+from services.roles import role
 from services.roles.checkpoint import save_checkpoint
 from services.roles.outbox import PublishedDigests
-from services.run import codecheck, rundir
+from services.run import codecheck, rundir, runlock
 from services.run.rundir import write_json
 
 if TYPE_CHECKING:
@@ -45,6 +48,38 @@ def checkpoint(lr: Learner) -> None:
     log.info("checkpoint %s at iteration %d, %d updates, %d transitions (%.2f s)", path, lr.iteration,
              lr.agent.updates, lr.env_steps, time.monotonic() - started)
 
+
+
+def next_epoch(run_dir: Path) -> int:
+    """This learner's epoch: one more than the run's last (RUN_DIR/learner_epoch.json, written
+    durably before the learner publishes anything)."""
+    last = rundir.read_json(run_dir / rundir.LEARNER_EPOCH).get("epoch", 0)
+    epoch = (last if isinstance(last, int) and last >= 0 else 0) + 1
+    write_json(run_dir / rundir.LEARNER_EPOCH, {"epoch": epoch}, durable=True)
+    return epoch
+
+
+def fence(lr: Learner) -> None:
+    """The stats of a learner of a higher epoch on this run's key: another took the run over while
+    this one was frozen or cut off. Stop at once, exit 73, without a checkpoint (the run's state
+    is that one's now)."""
+    for item in lr.rivals.fresh().values():
+        try:
+            other = LearnerStats.from_bytes(item.payload).incarnation
+        except MessageError:
+            continue
+        if role.learner_order(other) > role.learner_order(lr.incarnation):
+            log.error("stopping: learner %s (a higher epoch) serves run %r: this one (%s) is stale", other,
+                      lr.cfg.run, lr.incarnation)
+            raise SystemExit(runlock.EXIT_REFUSED)
+
+
+def count_late(lr: Learner, items: list) -> None:
+    """Batches that arrive after the last iteration (a resend): counted, never inserted."""
+    for item in items:
+        batch = lr.intake.validate(item, lr.agent.versions)
+        if batch is not None:
+            lr.intake.admit(batch)
 
 
 def write_transport(lr: Learner) -> None:

@@ -83,6 +83,7 @@ class Worker(GuardedSimulator):
         self.learner_seen_at = 0.0  # when that incarnation was first seen (and the kept batches resent to it)
         self.stats_at = self.flushed_at = 0.0  # when the last stats arrived, when the last batch was put
         self.synced_with = ""  # the learner incarnation this slot's position was taken from (out_of_step)
+        self.newest_learner = (0, "")  # role.learner_order of the newest learner seen: an older one is stale
         self.owned = False  # the learner's stats have named this incarnation its slot's owner
         self.lost_to = ""  # the "worker/incarnation" that took the slot over since (this one then leaves)
         self.last_note = 0.0
@@ -210,7 +211,8 @@ class Worker(GuardedSimulator):
             except MessageError as e:
                 self.rejects.reject(keys.parse_last(item.key), e)
                 continue
-            if w.version >= oldest and role.plausible_version(w, self.stats):
+            if w.version >= oldest and role.plausible_version(w, self.stats) and \
+                    role.learner_order(w.incarnation) >= self.newest_learner:  # not a stale learner's
                 self.history.add(w.actor, w.version, w.params, w.incarnation, prefer=current)
         self.history.forget_below(oldest)
         self.weights_held_max = max(self.weights_held_max, self.history.held())
@@ -218,7 +220,8 @@ class Worker(GuardedSimulator):
     def refresh(self, decisions: dict[int, dict[str, int]], index: int | None) -> None:
         """Weights, the referee's decisions (with the one before: none is missed), the learner's stats."""
         st = role.fresh_learner_stats(self.stats_sub, self.cfg.run, self.rejects)
-        if st is not None:
+        if st is not None and role.learner_order(st.incarnation) >= self.newest_learner:  # else a stale learner's
+            self.newest_learner = role.learner_order(st.incarnation)
             self.stats, self.stats_at = st, time.monotonic()
             self.on_stats(st)
         self.take_weights(None, index)

@@ -8,6 +8,7 @@ looks for, so a rename is one edit. Plain string constants: importing this modul
     RUN_DIR/transport.json         the learner's transport counters at the end
     RUN_DIR/referee_state.json     the referee's state, for a restarted referee
     RUN_DIR/code.json              the code and library versions the run ran (services/run/codecheck.py)
+    RUN_DIR/learner_epoch.json     the epoch of the run's latest learner incarnation (fencing)
     RUN_DIR/learner.jsonl          learner metrics (one row per log interval)
     RUN_DIR/eval.jsonl             evaluations (one row per evaluation point)
     RUN_DIR/allocation.jsonl       allocation rounds (I_k, P_k)
@@ -51,6 +52,7 @@ CONFIG = "config.json"
 SUMMARY = "summary.json"
 TRANSPORT = "transport.json"
 REFEREE_STATE = "referee_state.json"
+LEARNER_EPOCH = "learner_epoch.json"  # the learner's starts so far: each incarnation's epoch (fencing)
 CODE = "code.json"  # the code fingerprint and library versions the run ran (services/run/codecheck.py)
 LEARNER_LOG = "learner.jsonl"
 EVAL = "eval.jsonl"
