@@ -78,7 +78,11 @@ def learner_pid(proc: subprocess.Popen) -> int:
 
 def checkpointed(run_dir: Path) -> int:
     """The iteration of the learner's last checkpoint (its log), 0 before the first."""
-    log = run_dir / "logs" / "learner.log"
+    return checkpointed_in(run_dir / "logs" / "learner.log")
+
+
+def checkpointed_in(log: Path) -> int:
+    """The iteration of the last checkpoint a learner's log names, 0 before the first."""
     found = re.findall(r"checkpoint \S+ at iteration (\d+)", log.read_text(errors="replace")) if log.is_file() else []
     return int(found[-1]) if found else 0
 
@@ -288,5 +292,64 @@ def test_a_paused_worker_whose_slot_a_spare_took_is_told_and_leaves(tmp_path: Pa
     ref = run_reference("AppleCollect-v1", resolve("ma-ddpg", **small), steps)
     assert [e["returns"] for e in read_jsonl(tmp_path / "eval.jsonl")] == [e["returns"] for e in ref.evaluations]
     _, params = read_policy_file(tmp_path / "checkpoints" / "policy.npz")
+    assert all(np.array_equal(a[n], b[n]) for a, b in zip(params, ref.policy) for n in a)
+    assert processes_of(run) == []
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_a_frozen_learner_replaced_by_one_of_a_higher_epoch_stops_when_it_comes_back(tmp_path: Path) -> None:
+    """Item 5, in part: learner incarnations are epochs. The learner (epoch 1) is SIGSTOPped; once
+    its token lapses a second learner resumes the run from a copy of its directory (epoch 2) and
+    the workers follow it. SIGCONT: the first one sees the higher epoch and stops (exit 73)
+    without a checkpoint, the workers ignore its stats and weights meanwhile, and the run ends
+    exact and equal to the reference."""
+    import shutil
+
+    from services.messaging import bus
+    from tests.e2e import spawn, stop
+
+    run, endpoint = unique_run("epochs"), bus.loopback_endpoint(bus.free_tcp_port())
+    first, second = tmp_path / "a", tmp_path / "b"
+    router = spawn("router", "--listen", endpoint, log=tmp_path / "router.log")
+    l1 = spawn("learner", *apple()[:-1], "--checkpoint-seconds", "2", "--run", run, "--connect", endpoint,
+               "--run-dir", str(first), log=tmp_path / "l1.log")
+    referee = spawn("referee", "--run", run, "--connect", endpoint, "--run-dir", str(first),
+                    log=tmp_path / "referee.log")
+    ws = [spawn("worker", "--run", run, "--connect", endpoint, "--id", f"w{i}", "--slot", str(i), "--run-dir",
+                str(first), log=tmp_path / f"w{i}.log") for i in range(3)]
+    l2 = None
+    try:
+        deadline = time.monotonic() + 180
+        while iterations(first) < 500 or checkpointed_in(tmp_path / "l1.log") < 300:
+            assert time.monotonic() < deadline and l1.poll() is None, "the run did not get going"
+            time.sleep(0.2)
+        l1.send_signal(signal.SIGSTOP)  # frozen: its token lapses after the lease
+        frozen_at = iterations(first)
+        shutil.copytree(first, second)
+        copied = len(read_jsonl(second / "learner.jsonl"))
+        l2 = spawn("learner", "--resume", str(second), "--connect", endpoint, log=tmp_path / "l2.log")
+        deadline = time.monotonic() + 120
+        while iterations(second, after=copied) < frozen_at + 300:
+            assert time.monotonic() < deadline and l2.poll() is None, (tmp_path / "l2.log").read_text()[-3000:]
+            time.sleep(0.2)
+        l1.send_signal(signal.SIGCONT)
+        assert l1.wait(60) == 73, (tmp_path / "l1.log").read_text(errors="replace")[-3000:]
+        assert not (first / "summary.json").exists()  # it stopped while the run went on
+        assert l2.wait(300) == 0, (tmp_path / "l2.log").read_text(errors="replace")[-3000:]
+    finally:
+        if l1.poll() is None:
+            l1.send_signal(signal.SIGCONT)
+        stop(*ws, referee, *([l2] if l2 is not None else []), l1, router)
+    text = (tmp_path / "l1.log").read_text(errors="replace")
+    assert "(a higher epoch) serves run" in text and "is stale" in text, text[-3000:]
+    assert json.loads((second / "learner_epoch.json").read_text()) == {"epoch": 2}
+    workers = " ".join((tmp_path / f"w{i}.log").read_text(errors="replace") for i in range(3))
+    assert "learner e2-" in workers and "rebuilding the slot there" not in workers
+    summary = json.loads((first / "summary.json").read_text())  # the referee's run directory
+    assert summary["exact"] is True, summary
+    ref = run_reference("AppleCollect-v1", resolve("ma-ddpg", **SMALL), STEPS)
+    assert [e["returns"] for e in read_jsonl(first / "eval.jsonl")] == [e["returns"] for e in ref.evaluations]
+    _, params = read_policy_file(second / "checkpoints" / "policy.npz")
     assert all(np.array_equal(a[n], b[n]) for a, b in zip(params, ref.policy) for n in a)
     assert processes_of(run) == []
