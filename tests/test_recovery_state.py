@@ -4,7 +4,9 @@ before it reports an evaluation done (fsync)."""
 
 from __future__ import annotations
 
+import logging
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -158,3 +160,56 @@ def test_learner_epochs_rise_at_every_start_and_order_incarnations(tmp_path: Pat
     assert [next_epoch(tmp_path) for _ in range(3)] == [1, 2, 3]
     assert learner_order("e10-aa") > learner_order("e9-ff") > learner_order("e9-00") > learner_order("0123abc")
     assert learner_order("") == (0, "") and learner_order("e-1") == (0, "e-1") and learner_order("ex-1")[0] == 0
+
+
+def test_an_episode_query_answered_differently_by_another_process_is_not_taken() -> None:
+    """Item 8, in part: a worker taking a slot over reads every answer to its episode query (real
+    Zenoh sessions on loopback); when a process that is not the run's learner answers otherwise,
+    none is taken (counted, logged) and it asks again; the learner's alone is taken."""
+    import threading
+
+    from services.messaging import bus, keys
+    from services.messaging.codec import SlotEpisode
+    from services.roles.takeover import agreed_episode
+    from tests.e2e import unique_run
+
+    run, endpoint = unique_run("answers"), bus.loopback_endpoint(bus.free_tcp_port())
+    rows = np.arange(6, dtype=np.float32).reshape(2, 3)
+    mine = SlotEpisode(1, 5, 7, rows, rows[:, :2], rows + 1)
+    forged = SlotEpisode(1, 5, 7, rows, rows[:, :2] * 0, rows + 1)
+    hub = bus.open_session(bus.make_config(listen=[endpoint]))
+    sessions = [bus.open_session(bus.make_config(connect=[endpoint]), retry_for=10) for _ in range(3)]
+    stop = threading.Event()
+    try:
+        learner = bus.Answers(sessions[0], keys.episode_all(run))
+        intruder = bus.Answers(sessions[1], keys.episode_all(run))
+
+        def answer() -> None:
+            while not stop.is_set():
+                learner.poll(lambda _key, _payload: mine.to_bytes("learner", 1))
+                if intruder is not None:
+                    intruder.poll(lambda _key, _payload: forged.to_bytes("intruder", 1))
+                time.sleep(0.01)
+
+        thread = threading.Thread(target=answer, daemon=True)
+        thread.start()
+        time.sleep(0.5)
+        rejects = bus.RejectLog(logging.getLogger("test"), "message")
+        payloads = bus.ask_all(sessions[2], keys.episode(run, 1), 5.0)
+        assert len(payloads) == 2  # both answers, none merged away
+        assert agreed_episode(payloads, 1, 3, 2, rejects) is None
+        assert rejects.counts() == {"disagreeing_answers": 1}
+        stop.set()
+        thread.join(5)
+        intruder.close()
+        intruder = None
+        stop.clear()
+        thread = threading.Thread(target=answer, daemon=True)
+        thread.start()
+        time.sleep(0.5)
+        got = agreed_episode(bus.ask_all(sessions[2], keys.episode(run, 1), 5.0), 1, 3, 2, rejects)
+        assert got is not None and np.array_equal(got.action, mine.action)
+    finally:
+        stop.set()
+        for s in (*sessions, hub):
+            s.close()

@@ -30,22 +30,40 @@ RESYNC_S = 2.0  # waiting this long while a restarted learner needs another iter
 
 def ask_episode(w: Worker) -> SlotEpisode | None:
     """The learner's answer for this worker's slot (asked until one comes; None: stopping, or
-    the run is over)."""
+    the run is over). Every answer is read: when they disagree (a process that is not the
+    run's learner answers too, or a stale learner), none is taken and the question is asked again."""
     key = keys.episode(w.cfg.run, w.slot)
     while not w.stop_requested and not bus.run_is_done(w.done, w.cfg.run, w.rejects):
-        payload = bus.ask(w.session, key, ASK_TIMEOUT_S)
-        if payload is None:
+        payloads = bus.ask_all(w.session, key, ASK_TIMEOUT_S)
+        if not payloads:
             log.info("no answer from the learner on %s yet; asking again", key)
             continue
-        try:
-            episode = SlotEpisode.from_bytes(payload, w.spec.obs_dim, w.spec.act_dim)
-        except MessageError as e:
-            w.rejects.reject("learner", e)
-            time.sleep(0.5)
-            continue
-        if episode.slot == w.slot:
+        episode = agreed_episode(payloads, w.slot, w.spec.obs_dim, w.spec.act_dim, w.rejects)
+        if episode is not None:
             return episode
+        time.sleep(0.5)
     return None
+
+
+def agreed_episode(payloads: list[bytes], slot: int, obs_dim: int, act_dim: int,
+                   rejects: bus.RejectLog) -> SlotEpisode | None:
+    """The episode every valid answer for `slot` gives, or None (none valid, or they disagree:
+    counted as rejected, reason `disagreeing_answers`, and logged once)."""
+    episodes = []
+    for payload in payloads:
+        try:
+            episode = SlotEpisode.from_bytes(payload, obs_dim, act_dim)
+        except MessageError as e:
+            rejects.reject("learner", e)
+            continue
+        if episode.slot == slot:
+            episodes.append(episode)
+    distinct = {(e.start, e.next, e.why, e.obs.tobytes(), e.action.tobytes(), e.next_obs.tobytes()) for e in episodes}
+    if len(distinct) > 1:
+        rejects.reject("learner", MessageError("disagreeing_answers", f"{len(distinct)} different episodes of slot "
+                                               f"{slot} answered: not this run's learner alone; asking again"))
+        return None
+    return episodes[0] if episodes else None
 
 
 def out_of_step(w: Worker, index: int, waiting_since: float) -> bool:
