@@ -156,8 +156,8 @@ def test_a_learner_killed_long_after_its_checkpoint_at_the_default_cadence_stays
     learner catches up (no slot is stepped again), the run ends exact and equal to the
     reference, and progress never stops for 30 s."""
     run, run_dir, out = unique_run("cadence"), tmp_path / "run", tmp_path / "mam.out"
-    steps, small = 12000, {**SMALL, "compete_every": 1500, "eliminate_at": 9000, "eval_every": 3000}
-    args = apple(steps, compete_every=1500, eliminate_at=9000, eval_every=3000)
+    steps, small = 9000, {**SMALL, "compete_every": 1500, "eliminate_at": 6000, "eval_every": 3000}
+    args = apple(steps, compete_every=1500, eliminate_at=6000, eval_every=3000)
     proc = start(run_dir, *args, "--run", run, "--run-dir", str(run_dir), out=out)
     try:
         log = run_dir / "logs" / "learner.log"
