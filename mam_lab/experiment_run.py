@@ -71,7 +71,10 @@ def main(argv: list[str]) -> int:
         cfg = RunConfig.from_dict(spec["config"])
         console = Console(file=sys.stdout, width=120, force_terminal=False, color_system=None)
         outcome: dict[str, Any] = {}
-        summary = run_local(cfg, run_dir, console=console, plot=bool(spec.get("plot", False)), outcome=outcome)
+        from mam_lab.provenance import run_code
+
+        summary = run_local(cfg, run_dir, console=console, plot=bool(spec.get("plot", False)), outcome=outcome,
+                            code=run_code())  # RUN_DIR/code.json: a continue compares its library versions
     except BaseException as e:  # noqa: BLE001 - the exit status is the only report
         if isinstance(e, stops):
             print(f"interrupted ({type(e).__name__})", flush=True)

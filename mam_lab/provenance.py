@@ -65,6 +65,12 @@ def code_fingerprint(root: Path | None = None) -> str:
     return f"{code['commit']}+{hashlib.sha256(diff).hexdigest()[:16]}"
 
 
+def run_code() -> dict[str, Any]:
+    """What a run records of the code it runs (RUN_DIR/code.json, services/run/codecheck.py): the
+    fingerprint ("" without git) and the versions of the libraries behind results."""
+    return {"format": 1, "fingerprint": code_fingerprint(ROOT), "versions": versions(commit=False)}
+
+
 def commit_label(record: Mapping[str, Any]) -> str:
     """"abc1234" or "abc1234+modified" (a dirty tree) or "unknown"."""
     commit = record.get("commit")

@@ -53,9 +53,9 @@ from rich.console import Console
 from mam_core.algorithm1 import Algorithm1
 from mam_lab.grid import RunSpec
 from mam_lab.ledger import RECORD, backfill_ledger, estimate_wall_s, make_record, run_state, write_ledger_record
-from mam_lab.provenance import ROOT, code_fingerprint, code_version
+from mam_lab.provenance import ROOT, code_fingerprint, code_version, run_code
 from mam_lab.view import GridView, hms
-from services.run import config, rundir, runlock
+from services.run import codecheck, config, rundir, runlock
 from services.run.config import RunConfig
 from services.run.rundir import env_dirname, read_json, write_json
 
@@ -189,11 +189,14 @@ def parse_stop_by(text: str, now: datetime | None = None) -> datetime:
 def continuable(run_dir: Path, cfg: RunConfig, code: str) -> RunConfig | None:
     """The config to continue a stopped run in `run_dir` with (its own, run name included), or
     None when it must be redone: it finished or failed, has no checkpoint, ran other code than
-    `code` (mam_lab.provenance.code_fingerprint) or another config than `cfg`."""
+    `code` (mam_lab.provenance.code_fingerprint), other library versions (its code.json) or
+    another config than `cfg`."""
     launch, saved = read_json(run_dir / rundir.LAUNCH), read_json(run_dir / rundir.CONFIG)
     if not launch or not saved or (run_dir / rundir.SUMMARY).exists() or not rundir.has_checkpoint(run_dir):
         return None
     if launch.get("failed") or not code or launch.get("code") != code:
+        return None
+    if codecheck.differences(run_dir, run_code()):  # other library versions (services/run/codecheck.py)
         return None
     try:
         have = RunConfig.from_dict(saved)

@@ -35,18 +35,25 @@ def run(
                                           help="run a budget that ends within the random start phase (no update: "
                                                "the policy stays random); refused without it",
                                           rich_help_panel=options.SCHEDULE_PANEL),
+    allow_other_code: bool = typer.Option(False, "--allow-other-code", show_default=False,
+                                          help="with --resume: continue a run that ran another commit or other "
+                                               "library versions (it is then no longer exact)",
+                                          rich_help_panel=options.RUN_PANEL),
 ) -> None:
     """Train on this box: learner + referee + M workers over an embedded loopback Zenoh."""
     from services.run.launcher import RestartPolicy, run_local
 
     logging.basicConfig(level=logging.WARNING)
+    from mam_lab.provenance import run_code
     from services.run import preflight
 
+    code = run_code()  # what RUN_DIR/code.json records (a resume compares it)
     if resume is not None:
         if run_dir is not None and run_dir.resolve() != resume.resolve():
             raise typer.BadParameter(f"--run-dir {run_dir} contradicts --resume {resume}")
-        cfg, run_dir = options.resume_config(resume, run_opts, config), resume
+        (cfg, forced), run_dir = options.resume_config(resume, run_opts, config, code, allow_other_code), resume
     else:
+        forced = []
         cfg = options.build_run_config(run_opts, config)
     cpu.check_precision(cfg)
     run_dir = run_dir or Path("runs") / cfg.run
@@ -64,7 +71,8 @@ def run(
         typer.echo(f"note: {curve_points(cfg)}", err=True)
     outcome: dict[str, Any] = {}
     summary = run_local(cfg, run_dir, plot=not no_plot, outcome=outcome,
-                        policy=RestartPolicy(max_restarts=max_restarts, window_s=restart_window))
+                        policy=RestartPolicy(max_restarts=max_restarts, window_s=restart_window), code=code,
+                        forced_code=forced)
     if not summary:  # 130 / 143 when SIGINT / SIGTERM stopped it (128 + the signal), else 1
         raise typer.Exit(128 + int(outcome["signal"]) if outcome.get("signal") else 1)
 

@@ -399,11 +399,15 @@ def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig
         raise typer.BadParameter(str(e)) from e
 
 
-def resume_config(run_dir: Path, cli: dict[str, Any], config_file: Path | None) -> RunConfig:
-    """The config of the stopped run in `run_dir` (its config.json), for `mam run --resume`:
-    typer.BadParameter naming the file when there is nothing to continue (no run, a finished
-    run, no verified checkpoint) or when a given option contradicts the run's."""
-    from services.run import rundir
+def resume_config(run_dir: Path, cli: dict[str, Any], config_file: Path | None,
+                  code: dict[str, Any], allow_other_code: bool = False) -> tuple[RunConfig, list[str]]:
+    """The config of the stopped run in `run_dir` (its config.json), for `mam run --resume`, and
+    how `code` (this code: mam_lab.provenance.run_code) differs from the run's
+    (services/run/codecheck.py): typer.BadParameter naming
+    the file when there is nothing to continue (no run, a finished run, no verified checkpoint),
+    when a given option contradicts the run's, or when the run ran other code or libraries
+    (naming both) unless `allow_other_code`."""
+    from services.run import codecheck, rundir
 
     path = run_dir / rundir.CONFIG
     if not path.is_file():
@@ -430,7 +434,13 @@ def resume_config(run_dir: Path, cli: dict[str, Any], config_file: Path | None) 
         flag = "--" + name.replace("_", "-")
         raise typer.BadParameter(f"--resume {run_dir}: {flag} {value} contradicts the run's {have[name]} ({path}); "
                                  "a resumed run keeps the options it started with")
-    return cfg
+    other = codecheck.differences(run_dir, code)
+    if other and not allow_other_code:
+        raise typer.BadParameter(f"--resume {run_dir}: the run ran other code ({run_dir / rundir.CODE}): "
+                                 f"{'; '.join(other)}. A resumed run equals the uninterrupted one only on the same "
+                                 "code and libraries; --allow-other-code continues it anyway, and the run records "
+                                 "exact: false")
+    return cfg, other
 
 
 def _same(a: Any, b: Any) -> bool:

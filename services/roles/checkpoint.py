@@ -134,13 +134,16 @@ def write_error_text(e: OSError, what: str = "write") -> str:
 
 
 def save_checkpoint(run_dir: Path, agent: MultiActorAgent, buffer: ReplayBuffer, counters: dict[str, Any],
-                    cfg: RunConfig, replay_log: ReplayLog | None = None, survivor: int | None = None) -> Path:
+                    cfg: RunConfig, replay_log: ReplayLog | None = None, survivor: int | None = None,
+                    extra: dict[str, Any] | None = None) -> Path:
     """Write a new checkpoint generation (see the module docstring); returns its learner file.
 
     With a `replay_log` the rows inserted since the previous checkpoint are appended as one
     chunk first; the state names the chunks that hold every row it counts (`replay_log`:
-    inserted, manifest, sampling rng). Raises CheckpointError on a write error, leaving the
-    previous generation as it was and no temp file behind.
+    inserted, manifest, sampling rng). `extra`: more entries of the state (tensors, numbers,
+    strings, lists and dicts of them: what `torch.load(weights_only=True)` reads back). Raises
+    CheckpointError on a write error, leaving the previous generation as it was and no temp file
+    behind.
     """
     d = checkpoint_dir(run_dir)
     d.mkdir(parents=True, exist_ok=True)
@@ -148,7 +151,7 @@ def save_checkpoint(run_dir: Path, agent: MultiActorAgent, buffer: ReplayBuffer,
     g = (existing[0] + 1) if existing else 1
     base = _lineage.get(str(run_dir))
     state: dict[str, Any] = {"agent": agent.state_dict(), "counters": counters,
-                             "config": json.dumps(cfg.to_dict())}
+                             "config": json.dumps(cfg.to_dict()), **(extra or {})}
     snapshot = replay_log.snapshot() if replay_log is not None else None
     written: list[Path] = []
     target = replay_dir(run_dir)  # what is being written (for the message)

@@ -73,7 +73,9 @@ class Intake:
         Rows acted with the weights of another learner incarnation (a learner that died, whose
         versions count from its own start) are real transitions: they are accepted, and only
         rows tagged with this learner's incarnation (or untagged) must not carry a version it
-        has not reached."""
+        has not reached. Rows acted with a learned version must say which weights they were
+        acted with (`policy_digest`, checked against the published ones): without it they are
+        refused, not trusted."""
         sender = keys.parse_last(item.key)
         try:
             batch = TransitionBatch.from_bytes(item.payload, self.spec, max_bytes=self.max_message)
@@ -83,6 +85,9 @@ class Intake:
         try:
             if batch.worker != sender:
                 raise MessageError("sender_mismatch", f"key says {sender}, message says {batch.worker}")
+            if batch.version >= 0 and not batch.policy_digest:  # a worker of this run always says which weights
+                raise MessageError("no_digest", f"rows acted with actor {batch.actor}'s version {batch.version} "
+                                   "carry no weights digest")
             ours = batch.policy_from in ("", self.incarnation)
             if ours and batch.version > versions[batch.actor]:
                 raise MessageError("future_version", f"version {batch.version} > {versions[batch.actor]}")

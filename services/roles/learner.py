@@ -50,13 +50,16 @@ log = logging.getLogger("mam.learner")
 STATS_PERIOD_S = 0.1  # stats this often while updating; four times as often while waiting for data
 LOG_PERIOD_S = 1.0
 HEARTBEAT_S = 2.0  # config re-published this often
+INBOX_STAGE_AHEAD = 1024  # more queued after an iteration: all staged at once (a resend of thousands of batches)
 
 
 class Learner:
     def __init__(self, cfg: RunConfig, session: Any, run_dir: Path, resume: dict[str, Any] | None = None) -> None:
         self.cfg, self.algo, self.session, self.run_dir = cfg, cfg.algo, session, run_dir
         self.id = f"{socket.gethostname()}-{os.getpid()}"
-        self.incarnation = uuid.uuid4().hex[:12]
+        # raised durably at every start; roles follow the highest epoch; a learner that sees a higher one stops
+        self.epoch = learner_files.next_epoch(run_dir)
+        self.incarnation = f"e{self.epoch}-{uuid.uuid4().hex[:12]}"
         self.spec = EnvSpec.from_env_id(cfg.env_id, cfg.env_kwargs)
         self.device = pick_device(self.algo.device)
         torch.manual_seed(self.algo.seed)
@@ -96,6 +99,9 @@ class Learner:
         self.episodes = SlotEpisodes(self.plan)  # per slot, where its current episode began (a takeover's replay)
         self.awaiting: tuple[int, ...] = ()  # slots whose rows the loop waits for; -1: the referee's decision
         self.digests = PublishedDigests()  # of the versions a slot may act with (checked per batch)
+        # From a checkpoint: the older versions it publishes, the referee's pending snapshots (Outbox.restore),
+        # the (worker, incarnation) that lost their slot
+        self.kept_weights, self.kept_snapshots, self.retired = [], [], set()
         if resume is not None:
             learner_files.restore(self, resume)
 
@@ -106,6 +112,7 @@ class Learner:
         self.referees = bus.watch_alive(s, run, "referee")
         self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
         self.referee_reports = bus.Latest(late_join=False).subscribe(s, keys.role_stats_all(run, "referee"))
+        self.rivals = bus.Latest(late_join=False).subscribe(s, keys.learner_stats(run))  # a higher epoch: stale
         self.inbox = bus.Inbox(maxsize=8192).subscribe(s, keys.transitions_all(run))
         self.episode_queries = bus.Answers(s, keys.episode_all(run))
         self.out = Outbox(self)
@@ -119,7 +126,8 @@ class Learner:
             self._loop()
         finally:
             workers.close()
-            for closable in (self.inbox, self.episode_queries, self.allocation, self.referee_reports, self.workers,
+            for closable in (self.inbox, self.episode_queries, self.allocation, self.referee_reports, self.rivals,
+                             self.workers,
                              self.referees, self.log_writer, self.bias_writer, self.board):
                 if closable is not None:
                     closable.close()
@@ -129,6 +137,8 @@ class Learner:
         """Iterations of the plan: iteration i's rows in slot order, then its updates."""
         plan = self.plan
         stage = self.stage = SlotStage(self.algo.workers, start=self.iteration + 1)
+        stage.retired |= self.retired  # (from the checkpoint) a stale owner never takes its slot back
+        self.out.restore(self.kept_weights, self.kept_snapshots)  # lag B > 0, a referee behind the checkpoint
         self.out.weights(all_actors=True)
         self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
         learner_files.checkpoint(self)  # at once: a learner killed early resumes from here
@@ -182,8 +192,12 @@ class Learner:
                 learner_files.write_log(self, now)
             if self.heartbeat.due(now):
                 self.out.config()
+                self.out.remind_referee()
+                learner_files.fence(self)
             if self.checkpoints.due(self.agent.updates, self.env_steps, now):
                 learner_files.checkpoint(self)
+            if self.inbox.qsize() > INBOX_STAGE_AHEAD:  # a resend of thousands of batches: staged before the
+                self.receive(stage, timeout=0.0, max_items=self.inbox.qsize())  # inbox sheds any of it
         # Stopped by a signal: keep a usable checkpoint (of the last whole iteration); the run is not done.
         learner_files.write_log(self)
         if not self.mid_iteration:
@@ -200,6 +214,7 @@ class Learner:
             self.out.stats()
         if self.heartbeat.due(now):
             self.out.config()
+            learner_files.fence(self)
             if time.perf_counter() - since > HEARTBEAT_S:  # late: something may be lost
                 self.out.resend()
         if self.log_row.due(now):
@@ -210,10 +225,10 @@ class Learner:
             log.warning("waiting %.0f s for %s; %d workers live, referee %s", waited, awaited,
                         len(self.workers.live()), "live" if self.referees.live() else "gone")
 
-    def receive(self, stage: SlotStage, timeout: float) -> None:
+    def receive(self, stage: SlotStage, timeout: float, max_items: int = 256) -> None:
         """Stage what arrived; follow the referee."""
-        items = self.inbox.drain(max_items=256)
-        if not items:
+        items = self.inbox.drain(max_items=max_items)
+        if not items and timeout > 0:
             item = self.inbox.get(timeout=timeout)
             items = [item] if item is not None else []
         for item in items:
@@ -307,29 +322,13 @@ class Learner:
             self.out.stats(done=True)
             if not self.workers.live() or time.monotonic() > deadline:
                 break
-            self.count_late(self.inbox.drain())
+            learner_files.count_late(self, self.inbox.drain())
             time.sleep(0.1)
         self.inbox.close()
-        self.count_late(self.inbox.drain())
+        learner_files.count_late(self, self.inbox.drain())
         self.out.wait_for_referee(msg)
-        tracker = self.intake.tracker
-        write_json(self.run_dir / rundir.TRANSPORT, {
-            "env_steps": self.env_steps, "iterations": self.iterations, "updates": self.agent.updates,
-            "lost": tracker.lost, "duplicates": tracker.duplicates, "rejected": self.rejected(),
-            "recovered": tracker.recovered, "redundant": tracker.redundant,
-            "replay_rows": self.buffer.inserted if self.replay_log is not None else None,
-            "wall_s": round(self.wall_before + time.monotonic() - self.started, 3),
-            **self.intake.transport(),
-            "inbox_dropped": self.inbox.dropped})  # shed before decoding when the inbox overflowed
-        log.info("done: %d transitions, %d updates, lost %d, duplicates %d, rejected %d", self.env_steps,
-                 self.agent.updates, tracker.lost, tracker.duplicates, self.intake.rejects.total)
+        learner_files.write_transport(self)
 
-    def count_late(self, items: list[bus.Received]) -> None:
-        """Batches that arrive after the last iteration (a resend): counted, never inserted."""
-        for item in items:
-            batch = self.intake.validate(item, self.agent.versions)
-            if batch is not None:
-                self.intake.admit(batch)
 
 
 def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None:
@@ -339,8 +338,9 @@ def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None
         except CheckpointCorrupt as e:  # every generation is damaged: nothing to resume from
             log.error("stopping: %s", e)
             raise SystemExit(EXIT_CORRUPT) from None
-        if state is not None:
-            cfg = RunConfig.from_dict({**json.loads(state["config"]), "steps": cfg.steps})
+        if state is not None:  # this part's endpoint (`mam run` gave it a new port): a later restart listens there
+            cfg = RunConfig.from_dict({**json.loads(state["config"]), "steps": cfg.steps,
+                                       **({"endpoint": cfg.endpoint} if cfg.endpoint else {})})
         try:
             runlock.refuse_live_learner(session, cfg.run)
         except runlock.RunInUse as e:

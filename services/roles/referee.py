@@ -96,11 +96,12 @@ class Referee:
 
     def _save_state(self) -> None:
         """After each evaluation is logged and its decision published: what a successor needs
-        to go on with the next one (the allocation stream's state included)."""
+        to go on with the next one (the allocation stream's state included). Durable before the
+        referee reports the evaluation done: the learner forgets a snapshot once it is reported."""
         write_json(self.run_dir / STATE_FILE, {
             "schedule": self.schedule.to_dict(), "rng": self.rng.bit_generator.state,
             "events_done": self.events_done, "decision": self.decision, "previous": self.previous,
-            "final_row": self.final_row, "wall_s": round(self.wall(), 3)})
+            "final_row": self.final_row, "wall_s": round(self.wall(), 3)}, durable=True)
 
     def wall(self) -> float:
         return self.wall_before + time.monotonic() - self.started

@@ -200,6 +200,14 @@ def weights_screen(shapes: Mapping[str, tuple[int, ...]], n_actors: int,
     return admits
 
 
+def learner_order(incarnation: str) -> tuple[int, str]:
+    """How learner incarnations "e<epoch>-<id>" (services/roles/learner.py) are ordered: by epoch,
+    which each start of a run's learner raises (then by id, so that every role orders two learners
+    of one epoch alike); an incarnation without an epoch comes first."""
+    head, _, rest = incarnation.partition("-")
+    return (int(head[1:]), rest) if head[:1] == "e" and head[1:].isdigit() and rest else (0, incarnation)
+
+
 def fresh_learner_stats(latest: bus.Latest, run: str, rejects: bus.RejectLog) -> LearnerStats | None:
     """The learner's stats if new ones arrived since the last call (a malformed message is
     counted as rejected, never raised), else None."""

@@ -42,7 +42,6 @@ log = logging.getLogger("mam.worker")
 
 MAX_BATCH_AGE_S = 0.05  # a partial batch is sent after this long
 STATUS_EVERY_S = 10.0
-RESYNC_S = 2.0  # waiting this long while a restarted learner needs another iteration of this slot: go there
 LOST_AFTER_S = 2.0  # the learner's stats still lack a row sent this long before them: the batch was lost
 class Worker(GuardedSimulator):
     def __init__(self, cfg: RunConfig, session: Any, worker_id: str, slot_index: int = 0,
@@ -84,6 +83,9 @@ class Worker(GuardedSimulator):
         self.learner_seen_at = 0.0  # when that incarnation was first seen (and the kept batches resent to it)
         self.stats_at = self.flushed_at = 0.0  # when the last stats arrived, when the last batch was put
         self.synced_with = ""  # the learner incarnation this slot's position was taken from (out_of_step)
+        self.newest_learner = (0, "")  # role.learner_order of the newest learner seen: an older one is stale
+        self.owned = False  # the learner's stats have named this incarnation its slot's owner
+        self.lost_to = ""  # the "worker/incarnation" that took the slot over since (this one then leaves)
         self.last_note = 0.0
         self.episode_return = 0.0
         self.finished_returns: list[float] = []
@@ -122,7 +124,8 @@ class Worker(GuardedSimulator):
         try:
             self._loop()
         finally:
-            self.flush()
+            if not self.lost_to:  # a stale owner's rows would be refused: none go
+                self.flush()
             self.publish_report(force=True)
             self.write_report()
             if self.batch_log is not None:
@@ -149,9 +152,12 @@ class Worker(GuardedSimulator):
                 log.info("run is done after %d transitions from this worker", self.sent_rows)
                 return
             self.refresh(decisions, index)
+            if self.lost_to:  # a stale owner (takeover.follow_owner): it leaves
+                self.p_n = 0
+                return
             if index is not None:
                 self.resend_lost(index)
-            if index is not None and self.out_of_step(index, waiting_since):
+            if index is not None and takeover.out_of_step(self, index, waiting_since):
                 log.info("iteration %d: the restarted learner needs iteration %d of slot %d next; rebuilding the "
                          "slot there", index, self.stats.slots_next[self.slot], self.slot)
                 self.synced_with = self.stats.incarnation
@@ -191,16 +197,6 @@ class Worker(GuardedSimulator):
             self.step(index, it.random, actor, version)
             index += 1
 
-    def out_of_step(self, index: int, waiting_since: float) -> bool:
-        """This slot waits, and a learner restarted since its position was set still needs another
-        iteration of it well after this worker's resends: the slot is rebuilt there (takeover)."""
-        st = self.stats  # (rows still pending here, after a pause: no resync)
-        if st is None or self.slot >= len(st.slots_next) or st.slots_next[self.slot] == index or self.p_n or \
-                st.incarnation == self.synced_with:
-            return False
-        since = max(waiting_since, self.flushed_at, self.learner_seen_at)  # stats must be newer than all three
-        return time.monotonic() - since > RESYNC_S and self.stats_at - since > RESYNC_S / 2
-
     def take_weights(self, item: bus.Received | None, index: int | None) -> None:
         """Keep the versions this slot may still act with (none below iteration `index`'s)."""
         items = ([item] if item is not None else []) + self.weights.drain()
@@ -215,7 +211,8 @@ class Worker(GuardedSimulator):
             except MessageError as e:
                 self.rejects.reject(keys.parse_last(item.key), e)
                 continue
-            if w.version >= oldest and role.plausible_version(w, self.stats):
+            if w.version >= oldest and role.plausible_version(w, self.stats) and \
+                    role.learner_order(w.incarnation) >= self.newest_learner:  # not a stale learner's
                 self.history.add(w.actor, w.version, w.params, w.incarnation, prefer=current)
         self.history.forget_below(oldest)
         self.weights_held_max = max(self.weights_held_max, self.history.held())
@@ -223,7 +220,8 @@ class Worker(GuardedSimulator):
     def refresh(self, decisions: dict[int, dict[str, int]], index: int | None) -> None:
         """Weights, the referee's decisions (with the one before: none is missed), the learner's stats."""
         st = role.fresh_learner_stats(self.stats_sub, self.cfg.run, self.rejects)
-        if st is not None:
+        if st is not None and role.learner_order(st.incarnation) >= self.newest_learner:  # else a stale learner's
+            self.newest_learner = role.learner_order(st.incarnation)
             self.stats, self.stats_at = st, time.monotonic()
             self.on_stats(st)
         self.take_weights(None, index)
@@ -259,7 +257,10 @@ class Worker(GuardedSimulator):
         return {"env_faults": dict(self.faults), "env_remade": self.env_remade, **self.kept.counters()}
 
     def on_stats(self, st: LearnerStats) -> None:
-        """Drop what the learner has checkpointed; on a new learner incarnation resend the rest."""
+        """Drop what the learner has checkpointed; on a new learner incarnation resend the rest;
+        see whether another worker has taken this one's slot over (the slot's owner in the stats
+        was this incarnation, and is another now: this one is stale)."""
+        takeover.follow_owner(self, st)
         self.trim_acked(st)
         if st.incarnation != self.learner_incarnation:
             first = self.learner_incarnation is None

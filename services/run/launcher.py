@@ -27,7 +27,7 @@ from rich.console import Console
 from mam_core import arithmetic
 from services.messaging import bus
 from services.messaging.codec import LearnerStats
-from services.run import preflight, registry, rundir, runlock
+from services.run import codecheck, preflight, registry, rundir, runlock
 from services.run.audit import audit_transport
 from services.run.config import RunConfig, budget_warnings
 from services.run.progress import budget_text, command_name, done_text, follow, outcome_text
@@ -380,9 +380,11 @@ class LocalCluster:
 
 
 def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plot: bool = True,
-              outcome: dict[str, Any] | None = None, policy: RestartPolicy | None = None) -> dict[str, Any]:
+              outcome: dict[str, Any] | None = None, policy: RestartPolicy | None = None,
+              code: dict[str, Any] | None = None, forced_code: list[str] | None = None) -> dict[str, Any]:
     """Train `cfg` on this box; returns summary.json's content (empty if the run was stopped
-    or did not finish). Children that die are restarted (`policy`).
+    or did not finish). Children that die are restarted (`policy`). `code`, `forced_code`: what
+    RUN_DIR/code.json records (services/run/codecheck.py: `record_part`).
 
     `outcome`, when given, gets "interrupted": whether SIGINT / SIGTERM stopped the run."""
     console = console or Console()
@@ -395,13 +397,13 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
             outcome["interrupted"] = False
         return {}
     try:
-        return _run_locked(cfg, run_dir, console, plot, outcome, policy, lock)
+        return _run_locked(cfg, run_dir, console, plot, outcome, policy, lock, code, forced_code or [])
     finally:
         lock.release()
 
 
 def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, outcome: dict[str, Any] | None,
-                policy: RestartPolicy | None, lock: runlock.DirLock) -> dict[str, Any]:
+                policy: RestartPolicy | None, lock: runlock.DirLock, code: Any, forced_code: list) -> dict[str, Any]:
     port = bus.free_tcp_port()
     endpoint = bus.loopback_endpoint(port)
     cfg = RunConfig.from_dict({**cfg.to_dict(), "endpoint": endpoint})
@@ -410,6 +412,10 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
     except OSError as e:
         console.print(f"[red]cannot write {run_dir / rundir.CONFIG}: {e.strerror or e} ({disk_free(run_dir)} free)[/]")
         return {}
+    if code is not None and (why := codecheck.record_part(run_dir, code, forced_code)):
+        console.print(why, highlight=False)  # the forced differences, or why code.json cannot be written
+        if why.startswith("[red]"):
+            return {}
     cluster = LocalCluster(cfg, run_dir, endpoint, policy=policy or RestartPolicy(), console=console,
                            lock_token=lock.token)
     console.print(f"[bold]run[/] {cfg.run}  [bold]env[/] {cfg.env_id}  [bold]algo[/] {cfg.algo.algo} "

@@ -7,6 +7,8 @@ looks for, so a rename is one edit. Plain string constants: importing this modul
     RUN_DIR/summary.json           written by the referee when the run is done
     RUN_DIR/transport.json         the learner's transport counters at the end
     RUN_DIR/referee_state.json     the referee's state, for a restarted referee
+    RUN_DIR/code.json              the code and library versions the run ran (services/run/codecheck.py)
+    RUN_DIR/learner_epoch.json     the epoch of the run's latest learner incarnation (fencing)
     RUN_DIR/learner.jsonl          learner metrics (one row per log interval)
     RUN_DIR/eval.jsonl             evaluations (one row per evaluation point)
     RUN_DIR/allocation.jsonl       allocation rounds (I_k, P_k)
@@ -50,6 +52,8 @@ CONFIG = "config.json"
 SUMMARY = "summary.json"
 TRANSPORT = "transport.json"
 REFEREE_STATE = "referee_state.json"
+LEARNER_EPOCH = "learner_epoch.json"  # the learner's starts so far: each incarnation's epoch (fencing)
+CODE = "code.json"  # the code fingerprint and library versions the run ran (services/run/codecheck.py)
 LEARNER_LOG = "learner.jsonl"
 EVAL = "eval.jsonl"
 ALLOCATION = "allocation.jsonl"
@@ -131,12 +135,29 @@ def read_jsonl(path: Path | str) -> list[dict[str, Any]]:
     return rows
 
 
-def write_json(path: Path, data: Any) -> None:
-    """Atomic write: a reader never sees half a file."""
+def write_json(path: Path, data: Any, durable: bool = False) -> None:
+    """Atomic write: a reader never sees half a file. `durable`: on disk once this returns (fsync
+    of the file before the rename, of the directory after it), for a state a restarted role goes
+    on from (the referee's): after a power cut it is the new file or the old one, never empty."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=True))
+    with open(tmp, "w", encoding="utf-8") as f:
+        f.write(json.dumps(data, indent=2, sort_keys=True))
+        if durable:
+            f.flush()
+            os.fsync(f.fileno())
     os.replace(tmp, path)
+    if durable:
+        try:
+            fd = os.open(path.parent, os.O_RDONLY)
+        except OSError:
+            return
+        try:
+            os.fsync(fd)
+        except OSError:  # some file systems refuse a directory fsync
+            pass
+        finally:
+            os.close(fd)
 
 
 class JsonlWriter:

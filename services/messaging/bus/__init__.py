@@ -44,7 +44,7 @@ from services.messaging.bus.accounting import (
                                      run_is_done,
 )
 from services.messaging.bus.alive import AliveWatch, declare_alive, watch_alive
-from services.messaging.bus.query import Answers, ask
+from services.messaging.bus.query import Answers, ask, ask_all
 from services.messaging.bus.receive import Inbox, Latest, Received
 from services.messaging.bus.session import (
                                      MODES,
@@ -59,6 +59,6 @@ from services.messaging.bus.session import (
 )
 
 __all__ = ["DUPLICATE", "GAP", "IN_ORDER", "MAX_HOLES", "MODES", "RECOVERED", "REDUNDANT", "AliveWatch", "Answers",
-           "Inbox", "Latest", "Received", "RejectLog", "SequenceTracker", "ask", "declare_alive",
+           "Inbox", "Latest", "Received", "RejectLog", "SequenceTracker", "ask", "ask_all", "declare_alive",
            "declare_latest_publisher", "declare_reliable_publisher", "free_tcp_port", "init_zenoh_log",
            "loopback_endpoint", "make_config", "open_session", "run_is_done", "session_scope", "watch_alive"]

@@ -44,6 +44,14 @@ class Answers:
         self.queryable.undeclare()
 
 
+def ask_all(session: zenoh.Session, key: str, timeout: float, payload: bytes = b"") -> list[bytes]:
+    """Every answer to a query on `key` (each queryable's), within `timeout` seconds: the caller
+    decides what to do when they disagree, rather than take whichever came first."""
+    replies = session.get(key, payload=payload, timeout=timeout, target=zenoh.QueryTarget.ALL,
+                          consolidation=zenoh.ConsolidationMode.NONE)  # each queryable's, none merged away
+    return [reply.ok.payload.to_bytes() for reply in replies if reply.ok is not None]
+
+
 def ask(session: zenoh.Session, key: str, timeout: float, payload: bytes = b"") -> bytes | None:
     """The first answer to a query on `key`, or None when none came within `timeout` seconds."""
     for reply in session.get(key, payload=payload, timeout=timeout):

@@ -9,6 +9,7 @@ from typing import Any, ClassVar
 from services.messaging.codec.control import _plain_value
 from services.messaging.codec.wire import (
     MAX_MESSAGE_BYTES,
+    MAX_TEXT_LEN,
     MessageError,
     _as_float,
     _bool,
@@ -118,6 +119,7 @@ class LearnerStats:
     inexact: str = ""  # why the run stopped being exact (empty while exact, or never asked for)
     awaiting: tuple[int, ...] = ()  # what the learner's loop waits for now: slots, and -1 for the referee
     slots_next: tuple[int, ...] = ()  # per slot, the iteration of the next row the learner needs from it
+    owners: tuple[str, ...] = ()  # per slot, "worker/incarnation" whose rows it takes ("" before the first)
 
     def to_bytes(self, sender: str, seq: int) -> bytes:
         body = {
@@ -140,6 +142,7 @@ class LearnerStats:
             "inexact": self.inexact,
             "awaiting": [int(a) for a in self.awaiting],
             "slots_next": [int(a) for a in self.slots_next],
+            "owners": [str(o) for o in self.owners],
         }
         return encode(self.KIND, body, sender=sender, seq=seq)
 
@@ -168,9 +171,12 @@ class LearnerStats:
         inexact = _text(msg, "inexact") if "inexact" in msg else ""
         awaiting = _ints(msg, "awaiting", lo=-1) if "awaiting" in msg else ()
         slots_next = _ints(msg, "slots_next", lo=1) if "slots_next" in msg else ()
+        owners = tuple(_list(msg, "owners")) if "owners" in msg else ()
+        if any(not isinstance(o, str) or len(o) > MAX_TEXT_LEN for o in owners):
+            raise MessageError("type:owners", f"want strs of at most {MAX_TEXT_LEN} chars")
         return cls(env_steps, updates, accept_until, utd, losses, q_means, versions,
                    per_worker, rejected, done, live, workers, steps, incarnation, exact, iteration, inexact,
-                   tuple(awaiting), tuple(slots_next))
+                   tuple(awaiting), tuple(slots_next), owners)
 
     @classmethod
     def from_bytes(cls, payload: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> "LearnerStats":
