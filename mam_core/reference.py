@@ -61,11 +61,11 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
     sample = agent.sampler(buffer, cfg.batch_size)  # on a GPU: indices staged for the CUDA graphs
     state = obsolescence_for(cfg, steps)
     rng = stream(cfg.seed, "allocation")
-    actors = NumpyActors(cfg.actors, spec, cfg.hidden, cfg.stochastic)  # the newest actors: what the referee judges
+    actors = NumpyActors(cfg.actors, spec, cfg.hidden, cfg.family.policy_kind)  # the newest: what the referee judges
     for k in range(cfg.actors):
         actors.load_member(k, agent.actor_params(k))
     # What the slots act with: the actors after iteration t-1-B (B = cfg.lag), by version.
-    acting = NumpyActors(cfg.actors, spec, cfg.hidden, cfg.stochastic)
+    acting = NumpyActors(cfg.actors, spec, cfg.hidden, cfg.family.policy_kind)
     history: dict[int, list[dict[str, np.ndarray] | None]] = {0: [agent.actor_params(k) for k in range(cfg.actors)]}
     max_action = np.asarray(spec.max_action, np.float32)
     streams = [SlotStreams.for_slot(cfg.seed, i) for i in range(cfg.workers)]

@@ -51,7 +51,7 @@ class Referee:
         self.id = f"{socket.gethostname()}-{os.getpid()}"
         self.rejects = bus.RejectLog(log, "message")
         self.spec = EnvSpec.from_env_id(cfg.env_id, cfg.env_kwargs)
-        self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden, self.algo.stochastic)  # no torch
+        self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden, self.algo.family.policy_kind)
         self.shapes = self.actors.shapes
         self.plan = Algorithm1.for_run(self.algo, cfg.steps)  # the events, in order
         self.schedule: Obsolescence = obsolescence_for(self.algo, cfg.steps)  # P, the live actors, the survivor

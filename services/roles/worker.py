@@ -71,7 +71,7 @@ class Worker(GuardedSimulator):
         self.batch_log = None
         # numpy forwards, no torch in a worker: a one-row torch forward costs ~100 µs of dispatch
         # between env steps, this ~14 µs, and importing torch ~3 s and ~180 MB (docs/PERFORMANCE.md)
-        self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden, self.algo.stochastic)
+        self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden, self.algo.family.policy_kind)
         self.shapes = self.actors.shapes
         self.policies = [self.actors.policy(k) for k in range(self.algo.actors)]
         self.history = WeightsHistory(self.algo.actors)  # the versions the next B+1 iterations act with
