@@ -25,6 +25,7 @@ import typer
 from typer.core import TyperCommand
 
 from mam_core.config import AFTER_ELIMINATION, ALGOS, SCHEDULES, AlgoConfig, defaults_for, resolve
+from mam_core.family import builtin_families, family_for
 from services.run.config import RETIRED_KEYS, RunConfig, check_env_kwargs, check_run_name
 
 # -- the run options: one table -----------------------------------------------------------------
@@ -90,9 +91,9 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
          "registers the env when imported; it must import on every host)", target=RUN, aliases=("env_id",)),
     _opt("env_kwargs", str, 'JSON object of keyword arguments for gym.make, e.g. \'{"ctrl_cost_weight": 0.05}\' '
          "(in TOML: a table)", target=RUN),
-    _opt("algo", str, f"one of {', '.join(ALGOS)}; defaults: the paper's Table 3 (TD3 family) and Table 1 (DDPG "
-         "family); sac and ma-sac: SAC v2 (Haarnoja et al. 2018: lr 3e-4, batch 256, 256x256, τ 0.005, d = 1, "
-         "α tuned towards entropy −|A|) with MA-TD3's K, M, C, A, η for ma-sac"),
+    _opt("algo", str, f"one of {', '.join(ALGOS)}, or module.path:Name, an algorithm family in your module "
+         "(mam_core/family.py; it must import on every host); defaults: "
+         + "; ".join(f"{', '.join(f.names)}: {f.help}" for f in builtin_families())),
     _opt("steps", int, "budget in schedule steps: iterations (--schedule paper) or transitions (equal-data)",
          symbol="T", target=RUN),
     _opt("actors", int, "number of actors", symbol="K"),
@@ -303,6 +304,7 @@ TakeOver = Annotated[Optional[float], typer.Option(
 
 def default_run_name(env_id: str, algo: str) -> str:
     env = re.sub(r"[^A-Za-z0-9]+", "", env_id.split(":")[-1].split("-")[0]).lower()
+    algo = re.sub(r"[^A-Za-z0-9-]+", "", algo.split(":")[-1]).lower()  # a user's family: module:Name -> name
     return f"{algo}-{env}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid() % 10000}"
 
 
@@ -355,8 +357,10 @@ def build_run_config(cli: dict[str, Any], config_file: Path | None) -> RunConfig
         raise typer.BadParameter(f"--env-kwargs: {e}") from None
     check_env_id(env_id, env_kwargs)
     algo_name = merged.pop("algo", None) or "ma-td3"
-    if algo_name not in ALGOS:
-        raise typer.BadParameter(f"--algo must be one of {', '.join(ALGOS)}, not {algo_name!r}")
+    try:
+        family_for(algo_name)
+    except ValueError as e:
+        raise typer.BadParameter(f"--algo: {e}") from None
     steps = merged.pop("steps", None)
     if steps is None or int(steps) < 1:
         paper = (merged.get("schedule") or AlgoConfig().schedule) == "paper"
