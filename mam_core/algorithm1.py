@@ -110,6 +110,11 @@ class Algorithm1:
             return 1
         return self.slots
 
+    def row_of(self, index: int, slot: int) -> int:
+        """The replay row (insertion index) of slot `slot`'s transition in iteration `index`: an
+        iteration's rows go in in slot order, after the iterations before it."""
+        return self.transitions_before(index) + slot
+
     def transitions_before(self, index: int) -> int:
         c = self.schedule.eliminate_at
         m = self.slots
