@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from mam_core.algorithm1 import elimination_transitions
 from mam_lab.analysis import SUCCESS_RETURN, Report, VariantStats, is_apple_collect
 from mam_lab.runs import BiasStats, RunRecord
 from mam_lab.scores import _finite, aligned_curves
@@ -95,11 +96,9 @@ def plot_env_curves(env: str, vs: Sequence[VariantStats], path: Path, n_boot: in
                     label=f"{v.variant}: deployed actor")
             dashed = True
         algo = v.runs[0].algo_config
-        c = algo.get("eliminate_at")  # in schedule steps: iterations (paper) or transitions (equal-data)
-        k = algo.get("actors") or 1
-        if isinstance(c, (int, float)) and axis == "transitions" and algo.get("schedule") == "paper":
-            c = c * (algo.get("workers") or 1)  # C iterations of M transitions each
-        if k > 1 and not v.runs[0].algo_config.get("no_ot") and isinstance(c, (int, float)) and 0 < c <= grid[-1]:
+        at = elimination_transitions(algo)  # None: no elimination
+        c = at if axis == "transitions" else algo.get("eliminate_at")  # else in schedule steps, as C is given
+        if at is not None and 0 < c <= grid[-1]:
             ax.axvline(c, color=color, linestyle=":", linewidth=1.0)
     if is_apple_collect(env):
         ax.axhline(SUCCESS_RETURN, color="0.5", linestyle="--", linewidth=0.8, label=f"return {SUCCESS_RETURN:.2f}")

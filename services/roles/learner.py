@@ -288,7 +288,7 @@ class Learner:
 
     def utd(self) -> float:
         """Updates per schedule step past the start (per iteration or per transition)."""
-        consumed = max(self.iterations - self.algo.start_steps, 0)
+        consumed = self.plan.units_past_start(self.iterations)
         return self.agent.updates / consumed if consumed else 0.0
 
     def rejected(self) -> dict[str, int]:

@@ -23,9 +23,8 @@ import typer
 
 from mam_core.algorithm1 import Algorithm1
 from mam_core.envs import make_env  # registers AppleCollect-v0; imports `module:EnvId` modules
-from mam_core.obsolescence import obsolescence_for
+from mam_core.obsolescence import initial_allocation
 from mam_core.policy import EnvSpec, NumpyActors
-from mam_core.seeding import stream
 from mam_core.slot import SlotStreams, act, uniform
 from services.cli import options
 from services.messaging import bus, keys
@@ -138,8 +137,7 @@ class Worker(GuardedSimulator):
         plan, name = self.plan, keys.slot_name(self.slot)
         # Iteration of a competition -> its slots. The initial allocation is the allocation stream's first
         # draw (the referee's too): computed here, so collection starts before the referee is up.
-        first = obsolescence_for(self.algo, self.cfg.steps).allocation(self.algo.workers,
-                                                                       stream(self.algo.seed, "allocation"))
+        first = initial_allocation(self.algo, self.cfg.steps)
         decisions = {0: {keys.slot_name(i): int(k) for i, k in enumerate(first)}}
         index: int | None = None  # the next iteration to step
         waiting_since = time.monotonic()
