@@ -26,6 +26,8 @@ docs/ARCHITECTURE.md, "Adding an algorithm family", walks through mam_core/td3.p
 from __future__ import annotations
 
 import functools
+import importlib
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
@@ -33,9 +35,33 @@ import numpy as np
 if TYPE_CHECKING:
     import torch
 
-    from mam_core.agent import MultiActorAgent
-    from mam_core.config import AlgoConfig
-    from mam_core.policy import EnvSpec, Policy
+Policy = Callable[[np.ndarray], np.ndarray]
+AlgoConfig = Any  # mam_core.config.AlgoConfig, which names its family: this module sits below it
+EnvSpec = Any  # mam_core.policy.EnvSpec
+BUILTIN = ("mam_core.td3:TD3", "mam_core.sac:SAC")  # loaded by name: they import this module's types
+
+
+class Agent(Protocol):
+    """What a family's learner pieces use of the learner's agent (mam_core.agent.MultiActorAgent)."""
+
+    cfg: AlgoConfig
+    spec: EnvSpec
+    actor: Any  # the K actors (the family's `make_actors`)
+    actor_target: Any  # their targets, or None (`target_actor`)
+    critic: Any  # the n·K critics (mam_core.ensemble.CriticEnsemble)
+    live: torch.Tensor  # [K]: 1 for an actor that still trains (0 after its elimination)
+    max_action: torch.Tensor  # [A]
+    first_critic_members: slice  # the critics Q_k1, k = 0..K-1
+    actor_opt: torch.optim.Optimizer
+    actor_params_list: list[torch.Tensor]
+    log_alpha: torch.Tensor | None  # the family's `temperature`
+    alpha_opt: torch.optim.Optimizer | None
+
+    def draw_noise(self, shape: tuple[int, ...]) -> torch.Tensor:
+        """N(0, I) from the agent's seeded stream: every random draw of an update."""
+
+    def adam_step(self, opt: torch.optim.Optimizer, loss: torch.Tensor, params: list[torch.Tensor]) -> None:
+        """One optimizer step on `loss`'s gradients w.r.t. `params` only."""
 
 
 class Family(Protocol):
@@ -68,23 +94,26 @@ class Family(Protocol):
     def temperature(self, cfg: AlgoConfig, spec: EnvSpec, device: torch.device) -> tuple[Any, Any]:
         """(log α [K], its optimizer or None), or (None, None) for a family without one."""
 
-    def next_actions(self, agent: MultiActorAgent, next_obs: torch.Tensor) -> tuple[torch.Tensor, Any]:
+    def next_actions(self, agent: Agent, next_obs: torch.Tensor) -> tuple[torch.Tensor, Any]:
         """ã_j of Eq. 9 for every actor j on `next_obs` [rows, obs] or [K, rows, obs] -> [K, rows, A],
         and the entropy term α_j·log π_j(ã_j|s') [K, rows] subtracted from Q' (None: none)."""
 
-    def actor_step(self, agent: MultiActorAgent, obs: torch.Tensor) -> list[torch.Tensor]:
+    def actor_step(self, agent: Agent, obs: torch.Tensor) -> list[torch.Tensor]:
         """Eq. 7 for every live actor and its optimizer step(s); its metrics as 1-D tensors, in the
         order of `actor_metric_names`. The agent then soft-updates the targets (Eq. 4)."""
 
-    def actor_metric_names(self, agent: MultiActorAgent) -> list[str]:
+    def actor_metric_names(self, agent: Agent) -> list[str]:
         """The names of `actor_step`'s values."""
 
 
+@functools.cache
 def builtin_families() -> tuple[Family, ...]:
-    from mam_core.sac import SAC
-    from mam_core.td3 import TD3
-
-    return (TD3(), SAC())
+    """TD3 (with DDPG) and SAC."""
+    out = []
+    for path in BUILTIN:
+        module, _, name = path.partition(":")
+        out.append(getattr(importlib.import_module(module), name)())
+    return tuple(out)
 
 
 def builtin_algos() -> tuple[str, ...]:

@@ -25,8 +25,8 @@ from mam_core.td3 import TABLE_3
 if TYPE_CHECKING:
     import torch
 
-    from mam_core.agent import MultiActorAgent
     from mam_core.config import AlgoConfig
+    from mam_core.family import Agent
     from mam_core.policy import EnvSpec, Policy
 
 # SAC v2 (Haarnoja et al. 2018, Table 1): Adam at 3e-4 for actor, critics and α, batch 256, γ 0.99,
@@ -56,12 +56,12 @@ def temperature_loss(log_alpha: torch.Tensor, log_prob: torch.Tensor, target_ent
     return (per_actor * live).sum()
 
 
-def alpha(agent: MultiActorAgent) -> torch.Tensor:
+def alpha(agent: Agent) -> torch.Tensor:
     """The temperatures α_k [K] (no gradient)."""
     return agent.log_alpha.detach().exp()
 
 
-def sampled(agent: MultiActorAgent, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def sampled(agent: Agent, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """a ~ π_k(·|s) for every actor k on `obs` [rows, obs] or [K, rows, obs] (reparameterised, ε from
     the agent's stream) and log π_k(a|s): [K, rows, A], [K, rows]."""
     eps = agent.draw_noise((agent.cfg.actors, obs.shape[-2], agent.spec.act_dim))
@@ -109,12 +109,12 @@ class SAC:
                                requires_grad=not fixed)
         return log_alpha, None if fixed else torch.optim.Adam([log_alpha], lr=cfg.lr, fused=True)
 
-    def next_actions(self, agent: MultiActorAgent, next_obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def next_actions(self, agent: Agent, next_obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Eq. 9's ã_j ~ π_j(·|s') from the current actors, and α_j·log π_j(ã_j|s')."""
         action, log_prob = sampled(agent, next_obs)
         return action, alpha(agent).unsqueeze(-1) * log_prob
 
-    def actor_step(self, agent: MultiActorAgent, obs: torch.Tensor) -> list[torch.Tensor]:
+    def actor_step(self, agent: Agent, obs: torch.Tensor) -> list[torch.Tensor]:
         """Actor k descends the soft Eq. 7 on a ~ π_k(·|s), then log α_k descends the temperature loss
         with the same log π (as SAC v2's code does); eliminated actors and their α_k stay frozen
         (masked). Its metrics: the actor loss, the temperature loss (when α is learned), α_k after."""
@@ -131,7 +131,7 @@ class SAC:
             values.append(loss_alpha.detach().reshape(1))
         return [*values, alpha(agent)]
 
-    def actor_metric_names(self, agent: MultiActorAgent) -> list[str]:
+    def actor_metric_names(self, agent: Agent) -> list[str]:
         k = agent.cfg.actors
         return ["loss/actor", *(["loss/alpha"] if agent.alpha_opt is not None else []),
                 *(f"alpha/actor{j}" for j in range(k))]

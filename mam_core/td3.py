@@ -22,8 +22,8 @@ from mam_core.policy import DETERMINISTIC
 if TYPE_CHECKING:
     import torch
 
-    from mam_core.agent import MultiActorAgent
     from mam_core.config import AlgoConfig
+    from mam_core.family import Agent
     from mam_core.policy import EnvSpec, Policy
 
 # The paper's Table 3 (TD3 family) and Table 1 (DDPG family); MA-DDPG shows obsolescence alone,
@@ -53,7 +53,7 @@ def actor_loss(q1: torch.Tensor, live: torch.Tensor) -> torch.Tensor:
     return (-q1.mean(dim=-1) * live).sum()
 
 
-def smoothed(agent: MultiActorAgent, action: torch.Tensor) -> torch.Tensor:
+def smoothed(agent: Agent, action: torch.Tensor) -> torch.Tensor:
     """Target policy smoothing: ã = clip(π'(s') + clip(N(0, σ̃), ±c), ±max_action)."""
     cfg, max_action = agent.cfg, agent.max_action
     if not cfg.target_smoothing:
@@ -103,11 +103,11 @@ class TD3:
     def temperature(self, cfg: AlgoConfig, spec: EnvSpec, device: torch.device) -> tuple[Any, Any]:
         return None, None
 
-    def next_actions(self, agent: MultiActorAgent, next_obs: torch.Tensor) -> tuple[torch.Tensor, None]:
+    def next_actions(self, agent: Agent, next_obs: torch.Tensor) -> tuple[torch.Tensor, None]:
         """Eq. 9's ã_j: the target actors' smoothed actions; no entropy term."""
         return smoothed(agent, agent.actor_target(next_obs)), None
 
-    def actor_step(self, agent: MultiActorAgent, obs: torch.Tensor) -> list[torch.Tensor]:
+    def actor_step(self, agent: Agent, obs: torch.Tensor) -> list[torch.Tensor]:
         """Eq. 7 on every live actor's first critic, one Adam step of the actors."""
         pi = agent.actor(obs)
         q1 = agent.critic(obs, pi, members=agent.first_critic_members)
@@ -115,5 +115,5 @@ class TD3:
         agent.adam_step(agent.actor_opt, loss, agent.actor_params_list)  # actor params only
         return [loss.detach().reshape(1), -q1.detach().mean(dim=-1) * agent.live]
 
-    def actor_metric_names(self, agent: MultiActorAgent) -> list[str]:
+    def actor_metric_names(self, agent: Agent) -> list[str]:
         return ["loss/actor", *(f"loss/actor{j}" for j in range(agent.cfg.actors))]
