@@ -69,14 +69,14 @@ def test_an_algo_without_a_family_is_a_clear_error(algo: str, message: str):
     with pytest.raises(ValueError, match="invalid configuration") as e:
         AlgoConfig.from_dict(AlgoConfig(algo=algo).to_dict())
     assert message in str(e.value)
-    from services.cli.options import build_run_config
+    from services.run.options import build_run_config
 
     with pytest.raises(typer.BadParameter, match="--algo"):
         build_run_config({"env": "Pendulum-v1", "steps": 10, "algo": algo}, None)
 
 
 def test_mam_run_takes_the_family_from_the_command_line():
-    from services.cli.options import build_run_config
+    from services.run.options import build_run_config
 
     cfg = build_run_config({"env": "Pendulum-v1", "steps": 10, "algo": ALGO, "seed": 5}, None)
     assert cfg.algo.family is TOY and cfg.algo.eta == 0.2 and cfg.run.startswith("toy-pendulum-")

@@ -22,7 +22,7 @@ from mam_core.ensemble import GaussianActorEnsemble, squashed_gaussian_log_prob
 from mam_core.policy import GAUSSIAN_POLICY, EnvSpec, NumpyActors, load_policy, read_policy_file
 from mam_core.reference import run_reference
 from mam_core.slot import act
-from services.cli.plot import read_jsonl
+from services.run.rundir import read_jsonl
 from tests.e2e import mam, unique_run
 
 SMALL = dict(hidden=(32, 32), batch_size=16)

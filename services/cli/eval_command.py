@@ -42,7 +42,7 @@ def open_policy(run_dir: Path, actor: str) -> TrainedPolicy:
     """load_policy with clear errors; a run directory from before policy.npz is converted once."""
     path = policy_path(run_dir)
     if not path.exists() and path.name == POLICY_FILE and (path.parent / rundir.LEARNER_CHECKPOINT).is_file():
-        from services.cli.policy_export import export_from_checkpoint  # torch, once, for old run directories
+        from services.roles.policy_export import export_from_checkpoint  # torch, once, for old run directories
 
         typer.echo(f"no {POLICY_FILE} yet: writing it from checkpoints/learner.pt", err=True)
         try:

@@ -27,12 +27,11 @@ from mam_core.evaluation import evaluate_policy
 from mam_core.obsolescence import Obsolescence, best_actors, competition_returns, counts, obsolescence_for
 from mam_core.policy import EnvSpec, NumpyActors
 from mam_core.seeding import evaluation_seed, stream
-from services.cli import options
 from services.messaging import bus, keys
 from services.messaging.codec import Allocation, Eval, LearnerStats, MessageError, Weights
 from services.roles import role, tb
 from services.roles.lockstep import WeightsHistory
-from services.run import config, rundir
+from services.run import config, options, rundir
 from services.run.config import RunConfig
 from services.run.rundir import JsonlWriter, write_json
 

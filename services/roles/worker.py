@@ -26,14 +26,13 @@ from mam_core.envs import make_env  # registers AppleCollect-v0; imports `module
 from mam_core.obsolescence import initial_allocation
 from mam_core.policy import EnvSpec, NumpyActors
 from mam_core.slot import SlotStreams, act, uniform
-from services.cli import options
 from services.messaging import bus, keys
 from services.messaging.codec import Allocation, LearnerStats, MessageError, TransitionBatch, Weights
 from services.roles import role, takeover
 from services.roles.kept import KeptBatches
 from services.roles.lockstep import WeightsHistory
 from services.roles.simulator import FAULTS, EnvFault, GuardedSimulator
-from services.run import config, rundir
+from services.run import config, options, rundir
 from services.run.config import RunConfig
 from services.run.rundir import write_json
 

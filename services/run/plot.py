@@ -29,7 +29,7 @@ from matplotlib.figure import Figure
 
 from mam_core.algorithm1 import elimination_transitions
 from services.run import rundir
-from services.run.rundir import read_json, read_jsonl  # one reader of run files for plots, reports, the lab
+from services.run.rundir import read_json, read_jsonl
 
 PLOTS_DIR = rundir.PLOTS
 DPI = 120
