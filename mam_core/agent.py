@@ -1,18 +1,17 @@
-"""The multi-actor update step: MA-TD3, MA-DDPG, MA-SAC, TD3, DDPG and SAC on one code path.
+"""The multi-actor update step, written once for every algorithm family (mam_core.family).
 
 K actors and n·K critics live in batched ensembles. One `update()` is one critic step for
 every live actor's critics (Eq. 5 with the Eq. 9 target) and, every d steps, one actor step
-(Eq. 7) followed by the soft target update (Eq. 4). TD3 is K=1, n=2; DDPG is K=1, n=1.
-SAC (K=1, n=2, d=1) and MA-SAC have squashed-Gaussian actors, no target actor, and Eq. 9 on
-soft values Q'_ji(s', ã_j) − α_j·log π_j(ã_j|s') with ã_j ~ π_j(·|s'); each actor k has its own
-temperature α_k (docs/DESIGN-DECISIONS.md, "MA-SAC").
+(Eq. 7) followed by the soft target update (Eq. 4). What differs between families is theirs:
+the actors, Eq. 9's next actions and entropy term, and the actor phase (mam_core.td3: MA-TD3,
+MA-DDPG, TD3 = K 1, n 2, DDPG = K 1, n 1; mam_core.sac: MA-SAC and SAC, Eq. 9 on soft values
+Q'_ji(s', ã_j) − α_j·log π_j(ã_j|s'), docs/DESIGN-DECISIONS.md "MA-SAC").
 """
 
 from __future__ import annotations
 
 import copy
 import ctypes
-import math
 import sys
 import time
 from collections.abc import Callable
@@ -23,7 +22,7 @@ import torch
 
 from mam_core.accel import for_device
 from mam_core.config import AlgoConfig
-from mam_core.ensemble import ActorEnsemble, CriticEnsemble, GaussianActorEnsemble, soft_update
+from mam_core.ensemble import CriticEnsemble, soft_update
 from mam_core.policy import EnvSpec  # noqa: F401  (re-exported: EnvSpec lives with the torch-free code)
 
 
@@ -82,27 +81,6 @@ def critic_loss(q: torch.Tensor, y: torch.Tensor, live: torch.Tensor) -> torch.T
     """
     per_member = (q - y.unsqueeze(1)).pow(2).mean(dim=-1)  # [K, n]
     return (per_member.sum(dim=1) * live).sum()
-
-
-def actor_loss(q1: torch.Tensor, live: torch.Tensor) -> torch.Tensor:
-    """Eq. 7: actor k ascends Q_k1(s, π_k(s)); q1 [K, B], live [K] -> scalar (summed over k)."""
-    return (-q1.mean(dim=-1) * live).sum()
-
-
-def soft_actor_loss(q: torch.Tensor, log_prob: torch.Tensor, alpha: torch.Tensor, live: torch.Tensor) -> torch.Tensor:
-    """SAC's Eq. 7: actor k minimises E[α_k·log π_k(a|s) − min_i Q_ki(s, a)], a ~ π_k(·|s);
-    q [K, n, B] of a, log_prob [K, B], alpha [K] (no gradient), live [K] -> scalar (summed over k)."""
-    per_actor = (alpha.unsqueeze(-1) * log_prob - q.min(dim=1).values).mean(dim=-1)
-    return (per_actor * live).sum()
-
-
-def temperature_loss(log_alpha: torch.Tensor, log_prob: torch.Tensor, target_entropy: float,
-                     live: torch.Tensor) -> torch.Tensor:
-    """SAC v2's temperature objective per actor, −log α_k·(log π_k(a|s) + H̄) averaged over the
-    batch (log π without gradient, H̄ = −|A|): α_k falls while π_k's entropy is above H̄ and rises
-    below it. log_alpha [K], log_prob [K, B], live [K] -> scalar (frozen actors contribute 0)."""
-    per_actor = -(log_alpha * (log_prob.detach() + target_entropy).mean(dim=-1))
-    return (per_actor * live).sum()
 
 
 def adam_step(opt: torch.optim.Optimizer, loss: torch.Tensor, params: list[torch.Tensor]) -> None:
@@ -180,16 +158,16 @@ class MultiActorAgent:
         self.eta = cfg.effective_eta
         k, n = cfg.actors, cfg.critics_per_actor
         gen = torch.Generator().manual_seed(cfg.seed)
-        self.stochastic = cfg.stochastic  # SAC family: squashed-Gaussian actors, no target actor
-        actors = GaussianActorEnsemble if self.stochastic else ActorEnsemble
-        self.actor = actors(k, spec.obs_dim, spec.act_dim, cfg.hidden, np.array(spec.max_action), gen)
+        self.family = cfg.family  # TD3/DDPG, SAC or a user's: what differs between them (mam_core.family)
+        self.stochastic = self.family.stochastic  # a temperature log α_k per actor is part of the step's state
+        self.actor = self.family.make_actors(k, spec, cfg.hidden, gen)
         self.critic = CriticEnsemble(k, n, spec.obs_dim, spec.act_dim, cfg.hidden, gen)
         self.actor.to(self.device)
         self.critic.to(self.device)
         if cfg.precision == "bf16":  # mixed precision; the targets (deep copies) inherit it
             self.actor.net.low_precision = self.critic.net.low_precision = torch.bfloat16
         # SAC has no target actor: ã_j is sampled from the current π_j (Eq. 9 on soft values).
-        self.actor_target = None if self.stochastic else copy.deepcopy(self.actor).requires_grad_(False)
+        self.actor_target = copy.deepcopy(self.actor).requires_grad_(False) if self.family.target_actor else None
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         self.actor_params_list = list(self.actor.parameters())
         self.critic_params_list = list(self.critic.parameters())
@@ -198,16 +176,11 @@ class MultiActorAgent:
         self.actor_opt = torch.optim.Adam(self.actor_params_list, **adam)
         self.critic_opt = torch.optim.Adam(self.critic_params_list, **adam)
         self.noise_gen = torch.Generator(device=self.device).manual_seed(cfg.seed + 1)
-        # SAC: log α_k per actor, learned from α = 1 towards the target entropy −|A| (SAC v2), or fixed.
-        fixed = cfg.alpha is not None
-        self.tune_alpha = self.stochastic and not fixed
-        self.target_entropy = -float(spec.act_dim)
-        self.log_alpha = torch.full((k,), math.log(cfg.alpha) if fixed else 0.0, device=self.device,
-                                    requires_grad=self.tune_alpha)
-        self.alpha_opt = torch.optim.Adam([self.log_alpha], **adam) if self.tune_alpha else None
+        # SAC: log α_k per actor, and its optimizer where α is learned; None and None for TD3.
+        self.log_alpha, self.alpha_opt = self.family.temperature(cfg, spec, self.device)
         self.max_action = self.actor.max_action
         self.first_critics = torch.arange(k, device=self.device) * n
-        self._first_critics = slice(0, k * n, n)  # the same members as a view: no weight copy
+        self.first_critic_members = slice(0, k * n, n)  # the same members as a view: no weight copy
         self.live = torch.ones(k, device=self.device)  # actors that act and train (Eq. 7)
         self.critic_live = torch.ones(k, device=self.device)  # actors whose critics train (Eq. 5)
         self._live_flags = [True] * k
@@ -297,9 +270,9 @@ class MultiActorAgent:
         return torch.cat([loss_q.detach().reshape(1), q.detach().mean(dim=(1, 2))])
 
     def update_actors(self, batch: Any) -> dict[str, float]:
-        """Algorithm 1, lines 21-24: actor k follows its first critic Q_k1 (Eq. 7), then the
-        soft target update (Eq. 4); eliminated members and their targets stay frozen. SAC: actor
-        k follows min_i Q_ki with its entropy bonus, then α_k steps (`_update_soft_actors`)."""
+        """Algorithm 1, lines 21-24: the family's Eq. 7 (TD3: actor k follows its first critic
+        Q_k1; SAC: min_i Q_ki with its entropy bonus, then α_k steps), then the soft target update
+        (Eq. 4); eliminated members and their targets stay frozen."""
         started = time.perf_counter()
         if self.graphs is not None and self.graphs.staged(batch):
             metrics = self.graphs.metrics(self.actor_metric_names(), self.graphs.actors())
@@ -313,55 +286,21 @@ class MultiActorAgent:
         return metrics
 
     def actor_metric_names(self) -> list[str]:
-        """The names of `actor_step`'s values, in order."""
-        k = self.cfg.actors
-        if not self.stochastic:
-            return ["loss/actor", *(f"loss/actor{j}" for j in range(k))]
-        return ["loss/actor", *(["loss/alpha"] if self.alpha_opt is not None else []),
-                *(f"alpha/actor{j}" for j in range(k))]
+        """The names of `actor_step`'s values, in order (the family's)."""
+        return self.family.actor_metric_names(self)
 
     def actor_step(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        """The actor phase's tensor work (capturable, like `critic_step`): Eq. 7 and the actors'
-        Adam step (SAC: and α's), then the soft target update (Eq. 4); its metrics as one tensor."""
-        if self.stochastic:
-            values = self._update_soft_actors(batch["obs"])
-        else:
-            pi = self.actor(batch["obs"])
-            q1 = self.critic(batch["obs"], pi, members=self._first_critics)
-            loss_pi = actor_loss(q1, self.live)
-            adam_step(self.actor_opt, loss_pi, self.actor_params_list)  # actor params only
-            values = torch.cat([loss_pi.detach().reshape(1), -q1.detach().mean(dim=-1) * self.live])
+        """The actor phase's tensor work (capturable, like `critic_step`): the family's Eq. 7 and
+        optimizer step(s), then the soft target update (Eq. 4); its metrics as one tensor."""
+        values = torch.cat(self.family.actor_step(self, batch["obs"]))
         if self.actor_target is not None:
             soft_update(self.actor_target, self.actor, self._tau_actor)
         soft_update(self.critic_target, self.critic, self._tau_critic)
         return values
 
-    def _update_soft_actors(self, obs: torch.Tensor) -> torch.Tensor:
-        """SAC's actor phase: a ~ π_k(·|s) (reparameterised), actor k descends
-        E[α_k·log π_k(a|s) − min_i Q_ki(s, a)], then log α_k descends the temperature loss with the
-        same log π (as SAC v2's code does). Eliminated actors and their α_k stay frozen (masked).
-        Its metrics: the actor loss, the temperature loss (when α is learned), α_k after the step."""
-        k, n = self.cfg.actors, self.cfg.critics_per_actor
-        action, log_prob = self.actor.sample(obs, self._gaussian_noise(k, obs.shape[-2]))
-        critic_obs = obs.repeat_interleave(n, dim=0) if obs.dim() == 3 else obs
-        q = self.critic(critic_obs, self.critic.per_actor_actions(action)).view(k, n, -1)
-        loss_pi = soft_actor_loss(q, log_prob, self.alpha, self.live)
-        adam_step(self.actor_opt, loss_pi, self.actor_params_list)  # actor params only
-        values = [loss_pi.detach().reshape(1)]
-        if self.alpha_opt is not None:
-            loss_alpha = temperature_loss(self.log_alpha, log_prob, self.target_entropy, self.live)
-            adam_step(self.alpha_opt, loss_alpha, [self.log_alpha])
-            values.append(loss_alpha.detach().reshape(1))
-        return torch.cat([*values, self.alpha])
-
-    @property
-    def alpha(self) -> torch.Tensor:
-        """The temperatures α_k [K] (no gradient)."""
-        return self.log_alpha.detach().exp()
-
-    def _gaussian_noise(self, k: int, rows: int) -> torch.Tensor:
-        """ε ~ N(0, I) [K, rows, A] from the agent's seeded stream (SAC's reparameterised draws)."""
-        return self.draw_noise((k, rows, self.spec.act_dim))
+    def adam_step(self, opt: torch.optim.Optimizer, loss: torch.Tensor, params: list[torch.Tensor]) -> None:
+        """`adam_step` for a family's actor phase (it needs no torch import of its own)."""
+        adam_step(opt, loss, params)
 
     def draw_noise(self, shape: tuple[int, ...]) -> torch.Tensor:
         """N(0, I) of `shape` from the agent's seeded stream (`noise_gen`): every random draw of an
@@ -370,36 +309,17 @@ class MultiActorAgent:
             return self.graphs.noise(shape)
         return torch.randn(shape, generator=self.noise_gen, device=self.device)
 
-    def _next_actions(self, next_obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """ã_j of Eq. 9 for every actor j on `next_obs` ([rows, obs_dim] or [K, rows, obs_dim]):
-        TD3/DDPG: the target actors' (smoothed) actions, and None; SAC: ã_j ~ π_j(·|s') from the
-        current actors and α_j·log π_j(ã_j|s') [K, rows], the entropy term of the soft values."""
-        if not self.stochastic:
-            return self._smoothed(self.actor_target(next_obs)), None
-        k = self.cfg.actors
-        action, log_prob = self.actor.sample(next_obs, self._gaussian_noise(k, next_obs.shape[-2]))
-        return action, self.alpha.unsqueeze(-1) * log_prob
-
-    def _smoothed(self, action: torch.Tensor) -> torch.Tensor:
-        """Target policy smoothing: ã = clip(π'(s') + clip(N(0, σ̃), ±c), ±max_action)."""
-        if not self.cfg.target_smoothing:
-            return action
-        noise = self.draw_noise(tuple(action.shape))
-        noise = (noise * (self.cfg.policy_noise * self.max_action)).clamp(
-            -self.cfg.noise_clip * self.max_action, self.cfg.noise_clip * self.max_action)
-        return torch.maximum(torch.minimum(action + noise, self.max_action), -self.max_action)
-
     def _targets(self, next_obs: torch.Tensor, reward: torch.Tensor, not_done: torch.Tensor,
                  per_actor: bool) -> torch.Tensor:
         """Eq. 9 targets y [K, B], one per actor (on its own batch when `per_actor`)."""
         cfg, k, n = self.cfg, self.cfg.actors, self.cfg.critics_per_actor
         if not per_actor:
-            next_action, entropy = self._next_actions(next_obs)  # [K, B, A]
+            next_action, entropy = self.family.next_actions(self, next_obs)  # [K, B, A]
             q_next = self.critic_target(next_obs, self.critic.per_actor_actions(next_action))
             return critic_target(reward, not_done, soft_values(q_next.view(k, n, -1), entropy), cfg.gamma, self.eta)
         b = next_obs.shape[1]
         if self.eta == 0.0:  # each actor's own critics on its own batch only
-            next_action, entropy = self._next_actions(next_obs)  # actor k on batch k: [K, B, A]
+            next_action, entropy = self.family.next_actions(self, next_obs)  # actor k on batch k: [K, B, A]
             q_next = self.critic_target(next_obs.repeat_interleave(n, dim=0),
                                         self.critic.per_actor_actions(next_action))
             return critic_target(reward, not_done, soft_values(q_next.view(k, n, -1), entropy), cfg.gamma, 0.0)
@@ -411,7 +331,7 @@ class MultiActorAgent:
         owners = len(index)
         rows = next_obs if owners == k else next_obs.index_select(0, index)
         flat = rows.reshape(owners * b, -1)
-        next_action, entropy = self._next_actions(flat)  # actor j on the L batches: [K, L·B, A]
+        next_action, entropy = self.family.next_actions(self, flat)  # actor j on the L batches: [K, L·B, A]
         q_next = self.critic_target(flat, self.critic.per_actor_actions(next_action))  # [K·n, L·B]
         q_next = soft_values(q_next.view(k, n, owners, b), None if entropy is None else entropy.view(k, owners, b))
         weighted = weighted_target_per_batch(q_next, self.eta, index)
@@ -511,7 +431,7 @@ class MultiActorAgent:
         }
         if self.actor_target is not None:
             state["actor_target"] = self.actor_target.state_dict()
-        if self.stochastic:
+        if self.log_alpha is not None:
             state["log_alpha"] = self.log_alpha.detach().clone()
         if self.alpha_opt is not None:
             state["alpha_opt"] = self.alpha_opt.state_dict()
@@ -526,7 +446,7 @@ class MultiActorAgent:
         self.critic_target.load_state_dict(state["critic_target"])
         self.actor_opt.load_state_dict(state["actor_opt"])
         self.critic_opt.load_state_dict(state["critic_opt"])
-        if self.stochastic:
+        if self.log_alpha is not None:
             with torch.no_grad():
                 self.log_alpha.copy_(state["log_alpha"])
         if self.alpha_opt is not None:

@@ -41,13 +41,32 @@ new weights, so a worker steps through them without waiting.
 from __future__ import annotations
 
 import bisect
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from enum import StrEnum
 from functools import cached_property
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from mam_core.config import AlgoConfig
 from mam_core.schedule import Schedule
+
+if TYPE_CHECKING:
+    from mam_core.agent import MultiActorAgent
+
+
+class Purpose(StrEnum):
+    """What an evaluation is for (`Algorithm1.events`); its value is the word in eval.jsonl and
+    the purpose of its episodes' seed (mam_core.seeding.evaluation_seed)."""
+
+    ROUND = "round"  # a competition at j·A (lines 15-17)
+    ELIMINATION = "elimination"  # the competition at C (lines 18-20)
+    CURVE = "curve"  # a learning-curve point at j·eval-every
+    FINAL = "final"  # after the last iteration, when it is no curve point
+
+    @property
+    def competes(self) -> bool:
+        """A competition: it judges the actors after the previous iteration and draws an allocation."""
+        return self in (Purpose.ROUND, Purpose.ELIMINATION)
 
 
 @dataclass(frozen=True)
@@ -68,6 +87,11 @@ class Iteration:
     @property
     def competes(self) -> bool:
         return self.round is not None or self.eliminate
+
+    def evaluation_index(self, purpose: Purpose | str) -> int | None:
+        """The j that names the episodes of this iteration's `purpose` evaluation (with the
+        run's seed: mam_core.seeding.evaluation_seed): the round's for a round, else the curve's."""
+        return self.round if purpose == Purpose.ROUND else self.curve
 
 
 @dataclass(frozen=True)
@@ -93,6 +117,11 @@ class Algorithm1:
     def slots(self) -> int:
         return self.schedule.slots
 
+    @property
+    def one_slot_after_elimination(self) -> bool:
+        """After C the survivor runs slot 0 alone: `--single-env-after-elimination`, or `paper`."""
+        return self.single_env or self.schedule.paper
+
     @cached_property
     def elimination(self) -> int | None:
         """The iteration of the elimination, or None (K = 1, `--no-ot`, or C past the budget)."""
@@ -106,9 +135,14 @@ class Algorithm1:
     def width(self, index: int) -> int:
         """Slots stepping in iteration `index` (the last one may be cut by the budget)."""
         e = self.elimination
-        if e is not None and index > e and (self.single_env or self.schedule.paper):
+        if e is not None and index > e and self.one_slot_after_elimination:
             return 1
         return self.slots
+
+    def row_of(self, index: int, slot: int) -> int:
+        """The replay row (insertion index) of slot `slot`'s transition in iteration `index`: an
+        iteration's rows go in in slot order, after the iterations before it."""
+        return self.transitions_before(index) + slot
 
     def transitions_before(self, index: int) -> int:
         c = self.schedule.eliminate_at
@@ -117,7 +151,7 @@ class Algorithm1:
             done = (index - 1) * m
         else:  # `elimination` without the budget check (it calls this)
             e = c if self.schedule.paper else -(-c // m)
-            after = 1 if (self.single_env or self.schedule.paper) else m
+            after = 1 if self.one_slot_after_elimination else m
             done = min(index - 1, e) * m + max(index - 1 - e, 0) * after
         return min(done, self.schedule.budget)
 
@@ -162,6 +196,10 @@ class Algorithm1:
     def _random_iterations(self) -> int:
         """Iterations of the start phase (uniform random actions)."""
         return _last_true(lambda i: self.transitions_before(i) < self.schedule.random_until, self.iterations)
+
+    def units_past_start(self, units: int) -> int:
+        """Schedule units after the random start phase: the ones updates are made for."""
+        return max(units - self.schedule.start, 0)
 
     def replay_capacity(self, buffer_size: int) -> int:
         """Rows the replay buffer holds: the run's transitions, at most `buffer_size`."""
@@ -221,15 +259,28 @@ class Algorithm1:
         updates (an actor eliminated at C acts until C+B, never past its last version)."""
         return self.version_after(index - 1 - self.lag)
 
-    def judged_version(self, index: int, purpose: str) -> int:
+    def judged_version(self, index: int, purpose: Purpose | str) -> int:
         """The version an evaluation of iteration `index` judges: a competition (`round`,
         `elimination`) the actors after iteration index-1's updates, a `curve` point or the
         `final` evaluation those after iteration index's."""
-        if purpose in ("round", "elimination"):
-            return self.version_after(index - 1)
-        if purpose in ("curve", "final"):
-            return self.version_after(index)
-        raise ValueError(f"unknown evaluation purpose {purpose!r}")
+        try:
+            competes = Purpose(purpose).competes
+        except ValueError:
+            raise ValueError(f"unknown evaluation purpose {purpose!r}") from None
+        return self.version_after(index - 1 if competes else index)
+
+    def judged_after(self, index: int) -> set[int]:
+        """The versions evaluations judge once iteration `index`'s updates are done (index 0:
+        before the first iteration): the next iteration's competition and this iteration's curve
+        point or final evaluation (what the learner sends the referee, once each)."""
+        out = set()
+        if index < self.iterations and self.iteration(index + 1).competes:
+            out.add(self.judged_version(index + 1, Purpose.ROUND))
+        if index >= 1:
+            it = self.iteration(index)
+            if it.curve is not None or it.last:
+                out.add(self.judged_version(index, Purpose.CURVE))
+        return out
 
     def weights_change(self, index: int) -> bool:
         return self.version_after(index) != self.version_after(index - 1)
@@ -246,7 +297,8 @@ class Algorithm1:
         first = (u0 // d + 1) * d
         return first if first <= u1 else None
 
-    def run_updates(self, it: Iteration, agent: Any, sample: Callable[[], Any], eliminate: Callable[[], None],
+    def run_updates(self, it: Iteration, agent: MultiActorAgent, sample: Callable[[], Any],
+                    eliminate: Callable[[], None],
                     each: Callable[[dict[str, float]], None] | None = None) -> dict[str, float]:
         """Iteration `it`'s updates (lines 11-24) on `agent` (mam_core.agent.MultiActorAgent):
         one `sample()`d mini-batch per update, critics then, when due, actors; at C
@@ -270,11 +322,20 @@ class Algorithm1:
     # -- evaluations ------------------------------------------------------------------------------
     @cached_property
     def _competitions(self) -> tuple[int, ...]:
-        return tuple(i for i, purpose in self.events() if purpose in ("round", "elimination"))
+        return tuple(i for i, purpose in self.events() if purpose.competes)
 
     def competitions(self) -> list[int]:
         """The iterations with a competition or the elimination, in order."""
         return list(self._competitions)
+
+    def competitions_among(self, events: int) -> int:
+        """How many of the run's first `events` evaluations are competitions (allocations drawn)."""
+        return sum(1 for _, purpose in self._events[:events] if purpose.competes)
+
+    def applies_from(self, decided_at: int) -> int:
+        """The first iteration an allocation decided at iteration `decided_at` applies to:
+        decided_at + 1 + B (the initial allocation, decided at 0: iteration 1)."""
+        return decided_at + 1 + self.lag if decided_at else 1
 
     def decision_for(self, index: int) -> int:
         """The iteration whose allocation applies in iteration `index`: the latest competition
@@ -286,7 +347,7 @@ class Algorithm1:
         """Slots an allocation decided at iteration `decided_at` names: one (the survivor's)
         once the elimination is decided under the one-slot rule, else M."""
         e = self.elimination
-        return 1 if e is not None and decided_at >= e and (self.single_env or self.schedule.paper) else self.slots
+        return 1 if e is not None and decided_at >= e and self.one_slot_after_elimination else self.slots
 
     def first_reaching(self, units: int) -> int:
         """The first iteration whose units (after it) reach `units` (the last one if none)."""
@@ -301,11 +362,11 @@ class Algorithm1:
                 lo = mid + 1
         return lo
 
-    def events(self) -> list[tuple[int, str]]:
+    def events(self) -> list[tuple[int, Purpose]]:
         return list(self._events)
 
     @cached_property
-    def _events(self) -> tuple[tuple[int, str], ...]:
+    def _events(self) -> tuple[tuple[int, Purpose], ...]:
         """The run's evaluations in order, (iteration, purpose): `round` and `elimination` judge
         the actors after the previous iteration's updates, `curve` and `final` the actors after
         its own (`judged_version`; a curve point at the last iteration is the final evaluation)."""
@@ -318,18 +379,30 @@ class Algorithm1:
             if self.elimination is not None:
                 candidates.add(self.elimination)
         candidates.update(self.first_reaching(m) for m in range(self.eval_every, final_units + 1, self.eval_every))
-        out: list[tuple[int, str]] = []
+        out: list[tuple[int, Purpose]] = []
         for i in sorted(candidates):
             it = self.iteration(i)
             if it.eliminate:
-                out.append((i, "elimination"))
+                out.append((i, Purpose.ELIMINATION))
             elif it.round is not None:
-                out.append((i, "round"))
+                out.append((i, Purpose.ROUND))
             if it.curve is not None:
-                out.append((i, "curve"))
+                out.append((i, Purpose.CURVE))
             elif it.last:
-                out.append((i, "final"))
+                out.append((i, Purpose.FINAL))
         return tuple(out)
+
+
+def elimination_transitions(algo: Mapping[str, Any]) -> int | None:
+    """C in transitions for a run's algorithm settings (config.json's "algo"): C iterations of
+    M transitions under `paper`, C transitions under `equal-data`; None without an elimination
+    (K = 1, `--no-ot`, no C). What figures and plots mark as the elimination when the run has not
+    logged it."""
+    c, k = algo.get("eliminate_at"), algo.get("actors") or 1
+    if k <= 1 or algo.get("no_ot") or not isinstance(c, (int, float)) or c <= 0:
+        return None
+    paper = (algo.get("schedule") or AlgoConfig.schedule) == "paper"
+    return int(c) * int(algo.get("workers") or 1) if paper else int(c)
 
 
 def _crossed(before: int, after: int, every: int) -> int | None:

@@ -1,9 +1,9 @@
 """Hyperparameters of MA-TD3 / MA-DDPG / MA-SAC / TD3 / DDPG / SAC with the paper's defaults.
 
-One flat, frozen dataclass (paper symbols in the help text). `defaults_for(algo)` gives
-Table 3 (TD3 family), Table 1 (DDPG family), or SAC v2's hyperparameters (Haarnoja et al. 2018,
-"Soft Actor-Critic Algorithms and Applications", Table 1) with Table 3's mechanism (SAC family);
-`resolve(algo, **overrides)` applies user flags on top and checks them.
+One flat, frozen dataclass (paper symbols in the help text). `defaults_for(algo)` gives the
+defaults of `algo`'s family (mam_core.family): Table 3 (TD3 family) and Table 1 (DDPG family) in
+mam_core.td3, SAC v2's hyperparameters with Table 3's mechanism in mam_core.sac, or a user's
+family's; `resolve(algo, **overrides)` applies user flags on top and checks them.
 """
 
 from __future__ import annotations
@@ -13,8 +13,9 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-ALGOS = ("ma-td3", "td3", "ma-ddpg", "ddpg", "ma-sac", "sac")
-SAC_FAMILY = ("ma-sac", "sac")  # squashed-Gaussian actors, soft values, a temperature α_k per actor
+from mam_core.family import Family, builtin_algos, family_for
+
+ALGOS = builtin_algos()  # the built-in `--algo` names; `module.path:Name` names a user's family
 PRECISIONS = ("fp32", "bf16")
 SCHEDULES = ("paper", "equal-data")  # mam_core.schedule
 AFTER_ELIMINATION = ("frozen", "train-critics", "no-weighting")
@@ -22,7 +23,7 @@ AFTER_ELIMINATION = ("frozen", "train-critics", "no-weighting")
 
 @dataclass(frozen=True)
 class AlgoConfig:
-    algo: str = "ma-td3"
+    algo: str = "ma-td3"  # a built-in name (ALGOS) or module.path:Name (mam_core.family)
     actors: int = 2  # K: number of actors
     critics_per_actor: int = 2  # n: 2 for the TD3 family (clipped double Q), 1 for DDPG
     workers: int = 3  # M: environment slots
@@ -64,9 +65,14 @@ class AlgoConfig:
         return self.single_env_after_elimination or self.schedule == "paper"
 
     @property
+    def family(self) -> Family:
+        """The algorithm family of `algo`: its acting rule, its actors and actor phase (mam_core.family)."""
+        return family_for(self.algo)
+
+    @property
     def stochastic(self) -> bool:
-        """SAC family: squashed-Gaussian actors, sampled actions, no target actor, no exploration noise."""
-        return self.algo in SAC_FAMILY
+        """The family's actors are distributions with a temperature α_k (SAC)."""
+        return self.family.stochastic
 
     @property
     def effective_eta(self) -> float:
@@ -90,34 +96,9 @@ class AlgoConfig:
         return validate(cls(**d))
 
 
-_TD3_FAMILY = dict(
-    critics_per_actor=2, target_smoothing=True, policy_delay=2, batch_size=256,
-    start_steps=25_000, eliminate_at=300_000, compete_every=5_000, eta=0.1,
-)
-_DDPG_FAMILY = dict(
-    # Table 1; MA-DDPG shows obsolescence alone, so η defaults to 0 (docs/DESIGN-DECISIONS.md).
-    critics_per_actor=1, target_smoothing=False, policy_delay=1, batch_size=100,
-    start_steps=10_000, eliminate_at=24_000, compete_every=1_000, eta=0.0,
-)
-# SAC v2 (Haarnoja et al. 2018, Table 1): Adam at 3e-4 for actor, critics and α, batch 256, γ 0.99,
-# τ 0.005, two hidden layers of 256, one gradient step and one target update per step (d = 1),
-# target entropy −|A| with α learned. It fixes no random start phase: the TD3 family's 25,000 keeps
-# SAC and MA-SAC on grid b's data protocol. The mechanism (K, M, C, A, η) is Table 3's, as MA-TD3.
-_SAC_FAMILY = dict(_TD3_FAMILY, target_smoothing=False, policy_delay=1)
-_PER_ALGO: dict[str, dict[str, Any]] = {
-    "ma-td3": dict(_TD3_FAMILY, actors=2, workers=3),
-    "td3": dict(_TD3_FAMILY, actors=1, workers=1, eta=0.0),
-    "ma-ddpg": dict(_DDPG_FAMILY, actors=3, workers=5),
-    "ddpg": dict(_DDPG_FAMILY, actors=1, workers=1),
-    "ma-sac": dict(_SAC_FAMILY, actors=2, workers=3),
-    "sac": dict(_SAC_FAMILY, actors=1, workers=1, eta=0.0),
-}
-
-
 def defaults_for(algo: str) -> AlgoConfig:
-    if algo not in _PER_ALGO:
-        raise ValueError(f"unknown algo {algo!r}; choose one of {', '.join(ALGOS)}")
-    return AlgoConfig(algo=algo, **_PER_ALGO[algo])
+    """`algo`'s defaults (its family's); ValueError for an algo no family answers to."""
+    return AlgoConfig(algo=algo, **family_for(algo).defaults(algo))
 
 
 def resolve(algo: str, **overrides: Any) -> AlgoConfig:
@@ -135,8 +116,10 @@ def resolve(algo: str, **overrides: Any) -> AlgoConfig:
 
 def validate(cfg: AlgoConfig) -> AlgoConfig:
     problems = []
-    if cfg.algo not in ALGOS:
-        problems.append(f"algo must be one of {ALGOS}")
+    try:
+        problems += family_for(cfg.algo).problems(cfg)
+    except ValueError as e:
+        problems.append(str(e))
     if cfg.actors < 1:
         problems.append("actors (K) must be >= 1")
     if cfg.critics_per_actor < 1:
@@ -159,8 +142,6 @@ def validate(cfg: AlgoConfig) -> AlgoConfig:
         problems.append("policy_delay (d) must be >= 1")
     if cfg.alpha is not None and not cfg.alpha > 0.0:
         problems.append("alpha (a fixed SAC temperature) must be > 0")
-    if cfg.alpha is not None and not cfg.stochastic:
-        problems.append("alpha is a SAC temperature: only for --algo sac or ma-sac")
     if cfg.utd <= 0:
         problems.append("utd must be > 0")
     if cfg.start_steps < 0 or cfg.eval_episodes < 1 or cfg.eval_every < 1:

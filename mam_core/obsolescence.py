@@ -20,6 +20,7 @@ import numpy as np
 
 from mam_core.config import AlgoConfig
 from mam_core.schedule import Schedule
+from mam_core.seeding import stream
 
 # Mixed signs / zeros: shift so the worst actor sits at this fraction of the return spread
 # above zero. It keeps a small, non-zero chance for the worst actor (it is not eliminated
@@ -312,3 +313,10 @@ def obsolescence_for(cfg: AlgoConfig, steps: int = 1) -> Obsolescence:
     """The schedule an algorithm configuration asks for (disabled for K=1 and `no_ot`), in the
     units of its `schedule` (iterations or transitions: mam_core.schedule)."""
     return Obsolescence(cfg.actors, Schedule.for_run(cfg, steps))
+
+
+def initial_allocation(cfg: AlgoConfig, steps: int) -> list[int]:
+    """The allocation of iteration 1, slot by slot: the first draw of the run's `allocation`
+    stream. The referee publishes it as `initial`; a worker computes it, so collection starts
+    before the referee is up."""
+    return obsolescence_for(cfg, steps).allocation(cfg.workers, stream(cfg.seed, "allocation"))

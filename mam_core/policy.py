@@ -138,12 +138,27 @@ def mlp_policy(layers: Sequence[tuple[np.ndarray, np.ndarray]], max_action: np.n
 
 # -- SAC's stochastic actors ----------------------------------------------------------------------
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0  # log σ clipped as in the SAC papers' code (softlearning, Spinning Up)
-GAUSSIAN_POLICY = "squashed-gaussian"  # policy.npz meta "policy" of a SAC run (absent: deterministic)
+# The kinds of numpy actor an algorithm family exports (its `policy_kind`): policy.npz meta "policy"
+# (absent: deterministic).
+DETERMINISTIC = "deterministic"  # max_action · tanh(MLP(s)): the TD3 family
+GAUSSIAN_POLICY = "squashed-gaussian"  # μ and log σ heads: the SAC family
+POLICY_KINDS = (DETERMINISTIC, GAUSSIAN_POLICY)
 
 
-def policy_out_dim(act_dim: int, gaussian: bool) -> int:
+def policy_out_dim(act_dim: int, kind: str) -> int:
     """Width of an actor's last layer: |A| (deterministic), or 2|A| for SAC's μ and log σ heads."""
-    return 2 * act_dim if gaussian else act_dim
+    if kind not in POLICY_KINDS:
+        raise ValueError(f"unknown policy kind {kind!r}; mam's numpy actors are {', '.join(POLICY_KINDS)}")
+    return 2 * act_dim if kind == GAUSSIAN_POLICY else act_dim
+
+
+def numpy_policy(kind: str, layers: Sequence[tuple[np.ndarray, np.ndarray]], max_action: np.ndarray) -> Any:
+    """The numpy actor of `kind` on `layers`: `mlp_policy`, or a `SquashedGaussianPolicy`."""
+    if kind == GAUSSIAN_POLICY:
+        return SquashedGaussianPolicy(layers, max_action)
+    if kind == DETERMINISTIC:
+        return mlp_policy(layers, max_action)
+    raise ValueError(f"unknown policy kind {kind!r}; mam's numpy actors are {', '.join(POLICY_KINDS)}")
 
 
 class SquashedGaussianPolicy:
@@ -190,16 +205,15 @@ class NumpyActors:
     only once its weights have arrived (workers and the referee track versions for that).
     """
 
-    def __init__(self, n_actors: int, spec: EnvSpec, hidden: Sequence[int], gaussian: bool = False) -> None:
+    def __init__(self, n_actors: int, spec: EnvSpec, hidden: Sequence[int], kind: str = DETERMINISTIC) -> None:
         self.n_actors = n_actors
-        self.shapes = member_shapes(spec.obs_dim, hidden, policy_out_dim(spec.act_dim, gaussian))
+        self.shapes = member_shapes(spec.obs_dim, hidden, policy_out_dim(spec.act_dim, kind))
         self.max_action = np.asarray(spec.max_action, np.float32)
         self.params = [{name: np.zeros(shape, np.float32) for name, shape in self.shapes.items()}
                        for _ in range(n_actors)]
         n_layers = len(self.shapes) // 2
         # b{i}[0]: a [out] view of the [1, out] wire layout, so one observation gives one action
-        kind = SquashedGaussianPolicy if gaussian else mlp_policy  # SAC: the mean action, and `sample`
-        self._policies = [kind([(p[f"w{i}"], p[f"b{i}"][0]) for i in range(n_layers)], self.max_action)
+        self._policies = [numpy_policy(kind, [(p[f"w{i}"], p[f"b{i}"][0]) for i in range(n_layers)], self.max_action)
                           for p in self.params]
 
     def load_member(self, k: int, params: Mapping[str, np.ndarray]) -> None:
@@ -272,8 +286,10 @@ def read_policy_file(path: str | os.PathLike[str]) -> tuple[dict[str, Any], list
         obs_dim, act_dim, n = int(meta["obs_dim"]), int(meta["act_dim"]), int(meta["actors"])
         if len(meta["max_action"]) != act_dim or n < 1:
             raise PolicyFileError("max_action does not have act_dim entries, or no actors")
-        gaussian = meta.get("policy") == GAUSSIAN_POLICY
-        shapes = member_shapes(obs_dim, [int(h) for h in meta["hidden"]], policy_out_dim(act_dim, gaussian))
+        kind = meta.get("policy", DETERMINISTIC)
+        if kind not in POLICY_KINDS:
+            raise PolicyFileError(f"policy kind {kind!r}; this mam reads {', '.join(POLICY_KINDS)}")
+        shapes = member_shapes(obs_dim, [int(h) for h in meta["hidden"]], policy_out_dim(act_dim, kind))
         params = []
         for k in range(n):
             member = {}
@@ -316,9 +332,9 @@ class TrainedPolicy:
         self._layers = [(np.ascontiguousarray(params[f"w{i}"], np.float32),
                          np.asarray(params[f"b{i}"], np.float32).reshape(-1))
                         for i in range(n_layers)]
-        self.stochastic = self.meta.get("policy") == GAUSSIAN_POLICY
-        self._policy = SquashedGaussianPolicy(self._layers, self.max_action) if self.stochastic else \
-            mlp_policy(self._layers, self.max_action)
+        self.kind = self.meta.get("policy", DETERMINISTIC)
+        self.stochastic = self.kind == GAUSSIAN_POLICY
+        self._policy = numpy_policy(self.kind, self._layers, self.max_action)
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         return self._policy(self._checked(obs))

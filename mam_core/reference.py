@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
-from mam_core.algorithm1 import Algorithm1, Iteration
+from mam_core.algorithm1 import Algorithm1, Iteration, Purpose
 from mam_core.config import AlgoConfig
 from mam_core.envs import make_env  # registers AppleCollect; imports `module:EnvId` modules
 from mam_core.evaluation import evaluate_policy
@@ -61,11 +61,11 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
     sample = agent.sampler(buffer, cfg.batch_size)  # on a GPU: indices staged for the CUDA graphs
     state = obsolescence_for(cfg, steps)
     rng = stream(cfg.seed, "allocation")
-    actors = NumpyActors(cfg.actors, spec, cfg.hidden, cfg.stochastic)  # the newest actors: what the referee judges
+    actors = NumpyActors(cfg.actors, spec, cfg.hidden, cfg.family.policy_kind)  # the newest: what the referee judges
     for k in range(cfg.actors):
         actors.load_member(k, agent.actor_params(k))
     # What the slots act with: the actors after iteration t-1-B (B = cfg.lag), by version.
-    acting = NumpyActors(cfg.actors, spec, cfg.hidden, cfg.stochastic)
+    acting = NumpyActors(cfg.actors, spec, cfg.hidden, cfg.family.policy_kind)
     history: dict[int, list[dict[str, np.ndarray] | None]] = {0: [agent.actor_params(k) for k in range(cfg.actors)]}
     max_action = np.asarray(spec.max_action, np.float32)
     streams = [SlotStreams.for_slot(cfg.seed, i) for i in range(cfg.workers)]
@@ -76,8 +76,8 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
                                "probabilities": state.probabilities.tolist()})
     acting_version = -1
 
-    def evaluate(it: Iteration, purpose: str) -> list[float | None]:
-        seed = evaluation_seed(cfg.seed, purpose, it.round if purpose == "round" else it.curve)
+    def evaluate(it: Iteration, purpose: Purpose) -> list[float | None]:
+        seed = evaluation_seed(cfg.seed, purpose, it.evaluation_index(purpose))
         means: list[float | None] = []
         returns: list[list[float]] = []
         for k in range(cfg.actors):
@@ -88,8 +88,8 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
             r = evaluate_policy(actors.policy(k), env_id, cfg.eval_episodes, seed=seed, env_kwargs=env_kwargs)
             means.append(float(r.mean()))
             returns.append(r.tolist())
-        row = {"env_steps": it.transitions[1], "iterations": it.units[1], "updates": agent.updates, "purpose": purpose,
-               "seed": seed, "mean": means, "returns": returns}
+        row = {"env_steps": it.transitions[1], "iterations": it.units[1], "updates": agent.updates,
+               "purpose": purpose.value, "seed": seed, "mean": means, "returns": returns}
         result.evaluations.append(row)
         if log:
             log("eval", row)
@@ -98,7 +98,7 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
     def compete(it: Iteration) -> None:
         """Eq. 8 from the actors after the previous iteration (lines 15-17), or the elimination
         (18-20); the allocation drawn applies from iteration it.index + 1 + B on."""
-        means = evaluate(it, "elimination" if it.eliminate else "round")
+        means = evaluate(it, Purpose.ELIMINATION if it.eliminate else Purpose.ROUND)
         state.record_evaluation(it.units[1], competition_returns(means), rng=rng)
         decisions[it.index] = list(state.allocation(cfg.workers, rng))[:plan.slot_width(it.index)]
         result.allocations.append({"env_steps": it.transitions[1], "iterations": it.units[1],
@@ -148,9 +148,9 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
             for old in [v for v in history if v < plan.version_for(min(index + 1, plan.iterations))]:
                 del history[old]
         if it.curve is not None:
-            evaluate(it, "curve")
+            evaluate(it, Purpose.CURVE)
         elif it.last:
-            evaluate(it, "final")
+            evaluate(it, Purpose.FINAL)
 
     for env in envs:
         env.close()

@@ -19,8 +19,9 @@ import hashlib
 import io
 import os
 import zipfile
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -28,7 +29,49 @@ import torch
 from mam_core.accel import for_device
 
 
+class Replay(Protocol):
+    """What the learner, the reference and the checkpoints ask of a replay; `ReplayBuffer` is the
+    uniform one. Prioritized or n-step replay is another class with these methods: rows go in in
+    slot order (Algorithm 1, lines 5-10), every row keeps its insertion index (the n-th row ever
+    inserted; a slot's rows are found by it, `Algorithm1.row_of`), and sampling draws from the
+    replay's own seeded stream, saved with it, so a resumed run samples what it would have."""
+
+    capacity: int
+    size: int  # rows held
+    inserted: int  # rows ever inserted (the learner's transition count)
+    obs_dim: int
+    act_dim: int
+
+    def add_batch(self, obs: np.ndarray, action: np.ndarray, reward: np.ndarray, next_obs: np.ndarray,
+                  terminated: np.ndarray, actor: int | np.ndarray = 0, version: int | np.ndarray = 0) -> None:
+        """Insert rows, in the order given (an iteration's, in slot order)."""
+
+    def sample(self, batch_size: int, groups: int | None = None) -> dict[str, torch.Tensor]:
+        """A mini-batch (or `groups` of them, one per actor) as tensors on the learner's device."""
+
+    def sample_indices(self, batch_size: int) -> np.ndarray:
+        """The positions `sample` would gather, drawn from the same stream (CUDA graphs gather them)."""
+
+    def holds(self, row: int) -> bool:
+        """Row `row` (an insertion index) is still held."""
+
+    def rows_at(self, rows: Sequence[int] | np.ndarray) -> dict[str, np.ndarray]:
+        """Held rows by insertion index (a slot's current episode, for a worker taking it over)."""
+
+    def rows_between(self, start: int, stop: int) -> dict[str, np.ndarray]:
+        """Rows `start` to `stop` (exclusive) by insertion index (the replay log's new chunk)."""
+
+    def place_rows(self, first: int, rows: dict[str, np.ndarray]) -> None:
+        """The inverse of `rows_between` (restoring from the replay log)."""
+
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
 class ReplayBuffer:
+    """The uniform replay (`Replay`)."""
+
     FIELDS = ("obs", "action", "reward", "next_obs", "not_done")
 
     def __init__(self, capacity: int, obs_dim: int, act_dim: int, device: str | torch.device = "cpu",
@@ -58,6 +101,14 @@ class ReplayBuffer:
 
     def __len__(self) -> int:
         return self.size
+
+    @property
+    def obs_dim(self) -> int:
+        return self.obs.shape[1]
+
+    @property
+    def act_dim(self) -> int:
+        return self.action.shape[1]
 
     def add_batch(self, obs: np.ndarray, action: np.ndarray, reward: np.ndarray, next_obs: np.ndarray,
                   terminated: np.ndarray, actor: int | np.ndarray = 0, version: int | np.ndarray = 0) -> None:
@@ -185,6 +236,20 @@ class ReplayBuffer:
             a = getattr(self, name)
             out[name] = a[spans[0][0]] if len(spans) == 1 else np.concatenate([a[ring] for ring, _ in spans])
         return out
+
+    def holds(self, row: int) -> bool:
+        """Insertion index `row` is among the newest `size` rows (not yet overwritten)."""
+        return self.inserted - self.size <= row < self.inserted
+
+    def rows_at(self, rows: Sequence[int] | np.ndarray) -> dict[str, np.ndarray]:
+        """Copies of the rows with these insertion indices, field by field (PERSISTED); ValueError
+        for one no longer (or not yet) held."""
+        rows = np.asarray(rows, np.int64)
+        if len(rows) and not (self.holds(int(rows.min())) and self.holds(int(rows.max()))):
+            raise ValueError(f"rows {rows.min()}..{rows.max()} not all held (held: "
+                             f"[{self.inserted - self.size}, {self.inserted}))")
+        pos = rows % self.capacity
+        return {name: getattr(self, name)[pos] for name in PERSISTED}
 
     def place_rows(self, first: int, rows: dict[str, np.ndarray]) -> None:
         """Put rows with insertion indices first, first+1, ... at their ring positions

@@ -2,7 +2,7 @@
 
 Both must produce the same transitions from the same seed, so both call these functions: the
 slot's random streams (mam_core.seeding, per slot and purpose), the acting rule (`act`: the
-exploratory action, or SAC's sampled one), and the conversions of what the env returns.
+algorithm family's), and the conversions of what the env returns.
 """
 
 from __future__ import annotations
@@ -97,22 +97,12 @@ def replay_episode(env: Any, streams: SlotStreams, start: int, next_iteration: i
     return Replayed(current, total, fresh=len(actions) == 0)  # no actions: the episode starts at next_iteration
 
 
-def explore(policy: Policy, obs: np.ndarray, noise: np.random.Generator, sigma: float,
-            max_action: np.ndarray) -> np.ndarray:
-    """π_k(s) + N(0, σ)·max_action, clipped to the action bounds (Algorithm 1, line 7)."""
-    action = policy(obs)
-    eps = noise.normal(0.0, sigma, action.shape[-1]).astype(np.float32)
-    return np.clip(action + eps * max_action, -max_action, max_action)
-
-
 def act(policy: Policy, obs: np.ndarray, noise: np.random.Generator, algo: AlgoConfig,
         max_action: np.ndarray) -> np.ndarray:
-    """Algorithm 1, line 7 for every algorithm: TD3 and DDPG explore around π_k(s) (`explore`);
-    SAC samples a = max_action · tanh(μ + σ·ε) from π_k(·|s) with the slot's noise stream drawing
-    ε (a `SquashedGaussianPolicy`), so it has no exploration noise of its own."""
-    if algo.stochastic:
-        return policy.sample(obs, noise)
-    return explore(policy, obs, noise, algo.explore_noise, max_action)
+    """Algorithm 1, line 7: the family's acting rule (mam_core.family). TD3 and DDPG explore around
+    π_k(s) (mam_core.td3.explore); SAC samples a = max_action · tanh(μ + σ·ε) from π_k(·|s) with the
+    slot's noise stream drawing ε, so it has no exploration noise of its own (mam_core.sac)."""
+    return algo.family.act(policy, obs, noise, algo, max_action)
 
 
 def uniform(env: Any) -> np.ndarray:

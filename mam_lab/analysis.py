@@ -17,10 +17,10 @@ import numpy as np
 from mam_lab.runs import BiasStats, RunRecord, bias_stats, collect_runs, common_bias_points, manifest
 from mam_lab.scores import (
     MaxAverage,
-    _finite,
     aligned_curves,
     auc_after,
     final_return,
+    finite_or_none,
     first_reach,
     last_n_mean,
     max_average_return,
@@ -140,7 +140,7 @@ class VariantStats:
 
     def wall_times(self) -> np.ndarray:
         """Per run: the launcher's wall time (start to end of the run), else the referee's."""
-        vals = [_finite(r.summary.get("launcher_wall_time_s")) or _finite(r.summary.get("wall_time_s"))
+        vals = [finite_or_none(r.summary.get("launcher_wall_time_s")) or finite_or_none(r.summary.get("wall_time_s"))
                 for r in self.runs]
         return np.asarray([v for v in vals if v is not None], dtype=float)
 
@@ -313,7 +313,7 @@ class Report:
 
 
 def _mean_of(runs: Sequence[RunRecord], key: str) -> float:
-    vals = [_finite(r.summary.get(key)) for r in runs]
+    vals = [finite_or_none(r.summary.get(key)) for r in runs]
     vals = [v for v in vals if v is not None]
     return float(np.mean(vals)) if vals else math.nan
 
@@ -324,13 +324,13 @@ def is_apple_collect(env: str) -> bool:
 
 def start_of(run: RunRecord) -> float:
     """The run's random phase (--start-steps, in schedule steps), 0 where the config lacks it."""
-    v = _finite(run.algo_config.get("start_steps"))
+    v = finite_or_none(run.algo_config.get("start_steps"))
     return v if v is not None else 0.0
 
 
 def budget_of(run: RunRecord) -> float | None:
     """The run's budget T in schedule steps (config.json `steps`), None where it lacks it."""
-    return _finite(run.config.get("steps"))
+    return finite_or_none(run.config.get("steps"))
 
 
 def variant_stats(env: str, variant: str, runs: list[RunRecord], spacing: float, n_boot: int = N_BOOT,

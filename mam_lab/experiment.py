@@ -38,10 +38,9 @@ from mam_lab.ledger import check_resume, wall_estimates, write_manifest
 from mam_lab.provenance import ROOT, code_version, commit_label
 from mam_lab.scheduler import GridResult, core_slots, default_parallel, parse_stop_by, run_grid
 from mam_lab.view import describe_plan, hms
-from services.cli import options
 
 # --- command ---------------------------------------------------------------------------------
-from services.run import cpu, preflight, runlock
+from services.run import cpu, options, preflight, runlock
 
 
 @options.run_options(exclude=tuple(GRID_DIMENSIONS))

@@ -13,9 +13,10 @@ from typing import Any
 
 import numpy as np
 
+from mam_core.algorithm1 import elimination_transitions
 from mam_lab.analysis import SUCCESS_RETURN, Report, VariantStats, is_apple_collect
 from mam_lab.runs import BiasStats, RunRecord
-from mam_lab.scores import _finite, aligned_curves
+from mam_lab.scores import aligned_curves, finite_or_none
 from mam_lab.stats import curve_band
 
 DPI = 120
@@ -95,11 +96,9 @@ def plot_env_curves(env: str, vs: Sequence[VariantStats], path: Path, n_boot: in
                     label=f"{v.variant}: deployed actor")
             dashed = True
         algo = v.runs[0].algo_config
-        c = algo.get("eliminate_at")  # in schedule steps: iterations (paper) or transitions (equal-data)
-        k = algo.get("actors") or 1
-        if isinstance(c, (int, float)) and axis == "transitions" and algo.get("schedule") == "paper":
-            c = c * (algo.get("workers") or 1)  # C iterations of M transitions each
-        if k > 1 and not v.runs[0].algo_config.get("no_ot") and isinstance(c, (int, float)) and 0 < c <= grid[-1]:
+        at = elimination_transitions(algo)  # None: no elimination
+        c = at if axis == "transitions" else algo.get("eliminate_at")  # else in schedule steps, as C is given
+        if at is not None and 0 < c <= grid[-1]:
             ax.axvline(c, color=color, linestyle=":", linewidth=1.0)
     if is_apple_collect(env):
         ax.axhline(SUCCESS_RETURN, color="0.5", linestyle="--", linewidth=0.8, label=f"return {SUCCESS_RETURN:.2f}")
@@ -115,7 +114,7 @@ def allocation_share(run: RunRecord, steps: np.ndarray) -> tuple[np.ndarray, np.
     best = run.eventual_best
     share = np.full(steps.size, np.nan)
     prob = share.copy()
-    rows = [r for r in run.allocation if _finite(r.get("env_steps")) is not None]
+    rows = [r for r in run.allocation if finite_or_none(r.get("env_steps")) is not None]
     if best is None or not rows:
         return share, prob
     xs = np.asarray([float(r["env_steps"]) for r in rows])
@@ -125,7 +124,8 @@ def allocation_share(run: RunRecord, steps: np.ndarray) -> tuple[np.ndarray, np.
         total = sum(c for c in counts if isinstance(c, (int, float)))
         s_vals.append(counts[best] / total if total and best < len(counts) else np.nan)
         probs = r.get("probabilities") if isinstance(r.get("probabilities"), list) else []
-        p_vals.append(_finite(probs[best]) if best < len(probs) and _finite(probs[best]) is not None else np.nan)
+        p = finite_or_none(probs[best]) if best < len(probs) else None
+        p_vals.append(np.nan if p is None else p)
     idx = np.searchsorted(xs, steps, side="right") - 1
     ok = idx >= 0
     share[ok] = np.asarray(s_vals)[idx[ok]]

@@ -37,7 +37,7 @@ import typer
 
 from mam_core.config import ALGOS, resolve
 from mam_core.schedule import Schedule
-from services.cli import options
+from services.run import options
 from services.run.config import RunConfig
 from services.run.rundir import env_dirname
 

@@ -16,12 +16,12 @@ import numpy as np
 from mam_lab.provenance import commit_label
 from mam_lab.scores import (
     DeployedPoint,
-    _finite,
     best_live_score,
     bias_points,
     deployed_points,
     eval_points,
     eval_triples,
+    finite_or_none,
 )
 from services.run import rundir
 from services.run.rundir import read_json, read_jsonl
@@ -91,7 +91,7 @@ class RunRecord:
             return self.summary["survivor"]
         finals = self.summary.get("final_returns")
         if isinstance(finals, list):
-            vals = [(v, k) for k, v in enumerate(_finite(f) for f in finals) if v is not None]
+            vals = [(v, k) for k, v in enumerate(finite_or_none(f) for f in finals) if v is not None]
             if vals:
                 return max(vals)[1]
         return None

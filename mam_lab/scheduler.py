@@ -83,7 +83,7 @@ def start_run_process(job: Launch) -> subprocess.Popen:
 
     Its own session (the terminal's Ctrl-C reaches the grid, which stops each run with SIGTERM) and
     SIGTERM when the grid dies; the grid's code first on PYTHONPATH, so every run runs it."""
-    from services.run.launcher import _die_with_parent
+    from services.run.launcher import die_with_parent
 
     write_json(job.run_dir / rundir.LAUNCH, {"config": job.cfg.to_dict(), "cores": list(job.cores) or None,
                                            "plot": job.plot, "code": job.code})
@@ -91,7 +91,7 @@ def start_run_process(job: Launch) -> subprocess.Popen:
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH")) if p)
     return subprocess.Popen([sys.executable, "-m", "mam_lab.experiment_run", str(job.run_dir.resolve())],
                             stdout=job.log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
-                            start_new_session=True, preexec_fn=_die_with_parent)
+                            start_new_session=True, preexec_fn=die_with_parent)
 
 
 def available_cores() -> list[int]:

@@ -18,7 +18,7 @@ import numpy as np
 LAST_N = 10
 
 
-def _finite(value: Any) -> float | None:
+def finite_or_none(value: Any) -> float | None:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return None
     return float(value) if math.isfinite(value) else None
@@ -30,11 +30,11 @@ def best_live_score(row: dict[str, Any]) -> float | None:
     means = row.get("mean")
     values: list[float] = []
     if isinstance(means, list):
-        values = [v for v in (_finite(m) for m in means) if v is not None]
+        values = [v for v in (finite_or_none(m) for m in means) if v is not None]
     if not values and isinstance(row.get("returns"), list):  # older rows: only the episode returns
         for episodes in row["returns"]:
             if isinstance(episodes, list):
-                eps = [v for v in (_finite(e) for e in episodes) if v is not None]
+                eps = [v for v in (finite_or_none(e) for e in episodes) if v is not None]
                 if eps:
                     values.append(float(np.mean(eps)))
     return max(values) if values else None
@@ -44,7 +44,7 @@ def eval_points(rows: list[dict[str, Any]]) -> list[tuple[float, float]]:
     """(env_steps, best live score) of every evaluation row with a score, in file order."""
     out = []
     for row in rows:
-        step, score = _finite(row.get("env_steps")), best_live_score(row)
+        step, score = finite_or_none(row.get("env_steps")), best_live_score(row)
         if step is not None and score is not None:
             out.append((step, score))
     return out
@@ -54,9 +54,9 @@ def eval_triples(rows: list[dict[str, Any]]) -> list[tuple[float, float | None, 
     """(env_steps, iterations or None, best live score) of every evaluation row with a score."""
     out = []
     for row in rows:
-        step, score = _finite(row.get("env_steps")), best_live_score(row)
+        step, score = finite_or_none(row.get("env_steps")), best_live_score(row)
         if step is not None and score is not None:
-            out.append((step, _finite(row.get("iterations")), score))
+            out.append((step, finite_or_none(row.get("iterations")), score))
     return out
 
 
@@ -133,14 +133,14 @@ def bias_rate_of(bias: dict[str, Any], absolute: bool = False) -> float | None:
     """Eq. 17 of a bias.jsonl row: (Q̂ − Q*)/Q* as printed, or ÷|Q*| (`absolute`). Rows since
     issue #9 (they carry `horizon`) store the printed form in `bias_rate` and, where Q* < 0,
     the other in `bias_rate_abs`; older rows stored the ÷|Q*| form in `bias_rate`."""
-    rate = _finite(bias.get("bias_rate"))
+    rate = finite_or_none(bias.get("bias_rate"))
     if rate is None:
         return None
-    q_star = _finite(bias.get("q_true"))
+    q_star = finite_or_none(bias.get("q_true"))
     negative = q_star is not None and q_star < 0
     if "horizon" in bias:  # printed form stored
         if absolute and negative:
-            return _finite(bias.get("bias_rate_abs", -rate))
+            return finite_or_none(bias.get("bias_rate_abs", -rate))
         return rate
     return -rate if negative and not absolute else rate  # ÷|Q*| form stored
 
@@ -154,7 +154,7 @@ def bias_points(rows: list[dict[str, Any]], absolute: bool = False) -> list[tupl
     for r in rows:
         if r.get("updates") == 0:
             continue
-        point = _finite(r.get("point", r.get("env_steps")))
+        point = finite_or_none(r.get("point", r.get("env_steps")))
         rate = bias_rate_of(r["bias"], absolute) if isinstance(r.get("bias"), dict) else None
         if point is not None and rate is not None:
             by_point.setdefault(point, []).append(rate)
@@ -172,23 +172,23 @@ def _x_of(row: dict[str, Any], axis: str) -> float | None:
     """A row's place on `axis`: iterations (env transitions in rows without them) or env transitions
     (allocation rows of old records carry `decided_at` too)."""
     if axis == "iterations":
-        it = _finite(row.get("iterations"))
+        it = finite_or_none(row.get("iterations"))
         if it is not None:
             return it
-    step = _finite(row.get("env_steps"))
-    return step if step is not None else _finite(row.get("decided_at"))
+    step = finite_or_none(row.get("env_steps"))
+    return step if step is not None else finite_or_none(row.get("decided_at"))
 
 
 def _actor_return(row: dict[str, Any], k: int) -> float | None:
     """Actor k's mean return in an evaluation row (None where it was not evaluated)."""
     means = row.get("mean")
     if isinstance(means, list) and k < len(means):
-        value = _finite(means[k])
+        value = finite_or_none(means[k])
         if value is not None:
             return value
     returns = row.get("returns")
     if isinstance(returns, list) and k < len(returns) and isinstance(returns[k], list):
-        eps = [v for v in (_finite(e) for e in returns[k]) if v is not None]
+        eps = [v for v in (finite_or_none(e) for e in returns[k]) if v is not None]
         if eps:
             return float(np.mean(eps))
     return None
@@ -212,7 +212,7 @@ def competition_winner(row: dict[str, Any]) -> int | None:
     returns = row.get("returns")
     if not isinstance(returns, list):
         return None
-    vals = [(_finite(r), k) for k, r in enumerate(returns)]
+    vals = [(finite_or_none(r), k) for k, r in enumerate(returns)]
     vals = [(v, k) for v, k in vals if v is not None]
     if not vals:
         return None
@@ -245,7 +245,7 @@ def initial_actor(allocation: list[dict[str, Any]]) -> int:
     for row in rows[:1]:
         probs = row.get("probabilities")
         if isinstance(probs, list) and probs:
-            vals = [_finite(p) for p in probs]
+            vals = [finite_or_none(p) for p in probs]
             if all(v is not None for v in vals):
                 return vals.index(max(vals))
     return 0

@@ -15,7 +15,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from services.cli.plot import read_jsonl
+from services.run.rundir import read_jsonl
 
 ROOT = Path(__file__).resolve().parents[1]
 

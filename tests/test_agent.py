@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from mam_core.agent import EnvSpec, MultiActorAgent, actor_loss, critic_loss, critic_target, weighted_target
+from mam_core.agent import EnvSpec, MultiActorAgent, critic_loss, critic_target, weighted_target
 from mam_core.config import resolve
 from mam_core.replay import ReplayBuffer
+from mam_core.td3 import actor_loss
 
 SMALL = dict(hidden=(32, 32), batch_size=16)
 

@@ -7,8 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mam_core.algorithm1 import Algorithm1
+from mam_core.algorithm1 import Algorithm1, Purpose, elimination_transitions
 from mam_core.config import resolve
+from mam_core.obsolescence import initial_allocation, obsolescence_for
 from mam_core.schedule import Schedule
 from mam_core.seeding import stream, stream_seed
 
@@ -63,6 +64,45 @@ def test_plan_with_a_lag_hand_computed():
     with pytest.raises(ValueError, match="lag"):
         resolve("td3", lag=-1)
     assert resolve("td3", lag=50).lag == 50  # one actor: no competitions to outrun
+
+
+def test_every_when_the_roles_ask_is_the_plans():
+    """The paper schedule above (B = 2): what the learner sends the referee after each iteration,
+    where each decision applies, the episodes' index of each evaluation, the competitions already
+    logged after n evaluations, the units past the start phase."""
+    s = Schedule("paper", slots=3, steps=10, start=2, compete_every=3, eliminate_at=6)
+    plan = Algorithm1(s, batch_size=4, policy_delay=2, eval_every=5, lag=2)
+    # the round at 3 judges version_after(2) = 0; the curve at 5 version_after(5) = 1; the elimination
+    # at 6 version_after(5) = 1; the last iteration's curve point version_after(10) = 4
+    assert [plan.judged_after(i) for i in range(0, 11)] == [set(), set(), {0}, set(), set(), {1}, set(), set(),
+                                                           set(), set(), {4}]
+    assert [plan.applies_from(j) for j in (0, 3, 6)] == [1, 6, 9]
+    assert all(plan.decision_for(plan.applies_from(j)) == j for j in plan.competitions())
+    assert [purpose for _, purpose in plan.events()] == [Purpose.ROUND, Purpose.CURVE, Purpose.ELIMINATION,
+                                                          Purpose.CURVE]
+    assert [plan.competitions_among(n) for n in range(5)] == [0, 1, 1, 2, 2]
+    assert [plan.iteration(i).evaluation_index(p) for i, p in plan.events()] == [1, 1, None, 2]
+    assert [plan.units_past_start(u) for u in (0, 2, 3, 10)] == [0, 0, 1, 8]
+    assert Purpose("final") is Purpose.FINAL and Purpose.ELIMINATION.competes and not Purpose.CURVE.competes
+    with pytest.raises(ValueError, match="unknown evaluation purpose"):
+        plan.judged_version(3, "rounds")
+
+
+def test_the_elimination_in_transitions_is_one_rule_for_plots_and_figures():
+    """C counts iterations of M transitions under `paper`, transitions under `equal-data`."""
+    assert elimination_transitions({"eliminate_at": 6, "actors": 2, "workers": 3, "schedule": "paper"}) == 18
+    assert elimination_transitions({"eliminate_at": 6, "actors": 2, "workers": 3}) == 18  # paper: the default
+    assert elimination_transitions({"eliminate_at": 6, "actors": 2, "workers": 3, "schedule": "equal-data"}) == 6
+    assert elimination_transitions({"eliminate_at": 6, "actors": 1, "workers": 3}) is None
+    assert elimination_transitions({"eliminate_at": 6, "actors": 2, "workers": 3, "no_ot": True}) is None
+    plan = Algorithm1.for_run(resolve("ma-td3", workers=3, eliminate_at=6, compete_every=3, start_steps=2), 10)
+    assert plan.iteration(plan.elimination).transitions[1] == 18
+
+
+def test_the_initial_allocation_is_the_allocation_streams_first_draw():
+    cfg = resolve("ma-ddpg", seed=4)
+    drawn = obsolescence_for(cfg, 100).allocation(cfg.workers, stream(cfg.seed, "allocation"))
+    assert initial_allocation(cfg, 100) == drawn and len(drawn) == cfg.workers
 
 
 def test_plan_of_equal_data_counts_transitions():

@@ -150,8 +150,8 @@ def test_workers_with_other_kernels_than_the_learner_give_the_reference_run(tmp_
 
 def test_the_run_config_records_its_arithmetic(monkeypatch: pytest.MonkeyPatch) -> None:
     """config.json says which arithmetic a run computed with: native runs are machine-bound."""
-    from services.cli.options import build_run_config
     from services.run.config import RunConfig
+    from services.run.options import build_run_config
 
     base = {"env": "AppleCollect-v1", "algo": "ma-ddpg", "steps": 100}
     monkeypatch.delenv(arithmetic.ARITHMETIC_ENV, raising=False)

@@ -10,8 +10,7 @@ from pathlib import Path
 import pytest
 import typer
 
-from services.cli import options
-from services.run import cpu
+from services.run import cpu, options
 from tests.e2e import ROOT
 
 ZEN4 = """processor\t: 0

@@ -91,7 +91,7 @@ def make_stats() -> LearnerStats:
 
 def raw(msg: dict) -> bytes:
     """Pack a hand-made message, bypassing ``encode`` (to build bad ones)."""
-    return msgpack.packb(msg, default=codec._default, use_bin_type=True)
+    return msgpack.packb(msg, default=codec.pack_default, use_bin_type=True)
 
 
 def reason_of(fn) -> str:

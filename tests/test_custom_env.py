@@ -12,9 +12,9 @@ import typer
 from mam_core.envs import EnvError, make_env
 from mam_core.evaluation import evaluate_policy
 from mam_core.policy import EnvSpec
-from services.cli.options import build_run_config, default_run_name
 from services.messaging.codec import decode, encode
 from services.run.config import RunConfig
+from services.run.options import build_run_config, default_run_name
 
 TINY = "tests.envs.tiny:Tiny-v0"
 

@@ -22,8 +22,8 @@ from mam_core.config import resolve
 from mam_core.policy import read_policy_file
 from mam_core.reference import run_reference
 from mam_core.schedule import Schedule
-from services.cli.plot import read_jsonl
 from services.messaging import bus
+from services.run.rundir import read_jsonl
 from tests.e2e import (
     ROOT,
     LinkProxy,

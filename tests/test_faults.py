@@ -19,10 +19,10 @@ from mam_core.algorithm1 import Algorithm1
 from mam_core.config import AlgoConfig, resolve
 from mam_core.policy import read_policy_file
 from mam_core.reference import run_reference
-from services.cli.plot import read_jsonl
 from services.messaging import bus, keys
 from services.messaging.codec import Allocation, LearnerStats
 from services.roles.checkpoint import load_replay
+from services.run.rundir import read_jsonl
 from tests.e2e import ROOT, processes_of, spawn, stop, unique_run
 
 pytestmark = pytest.mark.slow

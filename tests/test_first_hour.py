@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from services.cli.options import build_run_config
 from services.run.config import budget_warnings
+from services.run.options import build_run_config
 from tests.e2e import ROOT, processes_of, spawn, stop, unique_run
 
 TINY = ["--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--hidden", "32,32", "--batch-size", "32",

@@ -21,10 +21,10 @@ import pytest
 from mam_core.config import resolve
 from mam_core.policy import EnvSpec, NumpyActors, params_digest, read_policy_file
 from mam_core.reference import run_reference
-from services.cli.plot import read_jsonl
 from services.messaging.codec import TransitionBatch, TransitionSpec
 from services.roles.lockstep import SlotStage, WeightsHistory
 from services.roles.outbox import PublishedDigests
+from services.run.rundir import read_jsonl
 from tests.e2e import ROOT, unique_run
 
 SPEC = EnvSpec(3, 2, (1.0, 1.0))

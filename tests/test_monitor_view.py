@@ -4,7 +4,7 @@ import pytest
 from rich.console import Console
 
 from mam_core.config import resolve
-from services.cli.monitor_view import MonitorState, PlainLines, render
+from services.roles.monitor_view import MonitorState, PlainLines, render
 
 
 class FakeClock:

@@ -8,8 +8,8 @@ import pytest
 import typer
 
 from mam_core.config import defaults_for, resolve
-from services.cli.options import build_run_config
 from services.run.config import RunConfig
+from services.run.options import build_run_config
 
 
 def test_paper_defaults_per_algorithm():
@@ -53,7 +53,7 @@ def _run_option_flags(app, name: str | None = None) -> dict[str, tuple[tuple[str
     """The run-option parameters of a typer command: name -> (flags, help)."""
     from typer.main import get_command
 
-    from services.cli.options import OPTION
+    from services.run.options import OPTION
 
     command = get_command(app)
     if name is not None:
@@ -63,8 +63,8 @@ def _run_option_flags(app, name: str | None = None) -> dict[str, tuple[tuple[str
 
 def test_the_option_table_drives_mam_run_and_mam_learner():
     from services.cli import app as cli
-    from services.cli.options import cli_options
     from services.roles import learner
+    from services.run.options import cli_options
 
     table = {o.name: (tuple(o.decls[0].split("/")), o.annotation.__metadata__[0].help) for o in cli_options()}
     assert len(table) >= 30 and "eliminate_at" in table and "save_replay" in table
@@ -89,7 +89,7 @@ def test_the_table_knows_every_algorithm_field():
     import dataclasses
 
     from mam_core.config import AlgoConfig
-    from services.cli.options import ALGO, OPTION, RUN, RUN_OPTIONS
+    from services.run.options import ALGO, OPTION, RUN, RUN_OPTIONS
 
     algo_fields = {f.name for f in dataclasses.fields(AlgoConfig)}
     run_fields = {f.name for f in dataclasses.fields(RunConfig)}
@@ -153,7 +153,7 @@ def test_help_snapshot_every_option_in_a_panel_with_its_default_at_80_columns():
     import subprocess
     import sys
 
-    from services.cli.options import HELP_PANELS, cli_options, default_text
+    from services.run.options import HELP_PANELS, cli_options, default_text
 
     root = Path(__file__).resolve().parents[1]
     env = dict(os.environ, COLUMNS="80", TERM="dumb", NO_COLOR="1")
@@ -195,7 +195,7 @@ def test_a_toml_typo_gets_did_you_mean_and_points_to_help(tmp_path: Path):
         build_run_config({}, f)
     message = str(e.value)
     assert "unknown option 'eliminate-att'; did you mean 'eliminate-at'?" in message
-    assert "mam run --help" in message and "services/cli/options.py" not in message
+    assert "mam run --help" in message and "services/run/options.py" not in message
 
 
 def test_help_names_what_is_true_today():
@@ -204,9 +204,9 @@ def test_help_names_what_is_true_today():
     import typer
 
     from mam_lab.experiment import experiment_command
-    from services.cli import options
     from services.cli.app import app
     from services.roles import monitor, referee, worker
+    from services.run import options
 
     assert "MA-SAC" in (app.info.help or "")
     assert "ma-sac" in (experiment_command.__doc__ or "")

@@ -8,8 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from services.cli.options import build_run_config
 from services.run.launcher import LocalCluster
+from services.run.options import build_run_config
 from services.run.progress import RANDOM_POLICY_RETURNS, done_text, outcome_text
 from tests.e2e import ROOT, unique_run
 

@@ -6,7 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.cli.plot import plot_run, read_jsonl
+from services.run.plot import plot_run
+from services.run.rundir import read_jsonl
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 K, M, A, C, STEPS = 3, 5, 1_000, 12_000, 20_000
@@ -132,7 +133,7 @@ def test_missing_run_dir_raises(tmp_path):
 
 
 def test_plot_run_on_the_iterations_axis(tmp_path):
-    from services.cli.plot import on_axis
+    from services.run.plot import on_axis
 
     rows = [{"env_steps": 30, "iterations": 10}, {"env_steps": 7}]  # the second: a run before the schedules
     assert on_axis(rows, "iterations") == [{"env_steps": 10, "iterations": 10}, {"env_steps": 7}]
@@ -153,7 +154,7 @@ def test_learner_plot_labels_updates_per_schedule_step(tmp_path):
     under equal-data: the axis says which (it said "updates / transition" for both)."""
     import matplotlib
 
-    from services.cli.plot import plot_learner
+    from services.run.plot import plot_learner
 
     rows = [{"env_steps": s, "utd": 1.0, "loss/critic": 1.0, "loss/actor": -1.0} for s in (0, 100, 200)]
     with matplotlib.rc_context({"svg.fonttype": "none"}):  # text stays text in the SVG
@@ -166,7 +167,7 @@ def test_learner_plot_labels_updates_per_schedule_step(tmp_path):
     config["algo"] = {**config.pop("algo_config"), "schedule": "paper"}
     (run / "config.json").write_text(json.dumps(config))
     with matplotlib.rc_context({"svg.fonttype": "none"}):
-        from services.cli import plot
+        from services.run import plot
 
         assert plot.plot_run(run)  # the paper schedule's run: the label comes from its config
     assert (run / "plots" / "learner.png").is_file()
@@ -177,7 +178,7 @@ def test_a_long_title_wraps_inside_the_figure():
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from services.cli.plot import _set_title
+    from services.run.plot import _set_title
 
     fig = Figure(figsize=(8, 4.8), layout="constrained")
     ax = fig.add_subplot()
@@ -194,7 +195,7 @@ def test_final_evaluation_at_the_last_step_draws_one_point(tmp_path):
     per x (the last), not a vertical zigzag there."""
     import matplotlib
 
-    from services.cli.plot import _last_per_x, plot_learning_curves
+    from services.run.plot import _last_per_x, plot_learning_curves
 
     assert _last_per_x([0, 10, 20, 20], [1, 2, 3, 4]) == ([0, 10, 20], [1, 2, 4])
     rows = [{"env_steps": 100, "mean": [1.0]}, {"env_steps": 200, "mean": [2.0]}, {"env_steps": 200, "mean": [5.0]}]
@@ -215,7 +216,7 @@ def test_final_evaluation_at_the_last_step_draws_one_point(tmp_path):
 
 def _figure_of(monkeypatch, draw) -> "Figure":  # noqa: F821
     """The Figure a plot function saves (drawn and written as usual)."""
-    from services.cli import plot
+    from services.run import plot
 
     captured = []
     real_save = plot._save
@@ -232,7 +233,8 @@ def _figure_of(monkeypatch, draw) -> "Figure":  # noqa: F821
 def test_learner_plot_draws_one_labelled_actor_loss_line_per_actor(tmp_path, monkeypatch):
     """K = 3: three actor-loss lines with a legend (it drew one unlabelled line, the sum); the
     updates panel starts at the first update (it ramped up from 0 over the random phase)."""
-    from services.cli.plot import plot_learner, read_jsonl
+    from services.run.plot import plot_learner
+    from services.run.rundir import read_jsonl
 
     run = make_run(tmp_path / "run")
     rows = read_jsonl(run / "learner.jsonl")
@@ -257,7 +259,7 @@ def test_titles_break_between_their_parts():
     """A long title broke inside "run · algo · env", leaving a dangling "·" at a line's end."""
     from matplotlib.figure import Figure
 
-    from services.cli.plot import _set_title
+    from services.run.plot import _set_title
 
     ax = Figure().add_subplot()
     _set_title(ax, "Learner", "ma-td3-halfcheetah-20261202-113301-4242 · ma-td3 · HalfCheetah-v5")

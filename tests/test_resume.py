@@ -17,7 +17,7 @@ import pytest
 from mam_core.config import resolve
 from mam_core.policy import read_policy_file
 from mam_core.reference import run_reference
-from services.cli.plot import read_jsonl
+from services.run.rundir import read_jsonl
 from tests.e2e import ROOT, processes_of, unique_run
 
 ARGS = ["--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--steps", "1500", "--workers", "3", "--actors", "2",

@@ -19,10 +19,10 @@ import torch
 from mam_core.agent import MultiActorAgent, critic_target, soft_values, weighted_target
 from mam_core.config import defaults_for, resolve
 from mam_core.ensemble import GaussianActorEnsemble, squashed_gaussian_log_prob
-from mam_core.policy import EnvSpec, NumpyActors, load_policy, read_policy_file
+from mam_core.policy import GAUSSIAN_POLICY, EnvSpec, NumpyActors, load_policy, read_policy_file
 from mam_core.reference import run_reference
 from mam_core.slot import act
-from services.cli.plot import read_jsonl
+from services.run.rundir import read_jsonl
 from tests.e2e import mam, unique_run
 
 SMALL = dict(hidden=(32, 32), batch_size=16)
@@ -304,7 +304,7 @@ def test_checkpoint_round_trip_continues_identically(tmp_path: Path):
 def test_numpy_actors_compute_the_learners_mean_and_samples():
     spec = EnvSpec(5, 3, (0.4, 0.4, 0.4))
     agent = MultiActorAgent(resolve("ma-sac", actors=2, **SMALL, seed=3), spec)
-    actors = NumpyActors(2, spec, SMALL["hidden"], gaussian=True)
+    actors = NumpyActors(2, spec, SMALL["hidden"], GAUSSIAN_POLICY)
     assert actors.shapes == agent.actor_shapes() and actors.shapes["w2"] == (32, 6)  # μ and log σ heads
     obs = np.random.default_rng(0).normal(size=(7, 5)).astype(np.float32)
     eps = np.random.default_rng(1).normal(size=(7, 3)).astype(np.float32)

@@ -20,12 +20,12 @@ import pytest
 from mam_core.config import resolve
 from mam_core.policy import read_policy_file
 from mam_core.reference import run_reference
-from services.cli.plot import read_jsonl
 from services.messaging import bus, keys
 from services.messaging.codec import Done, LearnerStats
 from services.roles import role
 from services.roles.spare import MIN_TAKE_OVER_S, Spare, Watch, decide, rank, take_over_limit
 from services.run.config import RunConfig
+from services.run.rundir import read_jsonl
 from tests.e2e import ROOT, processes_of, spawn, stop, unique_run
 
 LIMIT = 3.0

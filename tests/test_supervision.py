@@ -14,9 +14,9 @@ import torch
 
 from mam_core.agent import EnvSpec, MultiActorAgent
 from mam_core.config import AlgoConfig
-from services.cli.plot import read_jsonl
 from services.roles.checkpoint import load_replay
 from services.run.chaos import children_of
+from services.run.rundir import read_jsonl
 from tests.e2e import ROOT, assert_exactly_once, load, processes_of, unique_run
 
 pytestmark = pytest.mark.slow

@@ -12,7 +12,7 @@ import tests.hidden_env  # noqa: F401  (registers HiddenNoise-v0)
 from mam_core.algorithm1 import Algorithm1
 from mam_core.config import resolve
 from mam_core.envs import make_env
-from mam_core.policy import EnvSpec, NumpyActors
+from mam_core.policy import GAUSSIAN_POLICY, EnvSpec, NumpyActors
 from mam_core.replay import ReplayBuffer
 from mam_core.schedule import Schedule
 from mam_core.slot import SlotStreams, act, replay_episode, uniform
@@ -67,7 +67,7 @@ def test_a_rebuilt_slot_continues_exactly_as_the_uninterrupted_one(env_id: str, 
     cfg = resolve(algo, workers=2, actors=2, start_steps=100, seed=11)
     plan = Algorithm1.for_run(cfg, 400)
     if cfg.stochastic:  # a squashed Gaussian: the slot's noise stream draws its ε
-        actors = NumpyActors(1, EnvSpec.from_env(make_env(env_id)), (8,), gaussian=True)
+        actors = NumpyActors(1, EnvSpec.from_env(make_env(env_id)), (8,), GAUSSIAN_POLICY)
         actors.load_member(0, {n: np.full(shape, 0.05, np.float32) for n, shape in actors.shapes.items()})
         policy = actors.policy(0)
     else:

@@ -8,9 +8,8 @@ from pathlib import Path
 
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from services.cli.plot import read_jsonl
 from services.roles import tb
-from services.run.rundir import JsonlWriter
+from services.run.rundir import JsonlWriter, read_jsonl
 from tests.e2e import ROOT
 
 

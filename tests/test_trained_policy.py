@@ -16,7 +16,7 @@ from mam_core.config import resolve
 from mam_core.evaluation import evaluate_policy
 from mam_core.policy import POLICY_FILE, EnvSpec, PolicyFileError, load_policy, read_policy_file
 from mam_core.seeding import evaluation_seed
-from services.cli.policy_export import write_policy
+from services.roles.policy_export import write_policy
 from services.run.config import RunConfig
 from tests.e2e import ROOT, mam
 

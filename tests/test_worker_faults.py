@@ -8,10 +8,10 @@ import uuid
 import numpy as np
 import pytest
 
-from services.cli import options
 from services.messaging import bus, keys
 from services.messaging.codec import TransitionBatch, TransitionSpec
 from services.roles.worker import FAULTS, Worker
+from services.run import options
 from tests.faulty_env import KINDS
 
 

@@ -12,6 +12,7 @@ import importlib
 import os
 import sys
 from collections.abc import Mapping
+from types import ModuleType
 from typing import Any
 
 import gymnasium as gym
@@ -39,22 +40,27 @@ def import_env_module(env_id: str) -> None:
         return
     module = env_id.split(":", 1)[0]
     try:
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as e:
-            # As `python -m` does: the current directory is searched too (last), so console
-            # scripts (`mam`, `mam-worker`) find a module next to where they are started.
-            cwd = os.getcwd()
-            top = module.split(".")[0]
-            if e.name != top or cwd in sys.path or "" in sys.path or not _has_module(cwd, top):
-                raise
-            sys.path.append(cwd)
-            importlib.import_module(module)
+        import_module_from_cwd(module)
     except Exception as e:  # ImportError, or anything the module raises while importing
         raise EnvError(
             f"env {env_id!r}: module {module!r} does not import ({type(e).__name__}: {e}). It must be "
             "importable on every host that runs a learner, referee, worker or `mam eval` "
             "(installed, on PYTHONPATH, or in the directory the command starts in)") from e
+
+
+def import_module_from_cwd(module: str) -> ModuleType:
+    """`importlib.import_module(module)`, searching the current directory last, as `python -m`
+    does: console scripts (`mam`, `mam-worker`) find a module next to where they are started
+    (a `module:EnvId` env, a `module:Name` algorithm family)."""
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as e:
+        cwd = os.getcwd()
+        top = module.split(".")[0]
+        if e.name != top or cwd in sys.path or "" in sys.path or not _has_module(cwd, top):
+            raise
+        sys.path.append(cwd)
+        return importlib.import_module(module)
 
 
 def _has_module(directory: str, name: str) -> bool:

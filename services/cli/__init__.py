@@ -1,1 +1,1 @@
-"""The command line: `mam` and its commands, the option table, plots and the live view."""
+"""The command line: `mam` and its commands (the top layer: docs/ARCHITECTURE.md)."""

@@ -8,8 +8,7 @@ from typing import Any, Optional
 
 import typer
 
-from services.cli import options
-from services.run import cpu
+from services.run import cpu, options
 from services.run.config import curve_points, no_updates
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
@@ -101,7 +100,7 @@ def plot(run_dir: Path = typer.Argument(..., help="a run directory written by `m
          x: str = typer.Option("transitions", "--x", help="x-axis: transitions or iterations "
                                                            "(iteration plots get an _iterations suffix)")) -> None:
     """Learning curves per actor, allocation over time, bias rate and learner curves as PNG."""
-    from services.cli.plot import X_AXES, plot_command
+    from services.run.plot import X_AXES, plot_command
 
     if not run_dir.is_dir():
         raise typer.BadParameter(f"{run_dir} is not a directory")

@@ -20,8 +20,10 @@ from typing import Any, Optional
 import numpy as np
 import typer
 
+from mam_core.config import AlgoConfig
 from mam_core.envs import EnvError, make_env
 from mam_core.evaluation import eval_seed, rollout
+from mam_core.family import family_for
 from mam_core.policy import POLICY_FILE, EnvSpec, PolicyFileError, TrainedPolicy, load_policy, policy_path
 from services.run import rundir
 from services.run.config import check_env_kwargs
@@ -40,7 +42,7 @@ def open_policy(run_dir: Path, actor: str) -> TrainedPolicy:
     """load_policy with clear errors; a run directory from before policy.npz is converted once."""
     path = policy_path(run_dir)
     if not path.exists() and path.name == POLICY_FILE and (path.parent / rundir.LEARNER_CHECKPOINT).is_file():
-        from services.cli.policy_export import export_from_checkpoint  # torch, once, for old run directories
+        from services.roles.policy_export import export_from_checkpoint  # torch, once, for old run directories
 
         typer.echo(f"no {POLICY_FILE} yet: writing it from checkpoints/learner.pt", err=True)
         try:
@@ -69,18 +71,14 @@ def check_env_matches(pi: TrainedPolicy, env_id: str, env_kwargs: dict[str, Any]
 
 
 def with_noise(pi: TrainedPolicy, sigma: float, seed: int):
-    """The worker's exploration: a + N(0, σ·max_action), clipped to the bounds; a SAC actor's
-    actions sampled from π(·|s) instead. Both draw from one generator seeded with `seed`."""
-    rng = np.random.default_rng(seed)
-    if pi.stochastic:
-        return lambda obs: pi.sample(obs, rng)
-    scale = np.float32(sigma) * pi.max_action
-
-    def policy(obs: np.ndarray) -> np.ndarray:
-        a = pi(obs)
-        return np.clip(a + rng.normal(size=a.shape).astype(np.float32) * scale, -pi.max_action, pi.max_action)
-
-    return policy
+    """The run's algorithm family's acting rule with noise (mam_core.family `explorer`): TD3's
+    a + N(0, σ·max_action), clipped to the bounds; SAC's actions sampled from π(·|s). It draws
+    from one generator seeded with `seed`."""
+    try:
+        family = family_for(str(pi.meta.get("algo") or AlgoConfig().algo))
+    except ValueError as e:
+        raise _fail(str(e)) from None
+    return family.explorer(pi, sigma, np.random.default_rng(seed))
 
 
 def lengths_text(lengths: Any) -> str:

@@ -210,7 +210,7 @@ def save_checkpoint(run_dir: Path, agent: MultiActorAgent, buffer: ReplayBuffer,
 
 
 def _write_policy(path: Path, cfg: RunConfig, agent: MultiActorAgent, env_steps: int, survivor: int | None) -> None:
-    from services.cli.policy_export import policy_meta
+    from services.roles.policy_export import policy_meta
 
     params = [agent.actor_params(k) for k in range(cfg.algo.actors)]
     meta = policy_meta(cfg, agent.spec, env_steps=env_steps, updates=agent.updates, versions=agent.versions,

@@ -4,8 +4,8 @@ A replacement worker rebuilds its slot exactly (mam_core.slot.replay_episode): i
 slot's current episode, from its first step to the learner's next iteration of the slot. The
 learner knows it: the workers flag each episode's first row (`TransitionBatch.episode_starts`),
 so `SlotEpisodes` keeps, per slot, the iteration its current episode began; the rows since are
-in the replay (iteration t's row of slot s is row `transitions_before(t) + s`: rows go in slot
-order) or still staged. The learner answers `mam/<run>/episode/w<i>` queries from its loop.
+in the replay (iteration t's row of slot s: `Algorithm1.row_of`, read with `Replay.rows_at`) or
+still staged. The learner answers `mam/<run>/episode/w<i>` queries from its loop.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from mam_core.algorithm1 import Algorithm1
-from mam_core.replay import ReplayBuffer
+from mam_core.replay import Replay
 from services.messaging import keys
 from services.messaging.codec import SlotEpisode, TransitionBatch
 from services.roles.lockstep import SlotStage
@@ -50,18 +50,17 @@ class SlotEpisodes:
         if len(start) == len(self.start):
             self.start, self.inserted_through = start, int(data["through"])
 
-    def answer(self, slot: int, stage: SlotStage, buffer: ReplayBuffer) -> SlotEpisode:
+    def answer(self, slot: int, stage: SlotStage, buffer: Replay) -> SlotEpisode:
         """Slot `slot`'s current episode up to the stage's next iteration of it."""
-        obs_dim, act_dim = buffer.obs.shape[1], buffer.action.shape[1]
+        obs_dim, act_dim = buffer.obs_dim, buffer.act_dim
         nxt = stage.end[slot]
         start = self.start[slot]
-        rows = [self.plan.transitions_before(t) + slot for t in range(start, min(self.inserted_through, nxt - 1) + 1)]
-        oldest = buffer.inserted - buffer.size
-        if rows and rows[0] < oldest:
+        rows = [self.plan.row_of(t, slot) for t in range(start, min(self.inserted_through, nxt - 1) + 1)]
+        if rows and not buffer.holds(rows[0]):
             return SlotEpisode(slot, start, nxt, np.zeros((0, obs_dim)), np.zeros((0, act_dim)),
                                np.zeros((0, obs_dim)), f"its episode from iteration {start} has left the replay")
-        pos = np.asarray(rows, np.int64) % buffer.capacity
-        obs, action, next_obs = [buffer.obs[pos]], [buffer.action[pos]], [buffer.next_obs[pos]]
+        held = buffer.rows_at(rows)
+        obs, action, next_obs = [held["obs"]], [held["action"]], [held["next_obs"]]
         for staged in stage.queues[slot]:  # rows not yet inserted (with B > 0, or waiting for other slots)
             b = staged.batch
             for r in range(staged.used, b.rows):

@@ -26,7 +26,6 @@ from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
 from mam_core.algorithm1 import Algorithm1
 from mam_core.pacing import CheckpointRule
 from mam_core.replay import ReplayBuffer, ReplayLog
-from services.cli import options
 from services.messaging import bus, keys
 from services.messaging.codec import Allocation, Done, MessageError, TransitionSpec
 from services.roles import episodes, learner_files, role, tb
@@ -41,7 +40,7 @@ from services.roles.episodes import SlotEpisodes
 from services.roles.intake import Intake
 from services.roles.lockstep import SlotStage
 from services.roles.outbox import Outbox, PublishedDigests
-from services.run import announce, cpu, rundir, runlock
+from services.run import announce, cpu, options, rundir, runlock
 from services.run.config import RunConfig
 from services.run.rundir import JsonlWriter, write_json
 
@@ -299,7 +298,7 @@ class Learner:
 
     def utd(self) -> float:
         """Updates per schedule step past the start (per iteration or per transition)."""
-        consumed = max(self.iterations - self.algo.start_steps, 0)
+        consumed = self.plan.units_past_start(self.iterations)
         return self.agent.updates / consumed if consumed else 0.0
 
     def rejected(self) -> dict[str, int]:

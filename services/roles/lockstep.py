@@ -10,7 +10,7 @@ config and follows it (docs/DESIGN-DECISIONS.md, "Exact Algorithm 1" and "The la
 - The learner stages what arrives per slot (`SlotStage`), inserts iteration i's rows in slot
   order, makes iteration i's updates (the elimination between the critic and actor phases,
   from the referee's decision), and publishes weights only when they changed. The versions an
-  evaluation judges also go, once, to the referee on `weights/<k>/eval` (`snapshot_versions`).
+  evaluation judges also go, once, to the referee on `weights/<k>/eval` (`Algorithm1.judged_after`).
 - The referee evaluates each event of `plan.events()` on exactly those versions, draws the
   allocation with the run's `allocation` stream over the slots `w0 .. w{M-1}`, and tags each
   decision with its iteration.
@@ -32,7 +32,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mam_core.algorithm1 import Algorithm1
 from mam_core.policy import params_digest
 from services.messaging.codec import TransitionBatch
 
@@ -133,20 +132,6 @@ class SlotStage:
                 "next_obs": np.stack(next_obs), "terminated": np.asarray(term, np.bool_),
                 "actor": np.asarray(actor, np.int64), "version": np.asarray(version, np.int64)}
         return rows, sources, done
-
-
-def snapshot_versions(plan: Algorithm1, index: int) -> set[int]:
-    """Versions the referee needs once iteration `index`'s updates are done (index 0: before
-    the first iteration): the competition of the next iteration and this iteration's curve
-    point (`Algorithm1.judged_version`)."""
-    out = set()
-    if index < plan.iterations and plan.iteration(index + 1).competes:
-        out.add(plan.judged_version(index + 1, "round"))
-    if index >= 1:
-        it = plan.iteration(index)
-        if it.curve is not None or it.last:
-            out.add(plan.judged_version(index, "curve"))
-    return out
 
 
 class WeightsHistory:

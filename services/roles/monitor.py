@@ -15,12 +15,11 @@ import typer
 from rich.console import Console
 from rich.live import Live
 
-from services.cli import options
-from services.cli.monitor_view import MonitorState, PlainLines, message_body, render
 from services.messaging import bus, keys
 from services.messaging.codec import Allocation, Done, Eval, LearnerStats, MessageError, decode
 from services.roles import role
-from services.run import config, registry
+from services.roles.monitor_view import MonitorState, PlainLines, message_body, render
+from services.run import config, options, registry
 from services.run.config import RunConfig
 
 log = logging.getLogger("mam.monitor")

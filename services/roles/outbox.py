@@ -3,7 +3,7 @@ what is re-sent to a role that may have missed it (services/roles/learner.py).
 
 Weights go out when they change, every live actor on its latest-value key; the versions the
 slots act with in the next B+1 iterations are kept for a re-send. The referee's snapshots go
-once per version an evaluation judges (`snapshot_versions`), on a reliable key, and are kept
+once per version an evaluation judges (`Algorithm1.judged_after`), on a reliable key, and are kept
 until the referee reports the evaluations that judge them done (its role stats' `events`).
 """
 
@@ -19,7 +19,6 @@ import numpy as np
 from mam_core.policy import params_digest
 from services.messaging import bus, keys
 from services.messaging.codec import Done, LearnerStats, MessageError, TransitionBatch, Weights, decode, encode
-from services.roles.lockstep import snapshot_versions
 
 if TYPE_CHECKING:
     from services.roles.learner import Learner
@@ -153,9 +152,9 @@ class Outbox:
                 for k, version, params in rows]
 
     def snapshots_after(self, index: int) -> None:
-        """The versions the referee's next evaluations judge, once each (`snapshot_versions`)."""
+        """The versions the referee's next evaluations judge, once each (`Algorithm1.judged_after`)."""
         lr = self.learner
-        for version in sorted(snapshot_versions(lr.plan, index) - set(self.snapshots)):
+        for version in sorted(lr.plan.judged_after(index) - set(self.snapshots)):
             self.snapshot_params[version] = [(k, lr.agent.versions[k], lr.agent.actor_params(k))
                                              for k, alive in enumerate(lr.agent.live_actors) if alive]
             self.snapshots[version] = [(k, self.weights_message(k, v, params))

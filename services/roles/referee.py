@@ -22,17 +22,16 @@ import numpy as np
 import typer
 
 import mam_core.envs  # noqa: F401
-from mam_core.algorithm1 import Algorithm1
+from mam_core.algorithm1 import Algorithm1, Purpose
 from mam_core.evaluation import evaluate_policy
 from mam_core.obsolescence import Obsolescence, best_actors, competition_returns, counts, obsolescence_for
 from mam_core.policy import EnvSpec, NumpyActors
 from mam_core.seeding import evaluation_seed, stream
-from services.cli import options
 from services.messaging import bus, keys
 from services.messaging.codec import Allocation, Eval, LearnerStats, MessageError, Weights
 from services.roles import role, tb
 from services.roles.lockstep import WeightsHistory
-from services.run import config, rundir
+from services.run import config, options, rundir
 from services.run.config import RunConfig
 from services.run.rundir import JsonlWriter, write_json
 
@@ -51,7 +50,7 @@ class Referee:
         self.id = f"{socket.gethostname()}-{os.getpid()}"
         self.rejects = bus.RejectLog(log, "message")
         self.spec = EnvSpec.from_env_id(cfg.env_id, cfg.env_kwargs)
-        self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden, self.algo.stochastic)  # no torch
+        self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden, self.algo.family.policy_kind)
         self.shapes = self.actors.shapes
         self.plan = Algorithm1.for_run(self.algo, cfg.steps)  # the events, in order
         self.schedule: Obsolescence = obsolescence_for(self.algo, cfg.steps)  # P, the live actors, the survivor
@@ -122,8 +121,7 @@ class Referee:
         self.board = tb.RunBoard(self.run_dir, "referee")  # RUN_DIR/tb/referee: the JSONL rows' scalars
         if self.resumed:  # rows of an evaluation the predecessor logged but did not finish are done again
             keep_logs(self.run_dir / rundir.EVAL, self.events_done)
-            keep_logs(self.run_dir / rundir.ALLOCATION, 1 + sum(
-                1 for _, purpose in self.plan.events()[:self.events_done] if purpose in ("round", "elimination")))
+            keep_logs(self.run_dir / rundir.ALLOCATION, 1 + self.plan.competitions_among(self.events_done))
         self.alloc_log = self.board.tee(JsonlWriter(self.run_dir / rundir.ALLOCATION), tb.allocation_scalars)
         self.eval_log = self.board.tee(JsonlWriter(self.run_dir / rundir.EVAL), tb.eval_scalars)
         try:
@@ -147,7 +145,7 @@ class Referee:
             self.put_allocation("recovered")
         for index, purpose in plan.events()[self.events_done:]:
             it = plan.iteration(index)
-            competes = purpose in ("round", "elimination")
+            competes = purpose.competes
             version = plan.judged_version(index, purpose)
             live = [k for k in range(self.algo.actors) if self.schedule.live[k]]
             while not all(history.has(k, version) for k in live):
@@ -156,11 +154,11 @@ class Referee:
             for k in live:
                 self.actors.load_member(k, history.get(k, version))
             versions = [version if k in live else -1 for k in range(self.algo.actors)]
-            seed = evaluation_seed(self.algo.seed, purpose, it.round if purpose == "round" else it.curve)
+            seed = evaluation_seed(self.algo.seed, purpose, it.evaluation_index(purpose))
             means = self.evaluate(it, seed, purpose, versions, it.updates[0] if competes else it.updates[1])
             if competes:  # lines 15-20: Eq. 8 or the survivor; the slots draw for iteration index+1+B on
                 self.schedule.record_evaluation(it.units[1], competition_returns(means), rng=self.rng)
-                self.publish_allocation(index, purpose, competition_returns(means).tolist())
+                self.publish_allocation(index, purpose.value, competition_returns(means).tolist())
             if it.last:  # the final evaluation: curve point or not, it is the run's last
                 self.final_row = (it.transitions[1], means, seed, versions)
             self.events_done += 1
@@ -209,7 +207,7 @@ class Referee:
                               "env_steps": it.transitions[1] if it else 0, "iterations": it.units[1] if it else 0,
                               "updates": it.updates[0] if it else 0,
                               "decided_at": it.transitions[1] if it else 0, "decided_at_iteration": index,
-                              "applies_from_iteration": index + 1 + self.plan.lag if index else 1,
+                              "applies_from_iteration": self.plan.applies_from(index),
                               "returns": returns, "tie": best if len(best) > 1 else None,
                               "probabilities": [float(p) for p in self.schedule.probabilities], "counts": i_k,
                               "slots": dict(slots), "eliminated": [bool(e) for e in self.schedule.eliminated],
@@ -217,7 +215,7 @@ class Referee:
         self.put_allocation(reason, returns)
         at = role.at_text(self.plan.schedule.paper, it.units[1] if it else 0, it.transitions[1] if it else 0)
         log.info("allocation (%s) at %s: from iteration %d, P=%s I=%s", reason, at,
-                 index + 1 + self.plan.lag if index else 1, np.round(self.schedule.probabilities, 3).tolist(), i_k)
+                 self.plan.applies_from(index), np.round(self.schedule.probabilities, 3).tolist(), i_k)
 
     def put_allocation(self, reason: str, returns: list[float] | None = None) -> None:
         index, slots = self.decision
@@ -238,9 +236,9 @@ class Referee:
             self.stats = stats
 
     # -- evaluation -----------------------------------------------------------------------------
-    def evaluate(self, it: Any, seed: int, purpose: str, versions: list[int], updates: int) -> list[float | None]:
+    def evaluate(self, it: Any, seed: int, purpose: Purpose, versions: list[int], updates: int) -> list[float | None]:
         """Deterministic returns of each live actor on the episodes of `seed` (eval.jsonl row,
-        `eval` topic). `purpose`: round, elimination, curve or final (mam_core.seeding)."""
+        `eval` topic)."""
         returns: list[list[float]] = []
         for k in range(self.algo.actors):
             if versions[k] < 0:
@@ -254,7 +252,7 @@ class Referee:
         msg = Eval(self.events_done + 1, steps, tuple(tuple(r) for r in returns), tuple(means), tuple(versions))
         self.eval_pub.put(msg.to_bytes(self.id, self._next_seq()))
         self.eval_log.write({"t": round(self.wall(), 3), "round": self.events_done + 1, "env_steps": steps,
-                             "iterations": it.units[1], "updates": updates, "purpose": purpose, "seed": seed,
+                             "iterations": it.units[1], "updates": updates, "purpose": purpose.value, "seed": seed,
                              "returns": returns, "mean": means, "versions": versions, "bias": None})
         log.info("%s eval at %s: %s", purpose, role.at_text(self.plan.schedule.paper, it.units[1], steps),
                  [None if m is None else round(m, 2) for m in means])

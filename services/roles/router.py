@@ -16,9 +16,9 @@ import threading
 
 import typer
 
-from services.cli import options
 from services.messaging import bus
 from services.roles import role
+from services.run import options
 
 log = logging.getLogger("mam.router")
 

@@ -23,18 +23,16 @@ import typer
 
 from mam_core.algorithm1 import Algorithm1
 from mam_core.envs import make_env  # registers AppleCollect-v0; imports `module:EnvId` modules
-from mam_core.obsolescence import obsolescence_for
+from mam_core.obsolescence import initial_allocation
 from mam_core.policy import EnvSpec, NumpyActors
-from mam_core.seeding import stream
 from mam_core.slot import SlotStreams, act, uniform
-from services.cli import options
 from services.messaging import bus, keys
 from services.messaging.codec import Allocation, LearnerStats, MessageError, TransitionBatch, Weights
 from services.roles import role, takeover
 from services.roles.kept import KeptBatches
 from services.roles.lockstep import WeightsHistory
 from services.roles.simulator import FAULTS, EnvFault, GuardedSimulator
-from services.run import config, rundir
+from services.run import config, options, rundir
 from services.run.config import RunConfig
 from services.run.rundir import write_json
 
@@ -70,7 +68,7 @@ class Worker(GuardedSimulator):
         self.batch_log = None
         # numpy forwards, no torch in a worker: a one-row torch forward costs ~100 µs of dispatch
         # between env steps, this ~14 µs, and importing torch ~3 s and ~180 MB (docs/PERFORMANCE.md)
-        self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden, self.algo.stochastic)
+        self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden, self.algo.family.policy_kind)
         self.shapes = self.actors.shapes
         self.policies = [self.actors.policy(k) for k in range(self.algo.actors)]
         self.history = WeightsHistory(self.algo.actors)  # the versions the next B+1 iterations act with
@@ -141,8 +139,7 @@ class Worker(GuardedSimulator):
         plan, name = self.plan, keys.slot_name(self.slot)
         # Iteration of a competition -> its slots. The initial allocation is the allocation stream's first
         # draw (the referee's too): computed here, so collection starts before the referee is up.
-        first = obsolescence_for(self.algo, self.cfg.steps).allocation(self.algo.workers,
-                                                                       stream(self.algo.seed, "allocation"))
+        first = initial_allocation(self.algo, self.cfg.steps)
         decisions = {0: {keys.slot_name(i): int(k) for i, k in enumerate(first)}}
         index: int | None = None  # the next iteration to step
         waiting_since = time.monotonic()

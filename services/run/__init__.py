@@ -1,1 +1,2 @@
-"""Run supervision: the launcher, the run directory and its locks, the chaos driver."""
+"""A run: what its processes share (config, option table, directory, locks) and its supervision
+(the launcher, its progress view and figures, the chaos driver)."""

@@ -1,5 +1,5 @@
 """What `mam-learner` says about itself: where it listens, what it waits for, what the budget
-leaves out (services/cli/options.py `budget_warnings`), and a split-role run with fewer workers than M.
+leaves out (services/run/options.py `budget_warnings`), and a split-role run with fewer workers than M.
 
 `mam run` starts M workers itself and prints the budget notes on its own terminal; a learner
 started by hand (`mam-learner`, roles spread over machines) says the same in its log.

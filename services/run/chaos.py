@@ -35,8 +35,7 @@ from typing import Any
 
 import typer
 
-from services.cli import options
-from services.run import rundir
+from services.run import options, rundir
 
 ROOT = Path(__file__).resolve().parents[1]
 ROLES = ("learner", "referee", "worker")

@@ -1,7 +1,7 @@
 """The resolved configuration of a run (`RunConfig`: env, budget, the algorithm, service knobs),
 what its budget leaves out (`budget_warnings`), and the checks of run names and env kwargs.
 
-`mam run` and `mam-learner` build it from the command line (services/cli/options.py); the
+`mam run` and `mam-learner` build it from the command line (services/run/options.py); the
 learner publishes it on `mam/<run>/config`, so workers, the referee and monitors need only
 `--run` and `--connect`, and writes it to RUN_DIR/config.json.
 """

@@ -46,7 +46,7 @@ CHECKPOINT_FILE = rundir.LEARNER_CHECKPOINT
 PR_SET_PDEATHSIG = 1
 
 
-def _die_with_parent() -> None:
+def die_with_parent() -> None:
     """Runs in the child before exec: SIGTERM it if the launcher dies (even by SIGKILL)."""
     try:
         import ctypes
@@ -65,7 +65,7 @@ def _child_setup(role: str) -> Callable[[], None]:
     cores = {int(c) for c in cpus.split(",") if c.strip().isdigit()}
 
     def setup() -> None:
-        _die_with_parent()
+        die_with_parent()
         if cores:
             try:
                 os.sched_setaffinity(0, cores)
@@ -479,7 +479,7 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
         console.print(f"[red]the run reached its budget but the referee wrote no summary.json[/]: see "
                       f"{run_dir / 'logs' / 'referee.log'}")
     if plot and summary:
-        from services.cli.plot import plot_run
+        from services.run.plot import plot_run
         for p in plot_run(run_dir):
             console.print(f"plot {p}")
     if summary:

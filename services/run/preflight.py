@@ -4,7 +4,7 @@ of a role that finds one.
 A configuration error (a device torch does not see, a run directory that cannot be written)
 is not a fault: no restart mends it. `mam run` checks the device and the run directory here
 before any child starts (the env id and env kwargs are checked when the config is built,
-`services.cli.options.check_env_id`), and a role that still meets one exits with EXIT_CONFIG
+`services.run.options.check_env_id`), and a role that still meets one exits with EXIT_CONFIG
 after one log line "configuration error: <reason>"; the launcher stops the run on that
 status and prints the line instead of restarting the role (docs/RELIABILITY.md).
 

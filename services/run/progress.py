@@ -16,7 +16,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from mam_core.envs.apple_collect import best_apple_return
-from services.cli.monitor_view import MonitorState, message_body
+from services.roles.monitor_view import MonitorState, message_body
 from services.run import rundir
 
 if TYPE_CHECKING:
@@ -182,7 +182,7 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                 time.sleep(0.1)
         roles.close()
         cluster.start_workers()
-        # What is known of the run: `mam watch`'s own state (services/cli/monitor_view.py), fed the same messages
+        # What is known of the run: `mam watch`'s own state (services/roles/monitor_view.py), fed the same messages
         state = MonitorState(run=cfg.run, env_id=cfg.env_id, algo=cfg.algo.algo, steps=cfg.steps)
         state.on_config(cfg.to_dict() | {"algo": cfg.algo.algo, "algo_config": cfg.algo.to_dict()})
         # the clock counts from the launcher's start and stops when the budget is reached, as the done line says

@@ -21,13 +21,13 @@ from services.messaging.codec.wire import (
                                  NDARRAY_EXT,
                                  SCHEMA_VERSION,
                                  MessageError,
-                                 _default,
-                                 _ext_hook,
                                  decode,
                                  encode,
+                                 pack_default,
+                                 unpack_ext_hook,
 )
 
 __all__ = ["DTYPES", "HEADER_KEYS", "MAX_ARRAY_LEN", "MAX_DIM", "MAX_MAP_LEN", "MAX_MESSAGE_BYTES", "MAX_NDIM",
            "MAX_STR_LEN", "MAX_TEXT_LEN", "NDARRAY_EXT", "SCHEMA_VERSION", "Allocation", "Done", "Eval",
            "LearnerStats", "MessageError", "SlotEpisode", "TransitionBatch", "TransitionSpec", "Weights",
-           "WorkerCounters", "_default", "_ext_hook", "decode", "encode"]
+           "WorkerCounters", "pack_default", "unpack_ext_hook", "decode", "encode"]

@@ -10,17 +10,17 @@ from services.messaging.codec.wire import (
     MAX_MESSAGE_BYTES,
     MAX_TEXT_LEN,
     MessageError,
-    _as_float,
-    _check_kind,
-    _floats,
-    _get,
-    _int,
-    _ints,
-    _list,
-    _str_map,
-    _text,
+    as_float,
+    check_kind,
     decode,
     encode,
+    floats_field,
+    get_field,
+    int_field,
+    ints_field,
+    list_field,
+    str_map_field,
+    text_field,
 )
 
 
@@ -70,10 +70,10 @@ class Allocation:
 
     @classmethod
     def from_message(cls, msg: Mapping[str, Any], n_actors: int | None = None) -> "Allocation":
-        _check_kind(msg, cls.KIND)
-        rnd = _int(msg, "round", lo=0)
-        env_steps = _int(msg, "env_steps", lo=0)
-        probs = _floats(msg, "probabilities", n_actors)
+        check_kind(msg, cls.KIND)
+        rnd = int_field(msg, "round", lo=0)
+        env_steps = int_field(msg, "env_steps", lo=0)
+        probs = floats_field(msg, "probabilities", n_actors)
         k = len(probs)
         if k < 1:
             raise MessageError("shape:probabilities", "no actors")
@@ -81,13 +81,13 @@ class Allocation:
             raise MessageError("range:probabilities", f"{probs} outside [0, 1]"[:200])
         if abs(sum(probs) - 1.0) > 1e-4:
             raise MessageError("range:probabilities", f"sum {sum(probs)} != 1")
-        returns = None if _get(msg, "returns") is None else _floats(msg, "returns", k)
-        counts = _ints(msg, "counts", k, lo=0)
-        elim_raw = _list(msg, "eliminated", k)
+        returns = None if get_field(msg, "returns") is None else floats_field(msg, "returns", k)
+        counts = ints_field(msg, "counts", k, lo=0)
+        elim_raw = list_field(msg, "eliminated", k)
         if any(type(e) is not bool for e in elim_raw):
             raise MessageError("type:eliminated", "want bools")
         eliminated = tuple(elim_raw)
-        slots_raw = _get(msg, "slots")
+        slots_raw = get_field(msg, "slots")
         if not isinstance(slots_raw, dict):
             raise MessageError("type:slots", "want a map worker -> actor")
         slots: dict[str, int] = {}
@@ -104,20 +104,20 @@ class Allocation:
         per_actor = tuple(sum(1 for a in slots.values() if a == j) for j in range(k))
         if per_actor != counts:
             raise MessageError("range:counts", f"counts {counts} != slots per actor {per_actor}")
-        survivor = _get(msg, "survivor")
+        survivor = get_field(msg, "survivor")
         if survivor is not None:
-            survivor = _int(msg, "survivor", lo=0, hi=k - 1)
+            survivor = int_field(msg, "survivor", lo=0, hi=k - 1)
             if eliminated[survivor]:
                 raise MessageError("range:survivor", f"survivor {survivor} is eliminated")
-        reason = _text(msg, "reason")
-        iteration = _int(msg, "iteration", lo=0) if "iteration" in msg else None
+        reason = text_field(msg, "reason")
+        iteration = int_field(msg, "iteration", lo=0) if "iteration" in msg else None
         previous = None
         if iteration is not None and "previous" in msg:
-            prev = _get(msg, "previous")
+            prev = get_field(msg, "previous")
             if not isinstance(prev, dict):
                 raise MessageError("type:previous", "want a map with iteration and slots")
-            p_iteration = _int(prev, "iteration", lo=0, hi=iteration)
-            p_slots = _str_map(prev, "slots")
+            p_iteration = int_field(prev, "iteration", lo=0, hi=iteration)
+            p_slots = str_map_field(prev, "slots")
             if any(type(a) is not int or not 0 <= a < k for a in p_slots.values()):
                 raise MessageError("range:previous", "slots of the previous decision must name actors")
             previous = (p_iteration, dict(p_slots))
@@ -129,18 +129,18 @@ class Allocation:
         return cls.from_message(decode(payload, max_bytes=max_bytes), n_actors)
 
 
-def _plain_value(v: Any, name: str, depth: int = 0) -> None:
+def check_plain_value(v: Any, name: str, depth: int = 0) -> None:
     """Free-form diagnostics: numbers (finite), None, bools, short strings, lists of those."""
     if v is None or type(v) in (bool, int):
         return
     if type(v) is float:
-        _as_float(v, name)
+        as_float(v, name)
         return
     if isinstance(v, str) and len(v) <= MAX_TEXT_LEN:
         return
     if isinstance(v, list) and depth < 2:
         for x in v:
-            _plain_value(x, name, depth + 1)
+            check_plain_value(x, name, depth + 1)
         return
     raise MessageError(f"type:{name}", f"unsupported value {type(v).__name__}")
 
@@ -171,22 +171,22 @@ class Eval:
 
     @classmethod
     def from_message(cls, msg: Mapping[str, Any], n_actors: int | None = None) -> "Eval":
-        _check_kind(msg, cls.KIND)
-        rnd = _int(msg, "round", lo=0)
-        env_steps = _int(msg, "env_steps", lo=0)
-        per_actor = _list(msg, "returns", n_actors)
+        check_kind(msg, cls.KIND)
+        rnd = int_field(msg, "round", lo=0)
+        env_steps = int_field(msg, "env_steps", lo=0)
+        per_actor = list_field(msg, "returns", n_actors)
         k = len(per_actor)
-        returns = tuple(_floats({"returns": rs}, "returns") for rs in per_actor)
-        mean_raw = _list(msg, "mean", k)
-        mean = tuple(None if m is None else _as_float(m, "mean") for m in mean_raw)
+        returns = tuple(floats_field({"returns": rs}, "returns") for rs in per_actor)
+        mean_raw = list_field(msg, "mean", k)
+        mean = tuple(None if m is None else as_float(m, "mean") for m in mean_raw)
         for rs, m in zip(returns, mean):
             if (m is None) != (len(rs) == 0):
                 raise MessageError("range:mean", "mean must be None exactly when returns are empty")
-        versions = _ints(msg, "versions", k, lo=-1)
-        bias = _get(msg, "bias") if "bias" in msg else None
+        versions = ints_field(msg, "versions", k, lo=-1)
+        bias = get_field(msg, "bias") if "bias" in msg else None
         if bias is not None:
-            for v in _str_map(msg, "bias").values():
-                _plain_value(v, "bias")
+            for v in str_map_field(msg, "bias").values():
+                check_plain_value(v, "bias")
         return cls(rnd, env_steps, returns, mean, versions, bias)
 
     @classmethod
@@ -211,8 +211,8 @@ class Done:
 
     @classmethod
     def from_message(cls, msg: Mapping[str, Any]) -> "Done":
-        _check_kind(msg, cls.KIND)
-        return cls(_text(msg, "reason"), _int(msg, "env_steps", lo=0), _int(msg, "updates", lo=0))
+        check_kind(msg, cls.KIND)
+        return cls(text_field(msg, "reason"), int_field(msg, "env_steps", lo=0), int_field(msg, "updates", lo=0))
 
     @classmethod
     def from_bytes(cls, payload: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> "Done":

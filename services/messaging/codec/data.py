@@ -10,19 +10,19 @@ import numpy as np
 from services.messaging.codec.wire import (
     MAX_MESSAGE_BYTES,
     MessageError,
-    _array,
-    _bool,
-    _check_kind,
-    _f32,
-    _float,
-    _floats,
-    _get,
-    _id,
-    _int,
-    _ints,
-    _text,
+    array_field,
+    as_f32,
+    bool_field,
+    check_kind,
     decode,
     encode,
+    float_field,
+    floats_field,
+    get_field,
+    id_field,
+    int_field,
+    ints_field,
+    text_field,
 )
 
 # --------------------------------------------------------------------------- typed messages
@@ -81,10 +81,10 @@ class TransitionBatch:
             "batch_seq": self.batch_seq,
             "actor": self.actor,
             "version": self.version,
-            "obs": _f32(self.obs),
-            "action": _f32(self.action),
-            "reward": _f32(self.reward),
-            "next_obs": _f32(self.next_obs),
+            "obs": as_f32(self.obs),
+            "action": as_f32(self.action),
+            "reward": as_f32(self.reward),
+            "next_obs": as_f32(self.next_obs),
             "terminated": np.ascontiguousarray(self.terminated, dtype=np.bool_),
             "episode_return": None
             if self.episode_return is None
@@ -114,27 +114,27 @@ class TransitionBatch:
 
     @classmethod
     def from_message(cls, msg: Mapping[str, Any], spec: TransitionSpec) -> "TransitionBatch":
-        _check_kind(msg, cls.KIND)
-        worker = _id(msg, "worker")
+        check_kind(msg, cls.KIND)
+        worker = id_field(msg, "worker")
         if msg.get("sender") != worker:
             raise MessageError("sender_mismatch", f"sender {msg.get('sender')!r} != worker {worker!r}")
-        incarnation = _id(msg, "incarnation")
-        batch_seq = _int(msg, "batch_seq", lo=0)
-        actor = _int(msg, "actor", lo=0)
+        incarnation = id_field(msg, "incarnation")
+        batch_seq = int_field(msg, "batch_seq", lo=0)
+        actor = int_field(msg, "actor", lo=0)
         if actor >= spec.n_actors:
             raise MessageError("range:actor", f"actor {actor} >= K={spec.n_actors}")
-        version = _int(msg, "version", lo=-1)
-        reward = _get(msg, "reward")
+        version = int_field(msg, "version", lo=-1)
+        reward = get_field(msg, "reward")
         if not isinstance(reward, np.ndarray) or reward.ndim != 1:
             raise MessageError("shape:reward", "reward must be a 1-d array")
         n = reward.shape[0]
         if not 1 <= n <= spec.max_rows:
             raise MessageError("range:rows", f"{n} rows not in [1, {spec.max_rows}]")
-        obs = _array(msg, "obs", (n, spec.obs_dim))
-        action = _array(msg, "action", (n, spec.act_dim))
-        reward = _array(msg, "reward", (n,))
-        next_obs = _array(msg, "next_obs", (n, spec.obs_dim))
-        term = _array(msg, "terminated", (n,), dtypes=("bool", "uint8"))
+        obs = array_field(msg, "obs", (n, spec.obs_dim))
+        action = array_field(msg, "action", (n, spec.act_dim))
+        reward = array_field(msg, "reward", (n,))
+        next_obs = array_field(msg, "next_obs", (n, spec.obs_dim))
+        term = array_field(msg, "terminated", (n,), dtypes=("bool", "uint8"))
         if term.dtype.name == "uint8":
             if n and term.max() > 1:
                 raise MessageError("range:terminated", "uint8 terminated must be 0/1")
@@ -143,22 +143,22 @@ class TransitionBatch:
             bound = spec.max_action * (1 + 1e-5)
             if np.abs(action).max() > bound:
                 raise MessageError("range:action", f"|action| > {spec.max_action}")
-        ret = _get(msg, "episode_return") if "episode_return" in msg else None
+        ret = get_field(msg, "episode_return") if "episode_return" in msg else None
         episode_return = None
         if ret is not None:
-            episode_return = _floats(msg, "episode_return")
+            episode_return = floats_field(msg, "episode_return")
             if len(episode_return) > spec.max_rows:
                 raise MessageError("range:episode_return", "more episodes than rows")
-        resend = _bool(msg, "resend") if "resend" in msg else False
-        iteration = _int(msg, "iteration", lo=1) if "iteration" in msg else -1
-        slot = _int(msg, "slot", lo=0, hi=1 << 20) if iteration >= 0 else -1
-        policy_from = _id(msg, "policy_from") if "policy_from" in msg else ""
-        env_faults = _int(msg, "env_faults", lo=0) if "env_faults" in msg else 0
-        starts = _ints(msg, "episode_starts", lo=0) if "episode_starts" in msg else ()
+        resend = bool_field(msg, "resend") if "resend" in msg else False
+        iteration = int_field(msg, "iteration", lo=1) if "iteration" in msg else -1
+        slot = int_field(msg, "slot", lo=0, hi=1 << 20) if iteration >= 0 else -1
+        policy_from = id_field(msg, "policy_from") if "policy_from" in msg else ""
+        env_faults = int_field(msg, "env_faults", lo=0) if "env_faults" in msg else 0
+        starts = ints_field(msg, "episode_starts", lo=0) if "episode_starts" in msg else ()
         if any(r >= n for r in starts) or list(starts) != sorted(set(starts)):
             raise MessageError("range:episode_starts", f"episode starts must be distinct rows in order, < {n}")
-        inexact = _text(msg, "inexact") if "inexact" in msg else ""
-        digest = _id(msg, "policy_digest") if "policy_digest" in msg else ""
+        inexact = text_field(msg, "inexact") if "inexact" in msg else ""
+        digest = id_field(msg, "policy_digest") if "policy_digest" in msg else ""
         return cls(worker, incarnation, batch_seq, actor, version, obs, action, reward,
                    next_obs, term, episode_return, resend, iteration, slot, policy_from,
                    env_faults, starts, inexact, digest)
@@ -188,24 +188,24 @@ class SlotEpisode:
     why: str = ""
 
     def to_bytes(self, sender: str, seq: int) -> bytes:
-        return encode(self.KIND, {"slot": self.slot, "start": self.start, "next": self.next, "obs": _f32(self.obs),
-                                  "action": _f32(self.action), "next_obs": _f32(self.next_obs), "why": self.why},
+        return encode(self.KIND, {"slot": self.slot, "start": self.start, "next": self.next, "obs": as_f32(self.obs),
+                                  "action": as_f32(self.action), "next_obs": as_f32(self.next_obs), "why": self.why},
                       sender=sender, seq=seq)
 
     @classmethod
     def from_bytes(cls, payload: bytes, obs_dim: int, act_dim: int) -> "SlotEpisode":
         msg = decode(payload)
-        _check_kind(msg, cls.KIND)
-        slot = _int(msg, "slot", lo=0, hi=1 << 20)
-        start = _int(msg, "start", lo=1)
-        nxt = _int(msg, "next", lo=start)
+        check_kind(msg, cls.KIND)
+        slot = int_field(msg, "slot", lo=0, hi=1 << 20)
+        start = int_field(msg, "start", lo=1)
+        nxt = int_field(msg, "next", lo=start)
         n = nxt - start
         if n > cls.MAX_ROWS:
             raise MessageError("range:rows", f"{n} rows > {cls.MAX_ROWS}")
-        why = _text(msg, "why")
+        why = text_field(msg, "why")
         rows = 0 if why else n
-        return cls(slot, start, nxt, _array(msg, "obs", (rows, obs_dim)), _array(msg, "action", (rows, act_dim)),
-                   _array(msg, "next_obs", (rows, obs_dim)), why)
+        return cls(slot, start, nxt, array_field(msg, "obs", (rows, obs_dim)),
+                   array_field(msg, "action", (rows, act_dim)), array_field(msg, "next_obs", (rows, obs_dim)), why)
 
 
 @dataclass(frozen=True)
@@ -228,7 +228,7 @@ class Weights:
             "incarnation": self.incarnation,
             "actor": self.actor,
             "version": self.version,
-            "params": {str(k): _f32(v) for k, v in self.params.items()},
+            "params": {str(k): as_f32(v) for k, v in self.params.items()},
             "obs_dim": self.obs_dim,
             "act_dim": self.act_dim,
             "max_action": float(self.max_action),
@@ -243,10 +243,10 @@ class Weights:
         expected: Mapping[str, tuple[int, ...]] | None = None,
         n_actors: int | None = None,
     ) -> "Weights":
-        _check_kind(msg, cls.KIND)
-        actor = _int(msg, "actor", lo=0, hi=None if n_actors is None else n_actors - 1)
-        version = _int(msg, "version", lo=0)
-        params = _get(msg, "params")
+        check_kind(msg, cls.KIND)
+        actor = int_field(msg, "actor", lo=0, hi=None if n_actors is None else n_actors - 1)
+        version = int_field(msg, "version", lo=0)
+        params = get_field(msg, "params")
         if not isinstance(params, dict) or not params:
             raise MessageError("type:params", "want a non-empty map of arrays")
         for name, a in params.items():
@@ -266,15 +266,15 @@ class Weights:
             for name, shape in expected.items():
                 if params[name].shape != tuple(shape):
                     raise MessageError("shape:params", f"{name}: {params[name].shape} != {tuple(shape)}")
-        obs_dim = _int(msg, "obs_dim", lo=1)
-        act_dim = _int(msg, "act_dim", lo=1)
-        max_action = _float(msg, "max_action")
+        obs_dim = int_field(msg, "obs_dim", lo=1)
+        act_dim = int_field(msg, "act_dim", lo=1)
+        max_action = float_field(msg, "max_action")
         if max_action <= 0:
             raise MessageError("range:max_action", f"{max_action} <= 0")
-        hidden = _ints(msg, "hidden", lo=1)
+        hidden = ints_field(msg, "hidden", lo=1)
         if len(hidden) > 16:
             raise MessageError("range:hidden", "more than 16 hidden layers")
-        incarnation = _text(msg, "incarnation") if "incarnation" in msg else ""
+        incarnation = text_field(msg, "incarnation") if "incarnation" in msg else ""
         return cls(actor, version, params, obs_dim, act_dim, max_action, hidden, incarnation)
 
     @classmethod

@@ -6,24 +6,24 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar
 
-from services.messaging.codec.control import _plain_value
+from services.messaging.codec.control import check_plain_value
 from services.messaging.codec.wire import (
     MAX_MESSAGE_BYTES,
     MAX_TEXT_LEN,
     MessageError,
-    _as_float,
-    _bool,
-    _check_kind,
-    _float,
-    _floats,
-    _id,
-    _int,
-    _ints,
-    _list,
-    _str_map,
-    _text,
+    as_float,
+    bool_field,
+    check_kind,
     decode,
     encode,
+    float_field,
+    floats_field,
+    id_field,
+    int_field,
+    ints_field,
+    list_field,
+    str_map_field,
+    text_field,
 )
 
 
@@ -67,22 +67,23 @@ class WorkerCounters(Mapping):
 
     @classmethod
     def from_message(cls, d: Mapping[str, Any], worker: str = "?") -> "WorkerCounters":
-        d = _str_map({"per_worker": d}, "per_worker")
+        d = str_map_field({"per_worker": d}, "per_worker")
         for v in d.values():
             if isinstance(v, list):
                 raise MessageError("type:per_worker", f"{worker}: values must be scalars")
-            _plain_value(v, "per_worker")
-        values: dict[str, Any] = {"received": _int(d, "received", lo=0), "last_seq": _int(d, "last_seq", lo=-1)}
+            check_plain_value(v, "per_worker")
+        values: dict[str, Any] = {"received": int_field(d, "received", lo=0),
+                                  "last_seq": int_field(d, "last_seq", lo=-1)}
         if "acked_seq" in d or "acked_incarnation" in d:  # the checkpointed prefix of its stream
-            values["acked_seq"] = _int(d, "acked_seq", lo=-1)
-            values["acked_incarnation"] = _id(d, "acked_incarnation")
+            values["acked_seq"] = int_field(d, "acked_seq", lo=-1)
+            values["acked_incarnation"] = id_field(d, "acked_incarnation")
         for name in ("incarnation_rows", "redundant_rows", "rejected_rows", "actor", "lag"):
             if d.get(name) is not None:
-                values[name] = _int(d, name)
+                values[name] = int_field(d, name)
         if d.get("incarnation") is not None:
-            values["incarnation"] = _text(d, "incarnation")
+            values["incarnation"] = text_field(d, "incarnation")
         if d.get("rate") is not None:
-            values["rate"] = _float(d, "rate")
+            values["rate"] = float_field(d, "rate")
         known = {f.name for f in fields(cls)}
         return cls(**values, extra={k: v for k, v in d.items() if k not in known})
 
@@ -148,30 +149,30 @@ class LearnerStats:
 
     @classmethod
     def from_message(cls, msg: Mapping[str, Any]) -> "LearnerStats":
-        _check_kind(msg, cls.KIND)
-        env_steps = _int(msg, "env_steps", lo=0)
-        updates = _int(msg, "updates", lo=0)
-        accept_until = _int(msg, "accept_until", lo=0)
-        utd = _float(msg, "utd", lo=0.0)
-        losses = {k: _as_float(v, "losses", finite=False) for k, v in _str_map(msg, "losses").items()}
-        q_means = _floats(msg, "q_means", finite=False)
-        versions = _ints(msg, "versions", lo=-1)
-        per_worker = {w: WorkerCounters.from_message(d, w) for w, d in _str_map(msg, "per_worker").items()}
-        rej_raw = _str_map(msg, "rejected")
-        rejected = {r: _int(rej_raw, r, lo=0) for r in rej_raw}
-        done = _bool(msg, "done")
-        live = tuple(_list(msg, "live")) if "live" in msg else ()
+        check_kind(msg, cls.KIND)
+        env_steps = int_field(msg, "env_steps", lo=0)
+        updates = int_field(msg, "updates", lo=0)
+        accept_until = int_field(msg, "accept_until", lo=0)
+        utd = float_field(msg, "utd", lo=0.0)
+        losses = {k: as_float(v, "losses", finite=False) for k, v in str_map_field(msg, "losses").items()}
+        q_means = floats_field(msg, "q_means", finite=False)
+        versions = ints_field(msg, "versions", lo=-1)
+        per_worker = {w: WorkerCounters.from_message(d, w) for w, d in str_map_field(msg, "per_worker").items()}
+        rej_raw = str_map_field(msg, "rejected")
+        rejected = {r: int_field(rej_raw, r, lo=0) for r in rej_raw}
+        done = bool_field(msg, "done")
+        live = tuple(list_field(msg, "live")) if "live" in msg else ()
         if any(type(x) is not bool for x in live):
             raise MessageError("type:live", "want bools")
-        workers = _int(msg, "workers", lo=0) if "workers" in msg else 0
-        steps = _int(msg, "steps", lo=0) if "steps" in msg else 0
-        incarnation = _text(msg, "incarnation") if "incarnation" in msg else ""
-        exact = _bool(msg, "exact") if "exact" in msg else False
-        iteration = _int(msg, "iteration", lo=0) if "iteration" in msg else 0
-        inexact = _text(msg, "inexact") if "inexact" in msg else ""
-        awaiting = _ints(msg, "awaiting", lo=-1) if "awaiting" in msg else ()
-        slots_next = _ints(msg, "slots_next", lo=1) if "slots_next" in msg else ()
-        owners = tuple(_list(msg, "owners")) if "owners" in msg else ()
+        workers = int_field(msg, "workers", lo=0) if "workers" in msg else 0
+        steps = int_field(msg, "steps", lo=0) if "steps" in msg else 0
+        incarnation = text_field(msg, "incarnation") if "incarnation" in msg else ""
+        exact = bool_field(msg, "exact") if "exact" in msg else False
+        iteration = int_field(msg, "iteration", lo=0) if "iteration" in msg else 0
+        inexact = text_field(msg, "inexact") if "inexact" in msg else ""
+        awaiting = ints_field(msg, "awaiting", lo=-1) if "awaiting" in msg else ()
+        slots_next = ints_field(msg, "slots_next", lo=1) if "slots_next" in msg else ()
+        owners = tuple(list_field(msg, "owners")) if "owners" in msg else ()
         if any(not isinstance(o, str) or len(o) > MAX_TEXT_LEN for o in owners):
             raise MessageError("type:owners", f"want strs of at most {MAX_TEXT_LEN} chars")
         return cls(env_steps, updates, accept_until, utd, losses, q_means, versions,

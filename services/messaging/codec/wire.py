@@ -107,7 +107,7 @@ def _unpack_array(data: bytes) -> np.ndarray:
     return arr
 
 
-def _default(obj: Any) -> Any:
+def pack_default(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
         return _pack_array(obj)
     if isinstance(obj, np.bool_):
@@ -121,7 +121,7 @@ def _default(obj: Any) -> Any:
     raise TypeError(f"cannot encode {type(obj).__name__}")
 
 
-def _ext_hook(code: int, data: bytes) -> Any:
+def unpack_ext_hook(code: int, data: bytes) -> Any:
     if code != NDARRAY_EXT:
         raise MessageError("array_ext", f"unknown ext type {code}")
     return _unpack_array(data)
@@ -137,7 +137,7 @@ def encode(kind: str, body: Mapping[str, Any], *, sender: str, seq: int) -> byte
         raise ValueError(f"body uses reserved keys {sorted(clash)}")
     msg = {"v": SCHEMA_VERSION, "kind": kind, "sender": sender, "seq": int(seq), "t": time.time()}
     msg.update(body)
-    return msgpack.packb(msg, default=_default, use_bin_type=True, strict_types=False)
+    return msgpack.packb(msg, default=pack_default, use_bin_type=True, strict_types=False)
 
 
 def decode(payload: bytes | bytearray | memoryview, *, max_bytes: int = MAX_MESSAGE_BYTES) -> dict:
@@ -155,7 +155,7 @@ def decode(payload: bytes | bytearray | memoryview, *, max_bytes: int = MAX_MESS
             raw=False,
             strict_map_key=True,
             use_list=True,
-            ext_hook=_ext_hook,
+            ext_hook=unpack_ext_hook,
             max_str_len=MAX_STR_LEN,
             max_bin_len=max_bytes,
             max_ext_len=max_bytes,
@@ -172,13 +172,13 @@ def decode(payload: bytes | bytearray | memoryview, *, max_bytes: int = MAX_MESS
         raise MessageError("version", "missing schema version")
     if type(msg["v"]) is not int or msg["v"] != SCHEMA_VERSION:
         raise MessageError("version", f"got {msg['v']!r}, want {SCHEMA_VERSION}")
-    kind = _get(msg, "kind", "")
+    kind = get_field(msg, "kind", "")
     if not isinstance(kind, str) or not kind or len(kind) > 64:
         raise MessageError("type:kind", "kind must be a short non-empty str")
-    sender = _get(msg, "sender", "")
+    sender = get_field(msg, "sender", "")
     if not isinstance(sender, str) or not sender or len(sender) > 256:
         raise MessageError("type:sender", "sender must be a short non-empty str")
-    _int(msg, "seq", lo=0)
+    int_field(msg, "seq", lo=0)
     if "t" in msg and (type(msg["t"]) not in (int, float)):
         raise MessageError("type:t", "t must be a number")
     return msg
@@ -187,14 +187,14 @@ def decode(payload: bytes | bytearray | memoryview, *, max_bytes: int = MAX_MESS
 # --------------------------------------------------------------------------- field checks
 
 
-def _get(msg: Mapping[str, Any], name: str, where: str = "") -> Any:
+def get_field(msg: Mapping[str, Any], name: str, where: str = "") -> Any:
     if name not in msg:
         raise MessageError(f"missing:{name}", where)
     return msg[name]
 
 
-def _int(msg: Mapping[str, Any], name: str, lo: int | None = None, hi: int | None = None) -> int:
-    v = _get(msg, name)
+def int_field(msg: Mapping[str, Any], name: str, lo: int | None = None, hi: int | None = None) -> int:
+    v = get_field(msg, name)
     if type(v) is not int:
         raise MessageError(f"type:{name}", f"want int, got {type(v).__name__}")
     if (lo is not None and v < lo) or (hi is not None and v > hi):
@@ -202,7 +202,7 @@ def _int(msg: Mapping[str, Any], name: str, lo: int | None = None, hi: int | Non
     return v
 
 
-def _as_float(v: Any, name: str, finite: bool = True) -> float:
+def as_float(v: Any, name: str, finite: bool = True) -> float:
     if type(v) not in (int, float):
         raise MessageError(f"type:{name}", f"want number, got {type(v).__name__}")
     v = float(v)
@@ -211,29 +211,29 @@ def _as_float(v: Any, name: str, finite: bool = True) -> float:
     return v
 
 
-def _float(msg: Mapping[str, Any], name: str, lo: float | None = None, finite: bool = True) -> float:
-    v = _as_float(_get(msg, name), name, finite)
+def float_field(msg: Mapping[str, Any], name: str, lo: float | None = None, finite: bool = True) -> float:
+    v = as_float(get_field(msg, name), name, finite)
     if lo is not None and v < lo:
         raise MessageError(f"range:{name}", f"{v} < {lo}")
     return v
 
 
-def _text(msg: Mapping[str, Any], name: str, max_len: int = MAX_TEXT_LEN) -> str:
-    v = _get(msg, name)
+def text_field(msg: Mapping[str, Any], name: str, max_len: int = MAX_TEXT_LEN) -> str:
+    v = get_field(msg, name)
     if not isinstance(v, str) or len(v) > max_len:
         raise MessageError(f"type:{name}", f"want str of at most {max_len} chars")
     return v
 
 
-def _bool(msg: Mapping[str, Any], name: str) -> bool:
-    v = _get(msg, name)
+def bool_field(msg: Mapping[str, Any], name: str) -> bool:
+    v = get_field(msg, name)
     if type(v) is not bool:
         raise MessageError(f"type:{name}", f"want bool, got {type(v).__name__}")
     return v
 
 
-def _list(msg: Mapping[str, Any], name: str, length: int | None = None) -> list:
-    v = _get(msg, name)
+def list_field(msg: Mapping[str, Any], name: str, length: int | None = None) -> list:
+    v = get_field(msg, name)
     if not isinstance(v, list):
         raise MessageError(f"type:{name}", f"want list, got {type(v).__name__}")
     if length is not None and len(v) != length:
@@ -241,12 +241,13 @@ def _list(msg: Mapping[str, Any], name: str, length: int | None = None) -> list:
     return v
 
 
-def _floats(msg: Mapping[str, Any], name: str, length: int | None = None, finite: bool = True) -> tuple[float, ...]:
-    return tuple(_as_float(x, name, finite) for x in _list(msg, name, length))
+def floats_field(msg: Mapping[str, Any], name: str, length: int | None = None,
+                 finite: bool = True) -> tuple[float, ...]:
+    return tuple(as_float(x, name, finite) for x in list_field(msg, name, length))
 
 
-def _ints(msg: Mapping[str, Any], name: str, length: int | None = None, lo: int | None = None) -> tuple[int, ...]:
-    out = _list(msg, name, length)
+def ints_field(msg: Mapping[str, Any], name: str, length: int | None = None, lo: int | None = None) -> tuple[int, ...]:
+    out = list_field(msg, name, length)
     for x in out:
         if type(x) is not int:
             raise MessageError(f"type:{name}", f"want ints, got {type(x).__name__}")
@@ -255,8 +256,8 @@ def _ints(msg: Mapping[str, Any], name: str, length: int | None = None, lo: int 
     return tuple(out)
 
 
-def _str_map(msg: Mapping[str, Any], name: str) -> dict:
-    v = _get(msg, name)
+def str_map_field(msg: Mapping[str, Any], name: str) -> dict:
+    v = get_field(msg, name)
     if not isinstance(v, dict):
         raise MessageError(f"type:{name}", f"want a map, got {type(v).__name__}")
     for k in v:
@@ -265,22 +266,22 @@ def _str_map(msg: Mapping[str, Any], name: str) -> dict:
     return v
 
 
-def _id(msg: Mapping[str, Any], name: str) -> str:
-    v = _get(msg, name)
+def id_field(msg: Mapping[str, Any], name: str) -> str:
+    v = get_field(msg, name)
     try:
         return keys.check_name(v, name)
     except ValueError as e:
         raise MessageError(f"type:{name}", str(e)) from None
 
 
-def _array(
+def array_field(
     msg: Mapping[str, Any],
     name: str,
     shape: tuple[int, ...],
     dtypes: tuple[str, ...] = ("float32",),
     finite: bool = True,
 ) -> np.ndarray:
-    a = _get(msg, name)
+    a = get_field(msg, name)
     if not isinstance(a, np.ndarray):
         raise MessageError(f"type:{name}", f"want array, got {type(a).__name__}")
     if a.dtype.name not in dtypes:
@@ -292,10 +293,10 @@ def _array(
     return a
 
 
-def _check_kind(msg: Mapping[str, Any], kind: str) -> None:
+def check_kind(msg: Mapping[str, Any], kind: str) -> None:
     if msg.get("kind") != kind:
         raise MessageError("kind", f"got {msg.get('kind')!r}, want {kind!r}")
 
 
-def _f32(a: Any) -> np.ndarray:
+def as_f32(a: Any) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.float32)

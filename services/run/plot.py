@@ -27,8 +27,9 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from mam_core.algorithm1 import elimination_transitions
 from services.run import rundir
-from services.run.rundir import read_json, read_jsonl  # one reader of run files for plots, reports, the lab
+from services.run.rundir import read_json, read_jsonl
 
 PLOTS_DIR = rundir.PLOTS
 DPI = 120
@@ -62,11 +63,8 @@ def _elimination_step(config: dict[str, Any], allocation: list[dict[str, Any]], 
     for row in allocation:
         if row.get("reason") == "elimination" and isinstance(row.get("env_steps"), (int, float)):
             return float(row["env_steps"])
-    algo = _algo_config(config)
-    c = algo.get("eliminate_at")
-    if algo.get("no_ot") or not isinstance(c, (int, float)) or c <= 0 or c > last_step:
-        return None
-    return float(c)
+    c = elimination_transitions(_algo_config(config))
+    return None if c is None or c > last_step else float(c)
 
 
 def _algo_config(config: dict[str, Any]) -> dict[str, Any]:

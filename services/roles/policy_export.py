@@ -11,7 +11,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from mam_core.policy import GAUSSIAN_POLICY, POLICY_FILE, EnvSpec, save_policy_file
+from mam_core.policy import DETERMINISTIC, POLICY_FILE, EnvSpec, save_policy_file
 from services.run import rundir
 from services.run.config import RunConfig
 
@@ -20,7 +20,8 @@ def policy_meta(cfg: RunConfig, spec: EnvSpec, *, env_steps: int, updates: int, 
                 live: list[bool], survivor: int | None) -> dict[str, Any]:
     """What `load_policy` and `mam eval` need besides the weights (JSON)."""
     algo = cfg.algo
-    kind = {"policy": GAUSSIAN_POLICY} if algo.stochastic else {}  # SAC: mean and log σ heads (load_policy)
+    kind = algo.family.policy_kind  # SAC: mean and log σ heads (load_policy)
+    kind = {"policy": kind} if kind != DETERMINISTIC else {}
     return {**kind, "run": cfg.run, "env_id": cfg.env_id, "env_kwargs": dict(cfg.env_kwargs), "algo": algo.algo,
             "seed": algo.seed, "explore_noise": algo.explore_noise, "eval_episodes": algo.eval_episodes,
             "obs_dim": spec.obs_dim, "act_dim": spec.act_dim, "max_action": list(spec.max_action),
