@@ -35,7 +35,7 @@ from typing import Any
 import typer
 
 from mam_core import arithmetic
-from mam_lab.bench_sizes import ROOT, _child_env
+from mam_lab.bench_sizes import ROOT
 
 SB3 = """
 import sys, time, json
@@ -71,6 +71,10 @@ def _run(cmd: list[str], env: dict[str, str], out: Path, timeout: float) -> floa
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd[:5])} exited {proc.returncode}: {out.read_text()[-2000:]}")
     return time.monotonic() - t0
+
+
+def _child_env(**extra: str) -> dict[str, str]:
+    return dict(os.environ, PYTHONWARNINGS="ignore", COLUMNS="160", **extra)
 
 
 def sb3_importable(path: str) -> bool:
