@@ -64,7 +64,7 @@ def _click(app: typer.Typer) -> Command:
 
 
 def _typer_of(module: str, function: str) -> Command:
-    from services.cli import options
+    from services.run import options
 
     sub = typer.Typer(add_completion=False)
     sub.command(cls=options.PlainFlags)(getattr(importlib.import_module(module), function))
@@ -340,7 +340,7 @@ def test_no_doc_cites_a_file_outside_the_repository():
 
 # -- run options -----------------------------------------------------------------------------------
 def test_every_run_option_is_in_help_or_in_the_table_of_file_only_keys():
-    from services.cli import options
+    from services.run import options
 
     run_flags = flags_of(commands()["mam run"])
     readme = _text(ROOT / "README.md")
@@ -360,7 +360,7 @@ def test_every_run_config_field_is_a_run_option():
     resolved algorithm (its own fields are options) and the endpoint `mam run` picks."""
     import dataclasses
 
-    from services.cli import options
+    from services.run import options
     from services.run.config import RunConfig
 
     names = {alias for o in options.RUN_OPTIONS for alias in (o.name, *o.aliases)}
@@ -368,7 +368,7 @@ def test_every_run_config_field_is_a_run_option():
 
 
 def test_mam_run_help_names_the_file_only_keys():
-    from services.cli import options
+    from services.run import options
 
     epilog = commands()["mam run"].epilog or ""
     for option in options.RUN_OPTIONS:

@@ -19,8 +19,8 @@ import pytest
 from mam_core.config import resolve
 from mam_core.policy import read_policy_file
 from mam_core.reference import run_reference
-from services.cli.plot import read_jsonl
 from services.run.chaos import children_of
+from services.run.rundir import read_jsonl
 from tests.e2e import ROOT, processes_of, unique_run
 
 ENV = dict(os.environ, COLUMNS="200", PYTHONWARNINGS="ignore")
