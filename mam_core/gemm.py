@@ -18,8 +18,10 @@ pinned so that the kernel, its blocking and its path are fixed (mam_core/arithme
 
 The second core: the members of an ensemble (K actors, n·K critics) are independent products. They
 are always cut the same way, one member a call, and the calls spread over `threads()` Python
-threads (NumPy drops the GIL in BLAS). Which thread computes a member does not change its bits, so
-the learner's thread count is free (`set_threads`, `--learner-threads`).
+threads (NumPy drops the GIL in BLAS). A product of one member (TD3's actor) is always cut into
+two calls on the two halves of its output's columns, whatever the thread count (a cut changes a
+product's bits, so it depends on the shapes alone). Which thread computes a call does not change
+its bits, so the learner's thread count is free (`set_threads`, `learner_threads`).
 
 `tests/test_gemm.py` checks the products against float64, the bits against every thread count, and
 that no call takes the row-major N·N form.
@@ -35,6 +37,7 @@ import numpy as np
 import torch
 
 _PARALLEL_MIN_FLOPS = 1 << 20  # below this a product runs in the calling thread (threads cost ~20 µs)
+_MIN_HALF = 32  # a one-member product is cut in two column halves of at least this many columns
 THREADS_ENV = "MAM_GEMM_THREADS"  # the threads a process starts with (default 1; `set_threads` changes it)
 _pool: ThreadPoolExecutor | None = None
 _threads = 1
@@ -130,18 +133,32 @@ def bmm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         an, bn = bn.transpose(0, 2, 1), an.transpose(0, 2, 1)
     m, k, n = an.shape[1], an.shape[2], bn.shape[2]
     out = np.empty((e, m, n), np.float32)
-    pool = _pool
-    if pool is None or e < 2 or 2 * m * n * k < _PARALLEL_MIN_FLOPS:
-        _mm(an, bn, out)
-    else:
-        parts = min(_threads, e)
+    big = 2 * m * n * k >= _PARALLEL_MIN_FLOPS
+    if e >= 2:  # one call a member, the members in chunks over the threads
+        parts = min(_threads, e) if big else 1
         cuts = [e * i // parts for i in range(parts + 1)]
-        futures = [pool.submit(_mm, an[lo:hi], bn[lo:hi], out[lo:hi]) for lo, hi in zip(cuts[1:-1], cuts[2:])]
-        _mm(an[:cuts[1]], bn[:cuts[1]], out[:cuts[1]])
-        for f in futures:
-            f.result()
+        pieces = [(an[lo:hi], bn[lo:hi], out[lo:hi]) for lo, hi in zip(cuts[:-1], cuts[1:])]
+    elif big and n >= 2 * _MIN_HALF:  # one member: always two calls, on the two halves of its columns
+        half = n // 2
+        pieces = [(an, bn[:, :, :half], out[:, :, :half]), (an, bn[:, :, half:], out[:, :, half:])]
+    else:
+        pieces = [(an, bn, out)]
+    _run(pieces)
     # from the transposed array itself: a tensor of its own (not a view, which relu_ could not modify)
     return torch.from_numpy(out.transpose(0, 2, 1) if swap else out)
+
+
+def _run(pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> None:
+    """The products of `pieces`, the first in this thread, the others on the pool (if any)."""
+    pool = _pool
+    if pool is None or len(pieces) == 1:
+        for piece in pieces:
+            _mm(*piece)
+        return
+    futures = [pool.submit(_mm, *piece) for piece in pieces[1:]]
+    _mm(*pieces[0])
+    for f in futures:
+        f.result()
 
 
 class _Baddbmm(torch.autograd.Function):
