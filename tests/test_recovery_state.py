@@ -213,3 +213,27 @@ def test_an_episode_query_answered_differently_by_another_process_is_not_taken()
         stop.set()
         for s in (*sessions, hub):
             s.close()
+
+
+def test_a_resume_of_a_config_that_lacks_settings_is_refused_naming_them(tmp_path: Path) -> None:
+    """Item 7: a config.json written by an older mam lacks settings this code has; a resume would
+    take this code's defaults for them silently: refused, naming each with its default."""
+    import json
+    import subprocess
+    import sys
+
+    from mam_lab.provenance import run_code
+    from services.run import codecheck
+    from tests.e2e import ROOT
+
+    _stopped_run(tmp_path)
+    codecheck.record(tmp_path, run_code())
+    config = json.loads((tmp_path / "config.json").read_text())
+    del config["bias_horizon"], config["algo"]["lag"]
+    (tmp_path / "config.json").write_text(json.dumps(config))
+    got = subprocess.run([sys.executable, "-m", "services.cli", "run", "--resume", str(tmp_path)], cwd=ROOT, text=True,
+                         capture_output=True, timeout=120, env=dict(os.environ, COLUMNS="300"))
+    text = " ".join(got.stderr.replace("│", " ").split())
+    assert got.returncode == 2, got.stdout + got.stderr
+    assert "bias_horizon not in the run's config.json (this code's default: 'critic')" in text, text
+    assert "algo.lag not in the run's config.json (this code's default: 0)" in text, text

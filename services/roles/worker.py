@@ -84,6 +84,7 @@ class Worker(GuardedSimulator):
         self.newest_learner = (0, "")  # role.learner_order of the newest learner seen: an older one is stale
         self.owned = False  # the learner's stats have named this incarnation its slot's owner
         self.lost_to = ""  # the "worker/incarnation" that took the slot over since (this one then leaves)
+        self.waits = ""  # what its next iteration waits for (weights, an allocation), "" while it steps
         self.last_note = 0.0
         self.episode_return = 0.0
         self.finished_returns: list[float] = []
@@ -180,17 +181,17 @@ class Worker(GuardedSimulator):
             version = -1 if it.random else plan.version_for(index)
             if actor is None or (version >= 0 and not self.history.has(actor, version)):
                 self.flush()
+                self.waits = f"the allocation of iteration {plan.decision_for(index)}" if actor is None \
+                    else f"actor {actor} at version {version}"  # its reports say it (the stall watchdog)
                 if time.monotonic() - max(waiting_since, self.last_note) > STATUS_EVERY_S:
-                    log.info("iteration %d waits for %s", index,
-                             f"the allocation of iteration {plan.decision_for(index)}" if actor is None
-                             else f"actor {actor} at version {version}")
+                    log.info("iteration %d waits for %s", index, self.waits)
                     self.last_note = time.monotonic()
                 if actor is None:
                     self.allocation.wait_fresh(timeout=0.05)
                 else:
                     self.take_weights(self.weights.get(timeout=0.05), index)
                 continue
-            waiting_since = time.monotonic()
+            waiting_since, self.waits = time.monotonic(), ""
             self.step(index, it.random, actor, version)
             index += 1
 
@@ -238,6 +239,7 @@ class Worker(GuardedSimulator):
         """This worker's counters on mam/<run>/stats/worker-<id> (rejections are visible there)."""
         self.report.publish({"incarnation": self.incarnation, "sent_rows": self.sent_rows, "batches": self.batch_seq,
                              "actor": self.actor, "slot": self.slot, "rejected": self.rejects.counts(),
+                             "waits": self.waits,
                              **self.fault_counters()}, seq=self.batch_seq, force=force)
 
     def write_report(self) -> None:

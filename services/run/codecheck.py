@@ -11,6 +11,7 @@ run is then no longer exact (`inexact_reason`).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -45,6 +46,21 @@ def differences(run_dir: Path, now: dict[str, Any]) -> list[str]:
         if old.get(name) != new.get(name):
             out.append(f"{name} {old.get(name, 'absent')} (the run's) vs {new.get(name, 'absent')} (this code)")
     return out
+
+
+def missing_fields(config: dict[str, Any]) -> list[str]:
+    """The settings a run's config.json (as read) does not name, one phrase each: a run started by an
+    older mam, whose resume would silently take this code's defaults for them."""
+    from mam_core.config import AlgoConfig
+    from services.run.config import RunConfig
+
+    def phrase(name: str, f: dataclasses.Field) -> str:
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+        return f"{name} not in the run's config.json (this code's default: {default!r})"
+
+    algo = config.get("algo") if isinstance(config.get("algo"), dict) else {}
+    return [phrase(f.name, f) for f in dataclasses.fields(RunConfig) if f.name not in config] + \
+        [phrase(f"algo.{f.name}", f) for f in dataclasses.fields(AlgoConfig) if f.name not in algo]
 
 
 def record(run_dir: Path, now: dict[str, Any], forced: list[str] | None = None) -> None:

@@ -30,7 +30,7 @@ from services.messaging.codec import LearnerStats
 from services.run import codecheck, preflight, registry, rundir, runlock
 from services.run.audit import audit_transport
 from services.run.config import RunConfig, budget_warnings
-from services.run.progress import budget_text, command_name, done_text, follow, outcome_text
+from services.run.progress import budget_text, command_name, done_text, follow, outcome_text, waited_on
 from services.run.rundir import disk_free, free_bytes, last_line, write_json
 
 STOP_GRACE_S = 15.0
@@ -172,6 +172,7 @@ class LocalCluster:
     started_at: float = field(default_factory=time.monotonic)  # the launcher's start: the bar's clock
     done_at: float | None = None  # when the learner reported the budget reached
     parts: rundir.RunParts | None = None  # launcher.json, kept up to date by supervise
+    waits: dict[str, str] = field(default_factory=dict)  # worker role -> what it waits for (its reports)
 
     def spawn(self, role: str, args: list[str]) -> Child:
         log_path = self.run_dir / rundir.LOGS / f"{role}.log"
@@ -293,16 +294,14 @@ class LocalCluster:
 
     def observe(self, st: LearnerStats) -> None:
         """The learner's stats, for the stall watchdog."""
-        now = time.monotonic()
-        self.last_stats, self.last_stats_at = st, now
+        self.last_stats, self.last_stats_at = st, (now := time.monotonic())
         if (st.env_steps, st.updates) != self.progress:
             self.progress, self.progress_at, self.stall_actions = (st.env_steps, st.updates), now, 0
 
     def check_stall(self, now: float) -> None:
         """The watchdog: no new transition and no new update for `stall_timeout` seconds. It prints
-        what each side waits for and SIGKILLs the stuck child (supervise restarts it, the learner
-        with --resume); after MAX_STALL_ACTIONS such restarts without progress RunStalled stops
-        the run with the diagnosis."""
+        what each side waits for and SIGKILLs the stuck child (supervise restarts it, the learner with
+        --resume); after MAX_STALL_ACTIONS such restarts without progress RunStalled stops the run."""
         limit = self.cfg.stall_timeout
         if self.last_stats_at is None and limit > 0:  # a learner starting up (torch, a resume) gets longer
             limit = max(limit, STARTUP_GRACE_S)
@@ -339,8 +338,9 @@ class LocalCluster:
         if st.awaiting:
             slots = [a for a in st.awaiting if a >= 0]
             stuck = [c for c in workers if c.role in {f"worker-{i}" for i in slots}]
-            return (f"{head}; {facts}: waiting for iteration {st.iteration + 1:,}'s transitions from slots {slots}",
-                    stuck or workers)
+            text, blamed = waited_on(stuck, self.waits, learner, referee)  # what their workers wait for
+            return (f"{head}; {facts}: waiting for iteration {st.iteration + 1:,}'s transitions from slots {slots}"
+                    f"{text}", blamed or stuck or workers)
         return f"{head}; {facts}: the learner waits for nothing and does not update", [learner]
 
     def restart_counts(self) -> dict[str, int]:

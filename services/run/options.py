@@ -438,9 +438,9 @@ def resume_config(run_dir: Path, cli: dict[str, Any], config_file: Path | None,
         flag = "--" + name.replace("_", "-")
         raise typer.BadParameter(f"--resume {run_dir}: {flag} {value} contradicts the run's {have[name]} ({path}); "
                                  "a resumed run keeps the options it started with")
-    other = codecheck.differences(run_dir, code)
+    other = codecheck.differences(run_dir, code) + codecheck.missing_fields(json.loads(path.read_text()))
     if other and not allow_other_code:
-        raise typer.BadParameter(f"--resume {run_dir}: the run ran other code ({run_dir / rundir.CODE}): "
+        raise typer.BadParameter(f"--resume {run_dir}: the run ran other code ({run_dir / rundir.CODE}, {path.name}): "
                                  f"{'; '.join(other)}. A resumed run equals the uninterrupted one only on the same "
                                  "code and libraries; --allow-other-code continues it anyway, and the run records "
                                  "exact: false")

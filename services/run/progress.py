@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     from services.run.launcher import LocalCluster
 from mam_core.schedule import Schedule
 from services.messaging import bus, keys
-from services.messaging.codec import Allocation, Eval, LearnerStats, MessageError
+from services.messaging.codec import Allocation, Eval, LearnerStats, MessageError, decode
 from services.run.config import RunConfig
 
 
@@ -164,6 +164,34 @@ def outcome_text(cfg: RunConfig, summary: dict[str, Any]) -> str:
     return f"{who}'s mean return: {of}"
 
 
+def waited_on(stuck: list[Any], waits: dict[str, str], learner: Any, referee: Any) -> tuple[str, list[Any]]:
+    """What the workers of the awaited slots say they wait for (their reports' `waits`), as text
+    for the stall diagnosis, and the children to restart for it: the learner when each waits for
+    weights (a version the learner does not publish; restarted, it publishes the versions its
+    checkpoint keeps), the referee when each waits for an allocation, else none (the workers)."""
+    said = [(c.role, waits[c.role]) for c in stuck if waits.get(c.role)]
+    if not stuck or len(said) < len(stuck):
+        return "", []
+    text = "; " + ", ".join(f"{role} waits for {what}" for role, what in said)
+    for child, what, why in ((learner, "actor ", "the learner does not publish it"),
+                             (referee, "the allocation", "the referee has not decided it")):
+        if child is not None and child.proc.poll() is None and all(w.startswith(what) for _, w in said):
+            return f"{text} ({why})", [child]
+    return text, []
+
+
+def note_waits(cluster: LocalCluster, reports: bus.Latest) -> None:
+    """What each worker's latest report says it waits for, by role (worker-<slot>)."""
+    for item in reports.fresh().values():
+        try:
+            body = decode(item.payload)
+            slot, waits = body.get("slot"), body.get("waits", "")
+        except MessageError:
+            continue
+        if isinstance(slot, int) and not isinstance(slot, bool) and isinstance(waits, str):
+            cluster.waits[f"worker-{slot}"] = waits[:200]
+
+
 def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Console) -> bool:
     """Progress bar and supervision until the learner has finished the run (True).
 
@@ -176,6 +204,7 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
         allocation = bus.Latest.subscribe(session, keys.allocation(cfg.run))
         evals = bus.Latest.subscribe(session, keys.eval(cfg.run))
         roles = bus.watch_alive(session, cfg.run)
+        reports = bus.Latest(late_join=False).subscribe(session, keys.role_stats_all(cfg.run, "worker"))
         with console.status("starting learner and referee"):
             while not {"learner", "referee"} <= {role for role, _ in roles.members()}:
                 cluster.supervise()
@@ -195,6 +224,7 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                 task = progress.add_task("train", total=budget, info="starting",
                                          clock=clock_text(time.monotonic() - cluster.started_at))
                 while True:
+                    note_waits(cluster, reports)  # for the stall watchdog's diagnosis
                     cluster.supervise()
                     if cluster.finished():
                         progress.update(task, info="done")
@@ -243,7 +273,7 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                     time.sleep(0.2)
         finally:
             cluster.console = console
-            for sub in (stats, allocation, evals):
+            for sub in (stats, allocation, evals, reports):
                 sub.close()
 
 
