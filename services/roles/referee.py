@@ -53,7 +53,7 @@ class Referee:
         self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden, self.algo.family.policy_kind)
         self.shapes = self.actors.shapes
         self.plan = Algorithm1.for_run(self.algo, cfg.steps)  # the events, in order
-        self.schedule: Obsolescence = obsolescence_for(self.algo, cfg.steps)  # P, the live actors, the survivor
+        self.obsolescence: Obsolescence = obsolescence_for(self.algo, cfg.steps)  # P, the live actors, the survivor
         self.rng = stream(self.algo.seed, "allocation")  # slot draws and the tie-break at C (mam_core.seeding)
         self.events_done = 0  # evaluations of plan.events() done (and logged)
         self.decision: tuple[int, dict[str, int]] | None = None  # the latest allocation: (iteration, slots)
@@ -73,7 +73,7 @@ class Referee:
             return False
         try:
             data = json.loads(path.read_text())
-            schedule = Obsolescence.from_dict(data["schedule"])
+            obsolescence = Obsolescence.from_dict(data["schedule"])  # the state file's key since the start
             self.rng.bit_generator.state = data["rng"]
             self.events_done = int(data["events_done"])
             self.decision = _decision(data.get("decision"))
@@ -87,17 +87,17 @@ class Referee:
             self.rng = stream(self.algo.seed, "allocation")
             self.events_done, self.decision, self.previous, self.final_row = 0, None, None, None
             return False
-        self.schedule = schedule
+        self.obsolescence = obsolescence
         log.info("recovered referee state: %d of %d evaluations done, round %d, P %s, survivor %s",
-                 self.events_done, len(self.plan.events()), schedule.round,
-                 schedule.probabilities.round(3).tolist(), schedule.survivor)
+                 self.events_done, len(self.plan.events()), obsolescence.round,
+                 obsolescence.probabilities.round(3).tolist(), obsolescence.survivor)
         return True
 
     def _save_state(self) -> None:
         """After each evaluation is logged and its decision published: what a successor needs
         to go on with the next one (the allocation stream's state included)."""
         write_json(self.run_dir / STATE_FILE, {
-            "schedule": self.schedule.to_dict(), "rng": self.rng.bit_generator.state,
+            "schedule": self.obsolescence.to_dict(), "rng": self.rng.bit_generator.state,
             "events_done": self.events_done, "decision": self.decision, "previous": self.previous,
             "final_row": self.final_row, "wall_s": round(self.wall(), 3)})
 
@@ -146,7 +146,7 @@ class Referee:
             it = plan.iteration(index)
             competes = purpose.competes
             version = plan.judged_version(index, purpose)
-            live = [k for k in range(self.algo.actors) if self.schedule.live[k]]
+            live = [k for k in range(self.algo.actors) if self.obsolescence.live[k]]
             while not all(history.has(k, version) for k in live):
                 if not self.wait(history):
                     return
@@ -156,7 +156,7 @@ class Referee:
             seed = evaluation_seed(self.algo.seed, purpose, it.evaluation_index(purpose))
             means = self.evaluate(it, seed, purpose, versions, it.updates[0] if competes else it.updates[1])
             if competes:  # lines 15-20: Eq. 8 or the survivor; the slots draw for iteration index+1+B on
-                self.schedule.record_evaluation(it.units[1], competition_returns(means), rng=self.rng)
+                self.obsolescence.record_evaluation(it.units[1], competition_returns(means), rng=self.rng)
                 self.publish_allocation(index, purpose.value, competition_returns(means).tolist())
             if it.last:  # the final evaluation: curve point or not, it is the run's last
                 self.final_row = (it.transitions[1], means, seed, versions)
@@ -196,34 +196,34 @@ class Referee:
     def publish_allocation(self, index: int, reason: str, returns: list[float] | None) -> None:
         """The slots w0..w{M-1} drawn with the run's allocation stream, tagged with the iteration
         that decided them (they apply from iteration index+1+B), with the decision before."""
-        drawn = self.schedule.allocation(self.algo.workers, self.rng)[:self.plan.slot_width(index)]
+        drawn = self.obsolescence.allocation(self.algo.workers, self.rng)[:self.plan.slot_width(index)]
         self.previous, self.decision = self.decision, (index, {keys.slot_name(i): int(k) for i, k in enumerate(drawn)})
         slots = self.decision[1]
         i_k = counts(slots, self.algo.actors).astype(int).tolist()
         it = self.plan.iteration(index) if index else None
         best = best_actors(returns, None) if returns is not None else []
-        self.alloc_log.write({"t": round(self.wall(), 3), "round": self.schedule.round,
+        self.alloc_log.write({"t": round(self.wall(), 3), "round": self.obsolescence.round,
                               "env_steps": it.transitions[1] if it else 0, "iterations": it.units[1] if it else 0,
                               "updates": it.updates[0] if it else 0,
                               "decided_at": it.transitions[1] if it else 0, "decided_at_iteration": index,
                               "applies_from_iteration": self.plan.applies_from(index),
                               "returns": returns, "tie": best if len(best) > 1 else None,
-                              "probabilities": [float(p) for p in self.schedule.probabilities], "counts": i_k,
-                              "slots": dict(slots), "eliminated": [bool(e) for e in self.schedule.eliminated],
-                              "survivor": self.schedule.survivor, "reason": reason})
+                              "probabilities": [float(p) for p in self.obsolescence.probabilities], "counts": i_k,
+                              "slots": dict(slots), "eliminated": [bool(e) for e in self.obsolescence.eliminated],
+                              "survivor": self.obsolescence.survivor, "reason": reason})
         self.put_allocation(reason, returns)
         at = role.at_text(self.plan.schedule.paper, it.units[1] if it else 0, it.transitions[1] if it else 0)
         log.info("allocation (%s) at %s: from iteration %d, P=%s I=%s", reason, at,
-                 self.plan.applies_from(index), np.round(self.schedule.probabilities, 3).tolist(), i_k)
+                 self.plan.applies_from(index), np.round(self.obsolescence.probabilities, 3).tolist(), i_k)
 
     def put_allocation(self, reason: str, returns: list[float] | None = None) -> None:
         index, slots = self.decision
         it = self.plan.iteration(index) if index else None
-        msg = Allocation(self.schedule.round, it.transitions[1] if it else 0,
+        msg = Allocation(self.obsolescence.round, it.transitions[1] if it else 0,
                          None if returns is None else tuple(returns),
-                         tuple(float(p) for p in self.schedule.probabilities),
+                         tuple(float(p) for p in self.obsolescence.probabilities),
                          tuple(counts(slots, self.algo.actors).astype(int).tolist()), dict(slots),
-                         tuple(bool(e) for e in self.schedule.eliminated), self.schedule.survivor, reason,
+                         tuple(bool(e) for e in self.obsolescence.eliminated), self.obsolescence.survivor, reason,
                          iteration=index, previous=self.previous)
         self.last_allocation = msg.to_bytes(self.id, self._next_seq())
         self.alloc_pub.put(self.last_allocation)
@@ -261,14 +261,14 @@ class Referee:
         """The referee's counters on mam/<run>/stats/referee-<id> (rejections are visible there):
         the evaluations done (the learner re-sends what the next one needs) and, once the
         summary is written, `final` (the learner waits for it)."""
-        fields = {"round": self.schedule.round, "events": self.events_done, "rejected": self.rejects.counts()}
+        fields = {"round": self.obsolescence.round, "events": self.events_done, "rejected": self.rejects.counts()}
         if final:
             fields["final"] = True
         self.report.publish(fields, seq=self._next_seq, force=final)
 
     def write_summary(self, steps: int, means: list[float | None], seed: int, versions: list[int]) -> None:
         """summary.json: the final evaluation (`mam eval` reproduces it from `final_eval`)."""
-        survivor = self.schedule.survivor
+        survivor = self.obsolescence.survivor
         if survivor is None and any(m is not None for m in means):
             survivor = None if self.algo.actors > 1 else 0
         write_json(self.run_dir / rundir.SUMMARY, {
@@ -282,7 +282,7 @@ class Referee:
             "inexact": self.stats.inexact if self.stats else "",
             "updates": self.stats.updates if self.stats else 0,
             "wall_time_s": round(self.wall(), 2),
-            "rounds": self.schedule.round, "probabilities": self.schedule.probabilities.tolist(),
+            "rounds": self.obsolescence.round, "probabilities": self.obsolescence.probabilities.tolist(),
             "rejected": self.rejects.counts()})
         # The learner stays up until it sees this (a restarted referee still needs its caches).
         for _ in range(3):  # the last put before close can be lost

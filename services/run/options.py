@@ -103,7 +103,7 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
     _opt("compete_every", int, "schedule steps between allocation rounds", symbol="A", multi_actor=True),
     _opt("eta", float, "weight of the other actors' Q-values (Eq. 9)", symbol="η", multi_actor=True),
     _opt("eval_episodes", int, "episodes per actor per evaluation"),
-    _opt("eval_every", int, "schedule steps between evaluations after elimination"),
+    _opt("eval_every", int, "schedule steps between learning-curve evaluations"),
     _opt("start_steps", int, "first schedule steps use uniform random actions (and no updates)"),
     _opt("batch_size", int, "mini-batch size"),
     _opt("utd", float, "gradient updates per schedule step (per iteration, or per transition)"),
