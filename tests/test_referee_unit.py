@@ -9,7 +9,7 @@ from typing import Any
 
 from mam_core.obsolescence import competition_returns, initial_allocation
 from services.messaging.codec import Allocation
-from services.roles.referee import Referee
+from services.roles.referee import STATE_FILE, Referee
 from services.run.options import build_run_config
 
 FLAGS = {"env": "Pendulum-v1", "algo": "ma-td3", "steps": 40, "workers": 3, "actors": 2, "start_steps": 4,
@@ -49,16 +49,21 @@ def test_a_competition_applies_lag_plus_one_iterations_later_and_survives_a_rest
     index, purpose = r.plan.events()[0]
     assert purpose.competes
     returns = [-100.0, -300.0]
-    r.obsolescence.record_evaluation(r.plan.iteration(index).units[1], competition_returns(returns), rng=r.rng)
+    r.state.obsolescence.record_evaluation(r.plan.iteration(index).units[1], competition_returns(returns),
+                                           rng=r.state.rng)
     r.publish_allocation(index, purpose.value, returns)
     decided = pub.items[-1]
     assert decided.iteration == index and decided.previous == (0, pub.items[0].slots)
     assert log.items[-1]["applies_from_iteration"] == index + 1 + 2 == r.plan.applies_from(index)
     assert r.plan.decision_for(index + 3) == index and r.plan.decision_for(index + 2) == 0
     assert decided.probabilities[0] > decided.probabilities[1]  # the better actor is drawn more (Eq. 8)
-    r.events_done = 1
-    r._save_state()
+    r.state.events_done = 1
+    r.state.save(tmp_path / STATE_FILE, wall=12.5)
     again, _, _ = referee(tmp_path)  # a restarted referee reads referee_state.json
-    assert again.resumed and again.events_done == 1 and again.decision == r.decision
-    assert again.obsolescence.probabilities.tolist() == r.obsolescence.probabilities.tolist()
-    assert again.rng.bit_generator.state == r.rng.bit_generator.state
+    assert again.resumed and again.state.events_done == 1 and again.state.decision == r.state.decision
+    assert again.state.obsolescence.probabilities.tolist() == r.state.obsolescence.probabilities.tolist()
+    assert again.state.rng.bit_generator.state == r.state.rng.bit_generator.state
+    assert again.state.wall_before == 12.5 and again.state.previous == r.state.previous
+    (tmp_path / STATE_FILE).write_text("{not json")  # unreadable: the evaluations start again
+    fresh, _, _ = referee(tmp_path)
+    assert not fresh.resumed and fresh.state.events_done == 0 and fresh.state.decision is None
