@@ -93,7 +93,7 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
          "(in TOML: a table)", target=RUN),
     _opt("algo", str, f"one of {', '.join(ALGOS)}, or module.path:Name, an algorithm family in your module "
          "(mam_core/family.py; it must import on every host); defaults: "
-         + "; ".join(f"{', '.join(f.names)}: {f.help}" for f in builtin_families())),
+         + "; ".join(f.help for f in builtin_families())),
     _opt("steps", int, "budget in schedule steps: iterations (--schedule paper) or transitions (equal-data)",
          symbol="T", target=RUN),
     _opt("actors", int, "number of actors", symbol="K"),
