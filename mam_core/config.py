@@ -44,7 +44,7 @@ class AlgoConfig:
     hidden: tuple[int, ...] = (256, 256)
     buffer_size: int = 1_000_000
     eval_episodes: int = 20  # episodes per actor in each evaluation round (paper: 20)
-    eval_every: int = 5_000  # env steps between evaluations after elimination (learning curves)
+    eval_every: int = 5_000  # schedule steps between learning-curve evaluations (iterations or transitions)
     utd: float = 1.0  # gradient updates per received transition
     no_ot: bool = False  # ablation "w/o OT": uniform fixed allocation, no elimination
     no_wt: bool = False  # ablation "w/o WT": η = 0

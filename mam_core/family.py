@@ -68,7 +68,7 @@ class Family(Protocol):
     """What an algorithm family supplies (module docstring); mam_core.td3.TD3 is the model."""
 
     names: tuple[str, ...]  # the `--algo` names it answers to (a user's family: none, it is `module:Name`)
-    help: str  # one line for `--algo --help`
+    help: str  # its line in `mam run --help`'s --algo, naming its algos and where their defaults come from
     policy_kind: str  # its numpy actors and policy.npz layout: a kind of mam_core.policy.POLICY_KINDS
     stochastic: bool  # actors are distributions with a temperature α_k per actor (`agent.log_alpha`)
     target_actor: bool  # Eq. 9's ã_j comes from a target actor, soft-updated with the critics

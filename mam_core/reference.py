@@ -25,7 +25,7 @@ from mam_core.envs import make_env  # registers AppleCollect; imports `module:En
 from mam_core.evaluation import evaluate_policy
 from mam_core.obsolescence import competition_returns, obsolescence_for
 from mam_core.policy import NumpyActors
-from mam_core.replay import ReplayBuffer
+from mam_core.replay import Replay, ReplayBuffer
 from mam_core.seeding import evaluation_seed, stream
 from mam_core.slot import SlotStreams, act, uniform
 
@@ -161,7 +161,7 @@ def run_reference(env_id: str, cfg: AlgoConfig, steps: int, env_kwargs: dict[str
     return result
 
 
-def add_rows(buffer: ReplayBuffer, rows: list[tuple]) -> None:
+def add_rows(buffer: Replay, rows: list[tuple]) -> None:
     """An iteration's transitions (obs, action, reward, next_obs, terminated, actor, version),
     in slot order, as one insert (what the learner does with the rows the workers sent)."""
     if not rows:

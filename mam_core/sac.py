@@ -72,8 +72,8 @@ class SAC:
     """The SAC family (mam_core.family.Family)."""
 
     names = tuple(DEFAULTS)
-    help = ("SAC v2 (Haarnoja et al. 2018: lr 3e-4, batch 256, 256x256, τ 0.005, d = 1, α tuned towards "
-            "entropy −|A|), with MA-TD3's K, M, C, A, η for ma-sac")
+    help = ("sac and ma-sac: SAC v2 (Haarnoja et al. 2018: lr 3e-4, batch 256, 256x256, τ 0.005, d = 1, α tuned "
+            "towards entropy −|A|), with MA-TD3's K, M, C, A, η for ma-sac")
     policy_kind = GAUSSIAN_POLICY
     stochastic = True
     target_actor = False

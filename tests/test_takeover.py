@@ -16,6 +16,7 @@ from mam_core.policy import GAUSSIAN_POLICY, EnvSpec, NumpyActors
 from mam_core.replay import ReplayBuffer
 from mam_core.schedule import Schedule
 from mam_core.slot import SlotStreams, act, replay_episode, uniform
+from services.messaging import keys
 from services.messaging.codec import MessageError, SlotEpisode, TransitionBatch
 from services.roles.episodes import SlotEpisodes
 from services.roles.lockstep import SlotStage
@@ -139,6 +140,14 @@ def test_the_learners_answer_holds_the_current_episode_from_the_replay_and_the_s
     gone = SlotEpisodes(plan, inserted_through=6)
     gone.start[1] = 3
     assert "has left the replay" in gone.answer(1, SlotStage(2, start=7), small).why
+    # The reply on the query key: slot 1's answer, encoded; no answer for another key or before a stage.
+    seqs = iter(range(5, 10))
+    reply = episodes.reply(keys.episode("run", 1), stage, buffer, "learner", lambda: next(seqs))
+    back = SlotEpisode.from_bytes(reply, 2, 1)
+    assert (back.slot, back.start, back.next) == (1, 7, 8) and np.array_equal(back.obs, obs[7:8])
+    assert episodes.reply(keys.episode("run", 2), stage, buffer, "learner", lambda: 0) is None  # no slot 2
+    assert episodes.reply(keys.episode("run", 1), None, buffer, "learner", lambda: 0) is None
+    assert episodes.reply("mam/run/episode/spare", stage, buffer, "learner", lambda: 0) is None
 
 
 def test_slot_episode_and_episode_starts_are_validated() -> None:

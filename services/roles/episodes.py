@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
-from typing import TYPE_CHECKING
+from collections.abc import Callable
 
 import numpy as np
 
@@ -21,9 +21,6 @@ from mam_core.replay import Replay
 from services.messaging import keys
 from services.messaging.codec import SlotEpisode, TransitionBatch
 from services.roles.lockstep import SlotStage
-
-if TYPE_CHECKING:
-    from services.roles.learner import Learner
 
 log = logging.getLogger("mam.learner")
 
@@ -50,6 +47,19 @@ class SlotEpisodes:
         if len(start) == len(self.start):
             self.start, self.inserted_through = start, int(data["through"])
 
+    def reply(self, key: str, stage: SlotStage | None, buffer: Replay, sender: str,
+              next_seq: Callable[[], int]) -> bytes | None:
+        """A worker taking slot w<i> over asks (on `key`) for the slot's current episode: the
+        answer, encoded from `sender` with the next sequence number; None: no answer."""
+        try:
+            slot = int(keys.parse_last(key)[1:])
+        except ValueError:
+            return None
+        if stage is None or not 0 <= slot < self.plan.slots:
+            return None
+        log.info("slot %d's current episode to its new worker (it continues at iteration %d)", slot, stage.end[slot])
+        return self.answer(slot, stage, buffer).to_bytes(sender, next_seq())
+
     def answer(self, slot: int, stage: SlotStage, buffer: Replay) -> SlotEpisode:
         """Slot `slot`'s current episode up to the stage's next iteration of it."""
         obs_dim, act_dim = buffer.obs_dim, buffer.act_dim
@@ -74,15 +84,3 @@ class SlotEpisodes:
 
 def _rows(parts: list[np.ndarray], dim: int) -> np.ndarray:
     return np.concatenate(parts).reshape(-1, dim) if parts else np.zeros((0, dim), np.float32)
-
-
-def answer_query(lr: Learner, key: str) -> bytes | None:
-    """A worker taking slot w<i> over asks for the slot's current episode (None: no answer)."""
-    try:
-        slot = int(keys.parse_last(key)[1:])
-    except ValueError:
-        return None
-    if lr.stage is None or not 0 <= slot < lr.algo.workers:
-        return None
-    log.info("slot %d's current episode to its new worker (it continues at iteration %d)", slot, lr.stage.end[slot])
-    return lr.episodes.answer(slot, lr.stage, lr.buffer).to_bytes(lr.id, lr.out.next_seq())

@@ -28,7 +28,7 @@ from mam_core.pacing import CheckpointRule
 from mam_core.replay import ReplayBuffer, ReplayLog
 from services.messaging import bus, keys
 from services.messaging.codec import Allocation, Done, MessageError, TransitionSpec
-from services.roles import episodes, learner_files, role, tb
+from services.roles import learner_files, role, tb
 from services.roles.checkpoint import (
     EXIT_CORRUPT,
     CheckpointCorrupt,
@@ -251,7 +251,8 @@ class Learner:
                 rest = trimmed - min(trimmed, self.intake.own_rows(batch))
                 if rest:
                     self.intake.skip(batch, rest)
-        self.episode_queries.poll(lambda key, _payload: episodes.answer_query(self, key))
+        self.episode_queries.poll(lambda key, _: self.episodes.reply(key, self.stage, self.buffer, self.id,
+                                                                     self.out.next_seq))
         self.follow_allocation()
         if not self.referee_seen and self.referees.live():
             self.referee_seen = True  # finish() waits for its final evaluation

@@ -15,6 +15,7 @@ import logging
 import os
 import socket
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,7 @@ import typer
 
 import mam_core.envs  # noqa: F401
 from mam_core.algorithm1 import Algorithm1, Purpose
+from mam_core.config import AlgoConfig
 from mam_core.evaluation import evaluate_policy
 from mam_core.obsolescence import Obsolescence, best_actors, competition_returns, counts, obsolescence_for
 from mam_core.policy import EnvSpec, NumpyActors
@@ -41,6 +43,52 @@ STATE_FILE = rundir.REFEREE_STATE
 HEARTBEAT_S = 2.0  # the current allocation is re-published this often
 
 
+@dataclass
+class RefereeState:
+    """What a restarted referee needs to go on exactly where its predecessor stood; saved to
+    referee_state.json after each evaluation is logged and its decision published."""
+
+    obsolescence: Obsolescence  # P, the live actors, the survivor
+    rng: np.random.Generator  # the allocation stream: slot draws and the tie-break at C (mam_core.seeding)
+    events_done: int = 0  # evaluations of plan.events() done (and logged)
+    decision: tuple[int, dict[str, int]] | None = None  # the latest allocation: (iteration, slots)
+    previous: tuple[int, dict[str, int]] | None = None  # the one before it
+    final_row: tuple[int, list[float | None], int, list[int]] | None = None  # the final evaluation
+    wall_before: float = 0.0  # seconds of the run before this incarnation
+
+    @classmethod
+    def fresh(cls, algo: AlgoConfig, steps: int) -> RefereeState:
+        return cls(obsolescence_for(algo, steps), stream(algo.seed, "allocation"))
+
+    def save(self, path: Path, wall: float) -> None:
+        write_json(path, {
+            "schedule": self.obsolescence.to_dict(), "rng": self.rng.bit_generator.state,
+            "events_done": self.events_done, "decision": self.decision, "previous": self.previous,
+            "final_row": self.final_row, "wall_s": round(wall, 3)}, durable=True)
+
+    @classmethod
+    def load(cls, path: Path, algo: AlgoConfig, steps: int) -> RefereeState | None:
+        """The saved state; None without one, or for an unreadable one (the evaluations start again)."""
+        if not path.is_file():
+            return None
+        state = cls.fresh(algo, steps)
+        try:
+            data = json.loads(path.read_text())
+            state.obsolescence = Obsolescence.from_dict(data["schedule"])  # the file's key since the start
+            state.rng.bit_generator.state = data["rng"]
+            state.events_done = int(data["events_done"])
+            state.decision = _decision(data.get("decision"))
+            state.previous = _decision(data.get("previous"))
+            final = data.get("final_row")
+            state.final_row = None if final is None else (int(final[0]), list(final[1]), int(final[2]),
+                                                          [int(v) for v in final[3]])
+            state.wall_before = float(data.get("wall_s", 0.0))
+        except (ValueError, KeyError, TypeError, IndexError) as e:
+            log.warning("ignoring unreadable %s (the run's evaluations start again): %s", path, e)
+            return None
+        return state
+
+
 class Referee:
     def __init__(self, cfg: RunConfig, session: Any, run_dir: Path) -> None:
         self.cfg = cfg
@@ -53,57 +101,21 @@ class Referee:
         self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden, self.algo.family.policy_kind)
         self.shapes = self.actors.shapes
         self.plan = Algorithm1.for_run(self.algo, cfg.steps)  # the events, in order
-        self.schedule: Obsolescence = obsolescence_for(self.algo, cfg.steps)  # P, the live actors, the survivor
-        self.rng = stream(self.algo.seed, "allocation")  # slot draws and the tie-break at C (mam_core.seeding)
-        self.events_done = 0  # evaluations of plan.events() done (and logged)
-        self.decision: tuple[int, dict[str, int]] | None = None  # the latest allocation: (iteration, slots)
-        self.previous: tuple[int, dict[str, int]] | None = None  # the one before it
-        self.final_row: tuple[int, list[float | None], int, list[int]] | None = None
-        self.wall_before = 0.0  # seconds of the run before this incarnation (a restarted referee)
         self.stats: LearnerStats | None = None
         self.seq = 0
         self.stop_requested = False
         self.started = time.monotonic()
-        self.resumed = self._load_state()
-
-    # -- state (a restarted referee goes on exactly where its predecessor stood) -------------------
-    def _load_state(self) -> bool:
-        path = self.run_dir / STATE_FILE
-        if not path.is_file():
-            return False
-        try:
-            data = json.loads(path.read_text())
-            schedule = Obsolescence.from_dict(data["schedule"])
-            self.rng.bit_generator.state = data["rng"]
-            self.events_done = int(data["events_done"])
-            self.decision = _decision(data.get("decision"))
-            self.previous = _decision(data.get("previous"))
-            final = data.get("final_row")
-            self.final_row = None if final is None else (int(final[0]), list(final[1]), int(final[2]),
-                                                         [int(v) for v in final[3]])
-            self.wall_before = float(data.get("wall_s", 0.0))
-        except (ValueError, KeyError, TypeError, IndexError) as e:
-            log.warning("ignoring unreadable %s (the run's evaluations start again): %s", path, e)
-            self.rng = stream(self.algo.seed, "allocation")
-            self.events_done, self.decision, self.previous, self.final_row = 0, None, None, None
-            return False
-        self.schedule = schedule
-        log.info("recovered referee state: %d of %d evaluations done, round %d, P %s, survivor %s",
-                 self.events_done, len(self.plan.events()), schedule.round,
-                 schedule.probabilities.round(3).tolist(), schedule.survivor)
-        return True
-
-    def _save_state(self) -> None:
-        """After each evaluation is logged and its decision published: what a successor needs
-        to go on with the next one (the allocation stream's state included). Durable before the
-        referee reports the evaluation done: the learner forgets a snapshot once it is reported."""
-        write_json(self.run_dir / STATE_FILE, {
-            "schedule": self.schedule.to_dict(), "rng": self.rng.bit_generator.state,
-            "events_done": self.events_done, "decision": self.decision, "previous": self.previous,
-            "final_row": self.final_row, "wall_s": round(self.wall(), 3)}, durable=True)
+        loaded = RefereeState.load(run_dir / STATE_FILE, self.algo, cfg.steps)
+        self.resumed = loaded is not None
+        self.state = loaded or RefereeState.fresh(self.algo, cfg.steps)
+        if loaded is not None:
+            ob = loaded.obsolescence
+            log.info("recovered referee state: %d of %d evaluations done, round %d, P %s, survivor %s",
+                     loaded.events_done, len(self.plan.events()), ob.round, ob.probabilities.round(3).tolist(),
+                     ob.survivor)
 
     def wall(self) -> float:
-        return self.wall_before + time.monotonic() - self.started
+        return self.state.wall_before + time.monotonic() - self.started
 
     # -- wiring -------------------------------------------------------------------------------
     def serve(self) -> None:
@@ -120,8 +132,8 @@ class Referee:
         self.report = role.RoleReport(s, run, "referee", self.id)
         self.board = tb.RunBoard(self.run_dir, "referee")  # RUN_DIR/tb/referee: the JSONL rows' scalars
         if self.resumed:  # rows of an evaluation the predecessor logged but did not finish are done again
-            keep_logs(self.run_dir / rundir.EVAL, self.events_done)
-            keep_logs(self.run_dir / rundir.ALLOCATION, 1 + self.plan.competitions_among(self.events_done))
+            keep_logs(self.run_dir / rundir.EVAL, self.state.events_done)
+            keep_logs(self.run_dir / rundir.ALLOCATION, 1 + self.plan.competitions_among(self.state.events_done))
         self.alloc_log = self.board.tee(JsonlWriter(self.run_dir / rundir.ALLOCATION), tb.allocation_scalars)
         self.eval_log = self.board.tee(JsonlWriter(self.run_dir / rundir.EVAL), tb.eval_scalars)
         try:
@@ -139,15 +151,15 @@ class Referee:
         allocation tagged with its iteration; then, after the learner's done, the summary."""
         plan = self.plan
         history = WeightsHistory(self.algo.actors)
-        if self.decision is None:
+        if self.state.decision is None:
             self.publish_allocation(0, "initial", None)
         else:
             self.put_allocation("recovered")
-        for index, purpose in plan.events()[self.events_done:]:
+        for index, purpose in plan.events()[self.state.events_done:]:
             it = plan.iteration(index)
             competes = purpose.competes
             version = plan.judged_version(index, purpose)
-            live = [k for k in range(self.algo.actors) if self.schedule.live[k]]
+            live = [k for k in range(self.algo.actors) if self.state.obsolescence.live[k]]
             while not all(history.has(k, version) for k in live):
                 if not self.wait(history):
                     return
@@ -157,18 +169,18 @@ class Referee:
             seed = evaluation_seed(self.algo.seed, purpose, it.evaluation_index(purpose))
             means = self.evaluate(it, seed, purpose, versions, it.updates[0] if competes else it.updates[1])
             if competes:  # lines 15-20: Eq. 8 or the survivor; the slots draw for iteration index+1+B on
-                self.schedule.record_evaluation(it.units[1], competition_returns(means), rng=self.rng)
+                self.state.obsolescence.record_evaluation(it.units[1], competition_returns(means), rng=self.state.rng)
                 self.publish_allocation(index, purpose.value, competition_returns(means).tolist())
             if it.last:  # the final evaluation: curve point or not, it is the run's last
-                self.final_row = (it.transitions[1], means, seed, versions)
-            self.events_done += 1
-            self._save_state()
+                self.state.final_row = (it.transitions[1], means, seed, versions)
+            self.state.events_done += 1
+            self.state.save(self.run_dir / STATE_FILE, self.wall())
             history.forget_below(version)
         while not self.stop_requested:  # the learner's done, then the summary
             self.refresh()
             self.publish_report()
             if bus.run_is_done(self.done, self.cfg.run, self.rejects):
-                self.write_summary(*self.final_row)
+                self.write_summary(*self.state.final_row)
                 return
             self.heartbeat()
             self.stats_sub.wait_fresh(timeout=0.1)
@@ -197,35 +209,36 @@ class Referee:
     def publish_allocation(self, index: int, reason: str, returns: list[float] | None) -> None:
         """The slots w0..w{M-1} drawn with the run's allocation stream, tagged with the iteration
         that decided them (they apply from iteration index+1+B), with the decision before."""
-        drawn = self.schedule.allocation(self.algo.workers, self.rng)[:self.plan.slot_width(index)]
-        self.previous, self.decision = self.decision, (index, {keys.slot_name(i): int(k) for i, k in enumerate(drawn)})
-        slots = self.decision[1]
+        st = self.state
+        drawn = st.obsolescence.allocation(self.algo.workers, st.rng)[:self.plan.slot_width(index)]
+        st.previous, st.decision = st.decision, (index, {keys.slot_name(i): int(k) for i, k in enumerate(drawn)})
+        slots = st.decision[1]
         i_k = counts(slots, self.algo.actors).astype(int).tolist()
         it = self.plan.iteration(index) if index else None
         best = best_actors(returns, None) if returns is not None else []
-        self.alloc_log.write({"t": round(self.wall(), 3), "round": self.schedule.round,
+        self.alloc_log.write({"t": round(self.wall(), 3), "round": st.obsolescence.round,
                               "env_steps": it.transitions[1] if it else 0, "iterations": it.units[1] if it else 0,
                               "updates": it.updates[0] if it else 0,
                               "decided_at": it.transitions[1] if it else 0, "decided_at_iteration": index,
                               "applies_from_iteration": self.plan.applies_from(index),
                               "returns": returns, "tie": best if len(best) > 1 else None,
-                              "probabilities": [float(p) for p in self.schedule.probabilities], "counts": i_k,
-                              "slots": dict(slots), "eliminated": [bool(e) for e in self.schedule.eliminated],
-                              "survivor": self.schedule.survivor, "reason": reason})
+                              "probabilities": [float(p) for p in st.obsolescence.probabilities], "counts": i_k,
+                              "slots": dict(slots), "eliminated": [bool(e) for e in st.obsolescence.eliminated],
+                              "survivor": st.obsolescence.survivor, "reason": reason})
         self.put_allocation(reason, returns)
         at = role.at_text(self.plan.schedule.paper, it.units[1] if it else 0, it.transitions[1] if it else 0)
         log.info("allocation (%s) at %s: from iteration %d, P=%s I=%s", reason, at,
-                 self.plan.applies_from(index), np.round(self.schedule.probabilities, 3).tolist(), i_k)
+                 self.plan.applies_from(index), np.round(st.obsolescence.probabilities, 3).tolist(), i_k)
 
     def put_allocation(self, reason: str, returns: list[float] | None = None) -> None:
-        index, slots = self.decision
+        index, slots = self.state.decision
+        ob = self.state.obsolescence
         it = self.plan.iteration(index) if index else None
-        msg = Allocation(self.schedule.round, it.transitions[1] if it else 0,
-                         None if returns is None else tuple(returns),
-                         tuple(float(p) for p in self.schedule.probabilities),
+        msg = Allocation(ob.round, it.transitions[1] if it else 0, None if returns is None else tuple(returns),
+                         tuple(float(p) for p in ob.probabilities),
                          tuple(counts(slots, self.algo.actors).astype(int).tolist()), dict(slots),
-                         tuple(bool(e) for e in self.schedule.eliminated), self.schedule.survivor, reason,
-                         iteration=index, previous=self.previous)
+                         tuple(bool(e) for e in ob.eliminated), ob.survivor, reason,
+                         iteration=index, previous=self.state.previous)
         self.last_allocation = msg.to_bytes(self.id, self._next_seq())
         self.alloc_pub.put(self.last_allocation)
         self.last_publish = time.monotonic()
@@ -249,9 +262,9 @@ class Referee:
             returns.append([float(x) for x in r])
         means = [float(np.mean(r)) if r else None for r in returns]
         steps = it.transitions[1]
-        msg = Eval(self.events_done + 1, steps, tuple(tuple(r) for r in returns), tuple(means), tuple(versions))
+        msg = Eval(self.state.events_done + 1, steps, tuple(tuple(r) for r in returns), tuple(means), tuple(versions))
         self.eval_pub.put(msg.to_bytes(self.id, self._next_seq()))
-        self.eval_log.write({"t": round(self.wall(), 3), "round": self.events_done + 1, "env_steps": steps,
+        self.eval_log.write({"t": round(self.wall(), 3), "round": self.state.events_done + 1, "env_steps": steps,
                              "iterations": it.units[1], "updates": updates, "purpose": purpose.value, "seed": seed,
                              "returns": returns, "mean": means, "versions": versions, "bias": None})
         log.info("%s eval at %s: %s", purpose, role.at_text(self.plan.schedule.paper, it.units[1], steps),
@@ -262,14 +275,15 @@ class Referee:
         """The referee's counters on mam/<run>/stats/referee-<id> (rejections are visible there):
         the evaluations done (the learner re-sends what the next one needs) and, once the
         summary is written, `final` (the learner waits for it)."""
-        fields = {"round": self.schedule.round, "events": self.events_done, "rejected": self.rejects.counts()}
+        fields = {"round": self.state.obsolescence.round, "events": self.state.events_done,
+                  "rejected": self.rejects.counts()}
         if final:
             fields["final"] = True
         self.report.publish(fields, seq=self._next_seq, force=final)
 
     def write_summary(self, steps: int, means: list[float | None], seed: int, versions: list[int]) -> None:
         """summary.json: the final evaluation (`mam eval` reproduces it from `final_eval`)."""
-        survivor = self.schedule.survivor
+        survivor = self.state.obsolescence.survivor
         if survivor is None and any(m is not None for m in means):
             survivor = None if self.algo.actors > 1 else 0
         write_json(self.run_dir / rundir.SUMMARY, {
@@ -283,7 +297,7 @@ class Referee:
             "inexact": self.stats.inexact if self.stats else "",
             "updates": self.stats.updates if self.stats else 0,
             "wall_time_s": round(self.wall(), 2),
-            "rounds": self.schedule.round, "probabilities": self.schedule.probabilities.tolist(),
+            "rounds": self.state.obsolescence.round, "probabilities": self.state.obsolescence.probabilities.tolist(),
             "rejected": self.rejects.counts()})
         # The learner stays up until it sees this (a restarted referee still needs its caches).
         for _ in range(3):  # the last put before close can be lost

@@ -43,7 +43,7 @@ class RunConfig:
     learner_threads: int = 0  # the learner's threads (mam_core/gemm.py): portable: its GEMMs over this many
     # (0: every CPU it may use; the same bits for any count); native: torch threads (0: one)
     endpoint: str = ""  # where clients connect (written to config.json)
-    bias_every: int = 0  # Eq. 17 estimation bias every N transitions, measured by the learner (0: off)
+    bias_every: int = 0  # Eq. 17 estimation bias every N schedule steps, measured by the learner (0: off)
     bias_rollouts: int = 20  # Monte-Carlo rollouts per bias point (the paper: 20)
     bias_horizon: str = "critic"  # critic: MC return + bootstrap tail at a time limit; episode: cut there
     env_kwargs: dict[str, Any] = field(default_factory=dict)  # gym.make(env_id, **env_kwargs) everywhere

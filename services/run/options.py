@@ -94,7 +94,7 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
          "(in TOML: a table)", target=RUN),
     _opt("algo", str, f"one of {', '.join(ALGOS)}, or module.path:Name, an algorithm family in your module "
          "(mam_core/family.py; it must import on every host); defaults: "
-         + "; ".join(f"{', '.join(f.names)}: {f.help}" for f in builtin_families())),
+         + "; ".join(f.help for f in builtin_families())),
     _opt("steps", int, "required (a flag or the --config file): the budget in schedule steps, iterations "
          "(--schedule paper) or transitions (equal-data)",
          symbol="T", target=RUN),
@@ -105,7 +105,7 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
     _opt("compete_every", int, "schedule steps between allocation rounds", symbol="A", multi_actor=True),
     _opt("eta", float, "weight of the other actors' Q-values (Eq. 9)", symbol="η", multi_actor=True),
     _opt("eval_episodes", int, "episodes per actor per evaluation"),
-    _opt("eval_every", int, "schedule steps between evaluations after elimination"),
+    _opt("eval_every", int, "schedule steps between learning-curve evaluations"),
     _opt("start_steps", int, "first schedule steps use uniform random actions (and no updates)"),
     _opt("batch_size", int, "mini-batch size"),
     _opt("utd", float, "gradient updates per schedule step (per iteration, or per transition)"),
