@@ -146,6 +146,9 @@ def test_workers_with_other_kernels_than_the_learner_give_the_reference_run(tmp_
     assert got["evals"] == [(e["iterations"], e["purpose"], e["returns"]) for e in ref.evaluations]
     assert got["summary"]["survivor"] == ref.survivor
     assert _same_params(got["params"], ref.policy)
+    # A learner started by hand says the outcome it knows and where the referee's is (issue 40)
+    done = [line for line in (tmp_path / "learner.log").read_text().splitlines() if " done: " in line]
+    assert done and f"survivor {ref.survivor}, exact;" in done[-1] and "summary.json" in done[-1], done
 
 
 def test_the_run_config_records_its_arithmetic(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -183,6 +183,15 @@ def tls_router(tmp_path_factory):
         stop(router)
 
 
+def test_the_router_says_where_it_listens(tls_router) -> None:
+    """A router started by hand names its endpoint in its log (issue 40's newcomer list)."""
+    _, endpoint, tmp = tls_router
+    deadline = time.monotonic() + 20  # the line follows the session's start, which a client may beat
+    while f"listening on {endpoint}" not in (tmp / "router.log").read_text():
+        assert time.monotonic() < deadline, (tmp / "router.log").read_text()[-2000:]
+        time.sleep(0.2)
+
+
 @pytest.mark.parametrize("case, router_says", [
     ("no client certificate", "peer sent no certificates"),
     ("certificate of another CA", "invalid peer certificate: UnknownIssuer"),

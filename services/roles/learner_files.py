@@ -93,8 +93,10 @@ def write_transport(lr: Learner) -> None:
         "wall_s": round(lr.wall_before + time.monotonic() - lr.started, 3),
         **lr.intake.transport(),
         "inbox_dropped": lr.inbox.dropped})  # shed before decoding when the inbox overflowed
-    log.info("done: %d transitions, %d updates, lost %d, duplicates %d, rejected %d", lr.env_steps,
-             lr.agent.updates, tracker.lost, tracker.duplicates, lr.intake.rejects.total)
+    log.info("done: %d transitions, %d updates, lost %d, duplicates %d, rejected %d, survivor %s, %s; the final "
+             "returns: the referee's %s", lr.env_steps, lr.agent.updates, tracker.lost, tracker.duplicates,
+             lr.intake.rejects.total, "-" if lr.survivor is None else lr.survivor,
+             "exact" if not lr.inexact else f"not exact ({lr.inexact})", lr.run_dir / rundir.SUMMARY)
 
 
 def kept_weights_state(kept: list[tuple[int, int, int, dict[str, np.ndarray]]]) -> list[list[Any]]:

@@ -25,9 +25,9 @@ log = logging.getLogger("mam.router")
 app = typer.Typer(add_completion=False, help=__doc__)
 
 
-def serve(conf, stop: threading.Event) -> None:
+def serve(conf, stop: threading.Event, where: str = "") -> None:
     with bus.session_scope(conf) as session:
-        log.info("router %s up", session.zid())
+        log.info("router %s up, listening on %s", session.zid(), where or "its configured endpoints")
         stop.wait()
 
 
@@ -41,7 +41,8 @@ def router_command(
     conf = bus.make_config(connect=connect, listen=listen, config_file=zenoh_config, mode="router")
     stop = threading.Event()
     role.stop_on_signals(stop.set)
-    serve(conf, stop)
+    where = ", ".join(listen) if listen else f"the endpoints of {zenoh_config}"
+    serve(conf, stop, where + (f" (connected to {', '.join(connect)})" if connect else ""))
 
 
 cli = app  # `mam router`
