@@ -60,8 +60,8 @@ def test_the_referee_state_is_fsynced_with_its_directory(tmp_path: Path, monkeyp
         real(fd)
 
     monkeypatch.setattr(os, "fsync", fsync)
-    referee._save_state()
     state = tmp_path / referee_role.STATE_FILE
+    referee.state.save(state, referee.wall())
     assert state.is_file() and not state.with_suffix(".json.tmp").exists()
     # the file before the rename, then its directory
     assert synced == [str(state.with_suffix(".json.tmp")), str(tmp_path)]
