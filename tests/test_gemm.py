@@ -23,6 +23,7 @@ pytestmark = pytest.mark.skipif(not arithmetic.portable_gemm(), reason="the suit
 
 @pytest.fixture(autouse=True)
 def one_thread():
+    gemm.set_threads(1)  # another test of this process may have left more (chaos.compare_with_fault_free)
     yield
     gemm.set_threads(1)
 
