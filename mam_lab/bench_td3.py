@@ -35,6 +35,7 @@ from typing import Any
 import typer
 
 from mam_core import arithmetic
+from mam_lab.bench import cpu_model
 from mam_lab.bench_sizes import ROOT
 
 SB3 = """
@@ -110,7 +111,7 @@ def main(rounds: int = typer.Option(2), steps: int = typer.Option(10_000), start
                 print(f"round {r + 1}: {name} {walls[name][-1]:.1f} s", flush=True)
     med = statistics.median
     out: dict[str, Any] = {"steps": steps, "start_steps": start_steps, "rounds": rounds,
-                           "cpu": _cpu(), "load_1min": os.getloadavg()[0]}
+                           "cpu": cpu_model(), "load_1min": os.getloadavg()[0]}
     for name in names:
         out[f"{name}_wall_s"] = round(med(walls[name]), 1)
     for name in names[1:]:
@@ -120,15 +121,6 @@ def main(rounds: int = typer.Option(2), steps: int = typer.Option(10_000), start
         out["mam_vs_sb3"] = round(med(a / b for a, b in zip(walls["mam"], walls["sb3"])), 3)
     print(json.dumps(out))
 
-
-def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return ""
 
 
 if __name__ == "__main__":
