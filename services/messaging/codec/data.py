@@ -74,6 +74,14 @@ class TransitionBatch:
     def rows(self) -> int:
         return int(self.reward.shape[0])
 
+    def inexact_reasons(self, env_id: str) -> tuple[str, ...]:
+        """Why its rows end the run's exactness, as the learner logs it (none: ())."""
+        out = (f"worker {self.worker} (slot {self.slot}): {self.inexact}",) if self.inexact else ()
+        if self.env_faults:
+            out += (f"worker {self.worker} (slot {self.slot}) met {self.env_faults} simulator faults in {env_id} "
+                    f"by iteration {self.iteration + self.rows - 1}",)
+        return out
+
     def to_bytes(self, sender: str | None = None, seq: int | None = None) -> bytes:
         body = {
             "worker": self.worker,
