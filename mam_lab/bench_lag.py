@@ -29,13 +29,15 @@ from typing import Any, Callable
 from mam_lab.bench_sizes import ROOT, BenchSizes, _child_env, _stop
 
 LAGS = (0, 2)
-# name: (key prefix, workers, hidden (None: the bench's), batch (None: the bench's), evaluation episodes)
-CONFIGS = {"learner-bound": ("", 3, None, None, 1), "collection-heavy": ("collection_", 6, (32, 32), 64, 4)}
+# name: (key prefix, workers, hidden (None: the bench's), batch (None: the bench's), evaluation episodes,
+# iterations (a multiple of the bench's: the collection-heavy run's iterations are short, and at 1x its
+# reference took 15 s, mostly `mam run`'s start-up on the other side))
+CONFIGS = {"learner-bound": ("", 3, None, None, 1, 1), "collection-heavy": ("collection_", 6, (32, 32), 64, 4, 4)}
 
 
 def run_args(sizes: BenchSizes, iterations: int, seed: int, config: str = "learner-bound") -> list[str]:
     """The run's options (shared by `mam run` and the reference)."""
-    _, workers, hidden, batch, episodes = CONFIGS[config]
+    _, workers, hidden, batch, episodes, _ = CONFIGS[config]
     start, c = iterations // 4, iterations // 2
     return ["--env", "HalfCheetah-v5", "--algo", "ma-td3", "--workers", str(workers), "--steps", str(iterations),
             "--start-steps", str(start), "--compete-every", str(c // 2), "--eliminate-at", str(c),
@@ -107,7 +109,7 @@ def bench_lag(sizes: BenchSizes, log: Callable[[str], None] = print, rounds: int
 
 def _bench_config(sizes: BenchSizes, log: Callable[[str], None], rounds: int, iterations: int,
                   config: str) -> dict[str, Any]:
-    prefix, workers = CONFIGS[config][:2]
+    prefix, workers, iterations = *CONFIGS[config][:2], iterations * CONFIGS[config][5]
     log(f"lag ({config}): HalfCheetah-v5 ma-td3, K=2, M={workers}, paper schedule, {iterations} iterations: the "
         f"one-process reference, mam run --lag {LAGS[0]} and --lag {LAGS[1]}, {rounds} interleaved rounds")
     sides = ["reference", *(f"lag{b}" for b in LAGS)]
@@ -136,7 +138,8 @@ def _bench_config(sizes: BenchSizes, log: Callable[[str], None], rounds: int, it
             log(f"round {r + 1}: " + ", ".join(f"{side} {walls[side][-1]:.1f} s" for side in sides))
     med = statistics.median
     out: dict[str, Any] = {f"{prefix}lag_reference_wall_s": med(walls["reference"]),
-                           f"{prefix}lag_reference_update_share": med(shares), f"{prefix}lag_workers": workers}
+                           f"{prefix}lag_reference_update_share": med(shares), f"{prefix}lag_workers": workers,
+                           f"{prefix}lag_config_iterations": iterations}
     for b in LAGS:
         side = f"lag{b}"
         out[f"{prefix}lag{b}_speed_vs_reference"] = med(ref / w for ref, w in zip(walls["reference"], walls[side]))
