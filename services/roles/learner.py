@@ -94,13 +94,12 @@ class Learner:
         self.started = time.monotonic()
         self.wall_before = 0.0  # wall seconds of the run before this incarnation (from the checkpoint)
         self.stop_requested = False
-        self.mid_iteration = False
+        self.mid_iteration, self.ahead = False, 0  # half an iteration (the elimination); updates ahead of rows
         self.stage: SlotStage | None = None
         self.episodes = SlotEpisodes(self.plan)  # per slot, where its current episode began (a takeover's replay)
         self.awaiting: tuple[int, ...] = ()  # slots whose rows the loop waits for; -1: the referee's decision
         self.digests = PublishedDigests()  # of the versions a slot may act with (checked per batch)
-        # From a checkpoint: the older versions it publishes, the referee's pending snapshots (Outbox.restore),
-        # the (worker, incarnation) that lost their slot
+        # From a checkpoint: older versions to publish, the referee's pending snapshots, slots' lost owners
         self.kept_weights, self.kept_snapshots, self.retired = [], [], set()
         if resume is not None:
             learner_files.restore(self, resume)
@@ -154,9 +153,10 @@ class Learner:
             versions = list(self.agent.versions)  # before its updates (the intake's lag counters)
             early = None if stage.ready(index, it.slots) else plan.updates_ahead(it, self.agent, self.buffer,
                                                                                     self.apply_elimination)
-            self.mid_iteration = early is not None  # a checkpoint now would hold updates without their rows
+            self.ahead = it.updates[1] - it.updates[0] if early is not None else 0  # made before the rows are in
             waited = time.perf_counter()
-            while not stage.ready(index, it.slots) and not self.stop_waiting(early is not None, waited):  # line 9
+            while not stage.ready(index, it.slots) and not (  # line 9; a stop after updates ahead: STOP_GRACE_S
+                    self.stop_requested and (not self.ahead or time.perf_counter() - waited > STOP_GRACE_S)):
                 self.receive(stage, timeout=0.002)
                 self.awaiting = tuple(stage.missing(index, it.slots))
                 self.idle_duties(f"iteration {index}'s rows from slots {list(self.awaiting)}", waited)
@@ -178,7 +178,7 @@ class Learner:
                     self.intake.count(batch, versions)
             if early is None:
                 early = plan.run_updates(it, self.agent, self.sample, self.apply_elimination)
-            self.metrics, self.mid_iteration = early or self.metrics, False
+            self.metrics, self.ahead = early or self.metrics, 0
             if it.eliminate and self.survivor is None:  # stopped in the elimination's wait: half an iteration
                 self.mid_iteration = True
                 break
@@ -204,12 +204,8 @@ class Learner:
                 self.receive(stage, timeout=0.0, max_items=self.inbox.qsize())  # inbox sheds any of it
         # Stopped by a signal: keep a usable checkpoint (of the last whole iteration); the run is not done.
         learner_files.write_log(self)
-        if not self.mid_iteration:
+        if not self.mid_iteration and not self.ahead:  # (a checkpoint would hold updates without their rows)
             learner_files.checkpoint(self)
-
-    def stop_waiting(self, ahead: bool, since: float) -> bool:
-        """A stop ends the wait for rows at once, or after updates made ahead of them STOP_GRACE_S on."""
-        return self.stop_requested and (not ahead or time.perf_counter() - since > STOP_GRACE_S)
 
     def sample(self) -> Any:  # `agent.sampler`: on a GPU, indices staged for the CUDA graphs
         return self.agent.sampler(self.buffer, self.algo.batch_size)()
@@ -268,8 +264,7 @@ class Learner:
             log.warning("the run is no longer exact: %s; it goes on in lock-step", why)
 
     def apply_elimination(self) -> None:
-        """The referee's survivor (waits for its decision at C: it evaluates the actors after
-        iteration C-1 while this iteration's rows come in)."""
+        """The referee's survivor at C (it evaluates the actors after iteration C-1 while C's rows come in)."""
         since = time.perf_counter()
         self.awaiting = (-1,)
         while self.decided_survivor is None and not self.stop_requested:
@@ -301,10 +296,15 @@ class Learner:
         """Schedule steps done: Algorithm 1's iterations (paper) or transitions (equal-data)."""
         return self.schedule.units_at(self.env_steps)
 
+    @property
+    def updates(self) -> int:
+        """Updates of the iterations whose rows are in (what stats and logs count): the agent's, less any ahead."""
+        return self.agent.updates - self.ahead
+
     def utd(self) -> float:
         """Updates per schedule step past the start (per iteration or per transition)."""
         consumed = self.plan.units_past_start(self.iterations)
-        return self.agent.updates / consumed if consumed else 0.0
+        return self.updates / consumed if consumed else 0.0
 
     def rejected(self) -> dict[str, int]:
         """Rejection counts by reason: transitions by reason, the allocation topic as allocation:<reason>."""

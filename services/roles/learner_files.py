@@ -86,7 +86,7 @@ def write_transport(lr: Learner) -> None:
     """transport.json at the end: the counters `mam run`'s audit holds against the workers' logs."""
     tracker = lr.intake.tracker
     write_json(lr.run_dir / rundir.TRANSPORT, {
-        "env_steps": lr.env_steps, "iterations": lr.iterations, "updates": lr.agent.updates,
+        "env_steps": lr.env_steps, "iterations": lr.iterations, "updates": lr.updates,
         "lost": tracker.lost, "duplicates": tracker.duplicates, "rejected": lr.rejected(),
         "recovered": tracker.recovered, "redundant": tracker.redundant,
         "replay_rows": lr.buffer.inserted if lr.replay_log is not None else None,
@@ -182,11 +182,11 @@ def write_log(lr: Learner, now: float | None = None) -> None:
     if now is not None:
         steps, updates, t = lr._rate_base
         dt = max(now - t, 1e-9)
-        lr.rates = ((lr.env_steps - steps) / dt, (lr.agent.updates - updates) / dt)
-        lr._rate_base = (lr.env_steps, lr.agent.updates, now)
+        lr.rates = ((lr.env_steps - steps) / dt, (lr.updates - updates) / dt)
+        lr._rate_base = (lr.env_steps, lr.updates, now)
     tracker = lr.intake.tracker
     row = {"t": round(time.monotonic() - lr.started, 3), "env_steps": lr.env_steps,
-           "iterations": lr.iterations, "updates": lr.agent.updates, "utd": lr.utd(),
+           "iterations": lr.iterations, "updates": lr.updates, "utd": lr.utd(),
            "transitions_per_s": round(lr.rates[0], 2), "updates_per_s": round(lr.rates[1], 2),
            "versions": list(lr.agent.versions), "live": lr.agent.live_actors,
            "lost": tracker.lost, "duplicates": tracker.duplicates,
@@ -220,7 +220,7 @@ def measure_bias(lr: Learner, point_index: int) -> None:
             log.exception("bias measurement at %d failed (actor %d)", point, k)
             continue
         lr.bias_writer.write({"env_steps": lr.env_steps, "iterations": lr.iterations, "point": point,
-                                "updates": lr.agent.updates, "live": list(live),
+                                "updates": lr.updates, "live": list(live),
                                 "rollouts": lr.cfg.bias_rollouts, "bias": {"actor": k, **result}})
     log.info("bias at %d transitions measured in %.1f s", lr.env_steps, time.monotonic() - started)
 

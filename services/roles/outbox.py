@@ -234,7 +234,7 @@ class Outbox:
         losses = {k.split("/", 1)[1]: v for k, v in lr.metrics.items() if k.startswith("loss/")}
         q_means = [lr.metrics.get(f"q/actor{k}", float("nan")) for k in range(lr.algo.actors)]
         return LearnerStats(
-            env_steps=lr.env_steps, updates=lr.agent.updates, accept_until=lr.schedule.budget,
+            env_steps=lr.env_steps, updates=lr.updates, accept_until=lr.schedule.budget,
             utd=lr.utd(), losses=losses, q_means=tuple(q_means), versions=tuple(lr.agent.versions),
             per_worker=lr.intake.counters(now, lr.acked), rejected=lr.rejected(), done=done,
             live=tuple(lr.agent.live_actors), workers=max(len(lr.workers.live()), lr.intake.active(now)),

@@ -73,6 +73,10 @@ def make_config(
         conf.insert_json5("scouting/multicast/enabled", "false")
     if "gossip" not in text:
         conf.insert_json5("scouting/gossip/enabled", "false")
+    if "multicast" not in text and "gossip" not in text and "delay" not in text:
+        # No scouting, so nobody to wait for: a peer or router's open returns at once (Zenoh's
+        # default `scouting/delay` holds it 500 ms, paid by every learner start)
+        conf.insert_json5("scouting/delay", "0")
     if "timestamping" not in text:
         conf.insert_json5("timestamping/enabled", "true")
     if mode is None and "mode" not in text:
