@@ -9,6 +9,7 @@ import sys
 import tomllib
 from pathlib import Path
 
+import pytest
 from rich.console import Console
 
 from mam_lab.grid import load_grid_file, make_grid, plan
@@ -73,6 +74,7 @@ def test_tables_piped_into_a_file_are_markdown_one_line_per_row(tmp_path: Path):
     assert "600 iterations (" in row and row.endswith("|"), out.getvalue()
 
 
+@pytest.mark.slow  # ~10 s of real processes: the fast suite stays under 5 minutes on 2 cores
 def test_an_experiment_without_ledger_leaves_the_checkout_clean(tmp_path: Path):
     """A user's grid, run from a fresh clone without --ledger: everything lands in
     runs/experiments/<name> (ignored by git), nothing in docs/results; `git status` stays empty."""

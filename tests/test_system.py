@@ -150,6 +150,7 @@ def test_mam_run_mujoco_end_to_end(tmp_path: Path) -> None:
     assert processes_of(run_name) == []
 
 
+@pytest.mark.slow  # ~10 s of real processes: the fast suite stays under 5 minutes on 2 cores
 def test_late_worker_gets_weights_and_allocation_within_a_second(tmp_path: Path) -> None:
     run = unique_run("late")
     endpoint = bus.loopback_endpoint(bus.free_tcp_port())
@@ -197,6 +198,7 @@ def test_late_worker_gets_weights_and_allocation_within_a_second(tmp_path: Path)
     assert processes_of(run) == []
 
 
+@pytest.mark.slow  # ~10 s of real processes: the fast suite stays under 5 minutes on 2 cores
 def test_two_runs_on_one_router_never_cross(tmp_path: Path) -> None:
     """Two runs share one `mam router`, with the same worker ids: namespaces keep them apart."""
     endpoint = bus.loopback_endpoint(bus.free_tcp_port())
