@@ -20,7 +20,8 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED_RUN = {"config", "rundir", "runlock", "announce", "cpu", "preflight", "registry", "options", "codecheck"}
+SHARED_RUN = {"config", "rundir", "runlock", "announce", "cpu", "preflight", "registry", "options", "codecheck",
+              "secret"}
 TOP = {"services.cli.app", "services.cli.__main__"}
 
 # Known: the import circles and reach-ins of roles into each other that issue 39's items 3 and 4
