@@ -23,10 +23,10 @@ MODES = ("peer", "client", "router")
 # The file of a run's credentials, one `user:password` line (services/run/secret.py): a session
 # opened with it set presents them, and one that listens admits only sessions that present them.
 AUTH_ENV = "MAM_ZENOH_AUTH"
-# Where a listening session says whom it refused (Zenoh logs it at debug only): the TCP accept
-# with the peer's address, then "UsrPwd extension - Recv OpenSyn. Invalid password." or
-# "... Recv InitSyn. Expected extension." (no credentials at all).
-REFUSALS_LOG = "zenoh_link_tcp::unicast=debug,zenoh_transport::unicast::establishment::accept=debug"
+# Where a listening session says whom it refused (Zenoh logs it at debug only): "UsrPwd extension -
+# Recv InitSyn. Expected extension." (no credentials), "... Recv OpenSyn. Invalid password." (or
+# "Invalid user."); and one "New transport link accepted from <zid> ..." line per session it admits.
+REFUSALS_LOG = "zenoh_transport::unicast::establishment::accept=debug"
 
 
 # --------------------------------------------------------------------------- config & sessions
