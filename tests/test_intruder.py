@@ -162,7 +162,6 @@ def test_a_local_process_without_the_secret_can_neither_publish_nor_answer_and_t
             stats = bus.Latest.subscribe(insider, keys.learner_stats(run))
             assert stats.wait(keys.learner_stats(run), timeout=120), "no learner stats"
             stats.close()
-        intrude(run, endpoint, EnvSpec.from_env_id("AppleCollect-v1"), tmp_path)
         deadline, children = time.monotonic() + 120, children_of(proc.pid)
         while {role for _, role in children} < {"learner", "referee", "worker"}:  # the workers start last
             assert proc.poll() is None and time.monotonic() < deadline, children
@@ -170,6 +169,7 @@ def test_a_local_process_without_the_secret_can_neither_publish_nor_answer_and_t
             children = children_of(proc.pid)
         for pid, _role in children:  # what `ps` shows every user
             assert password(auth).encode() not in Path(f"/proc/{pid}/cmdline").read_bytes()
+        intrude(run, endpoint, EnvSpec.from_env_id("AppleCollect-v1"), tmp_path)
         proc.wait(240)
     finally:
         if proc.poll() is None:
