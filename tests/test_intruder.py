@@ -93,7 +93,7 @@ def test_the_secret_is_on_no_childs_command_line_and_a_child_logs_whom_it_refuse
     auth = secret.create(tmp_path)
     endpoint = bus.loopback_endpoint(bus.free_tcp_port())
     cfg = RunConfig(run="closed", env_id="AppleCollect-v1", steps=100, algo=resolve("ma-ddpg"))
-    cluster = LocalCluster(cfg, tmp_path, endpoint, console=Console(file=io.StringIO()), secret=auth)
+    cluster = LocalCluster(cfg, tmp_path, endpoint, console=Console(file=io.StringIO()), secret_file=auth)
     child = cluster.spawn("router", ["--listen", endpoint])
     try:
         bus.open_session(bus.make_config(connect=[endpoint], auth_file=auth), retry_for=30).close()

@@ -160,7 +160,7 @@ class LocalCluster:
     stopping: bool = False
     done: bool = False  # the learner reported the budget reached
     lock_token: str = ""  # run.lock's token (services/run/runlock.py): lets the children into the run directory
-    secret: Path | None = None  # RUN_DIR/zenoh-auth (services/run/secret.py): lets the children into the run's session
+    secret_file: Path | None = None  # RUN_DIR/zenoh-auth (services/run/secret.py): lets the children into its session
     # The stall watchdog (`check_stall`): the learner's last stats and when progress was last seen
     last_stats: LearnerStats | None = None
     last_stats_at: float | None = None
@@ -176,7 +176,7 @@ class LocalCluster:
         log_path = self.run_dir / rundir.LOGS / f"{role}.log"
         log_path.parent.mkdir(parents=True, exist_ok=True)
         env = dict(os.environ, **({runlock.LOCK_ENV: self.lock_token} if self.lock_token else {}),
-                   **secret.child_env(self.secret))  # never on argv: `ps` shows that to every user
+                   **secret.child_env(self.secret_file))  # never on argv: `ps` shows that to every user
         with open(log_path, "ab") as out:
             proc = subprocess.Popen([sys.executable, "-m", f"services.roles.{role.split('-')[0]}", *args],
                                     stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
@@ -416,7 +416,7 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
         if why.startswith("[red]"):
             return {}
     cluster = LocalCluster(cfg, run_dir, endpoint, policy=policy or RestartPolicy(), console=console,
-                           lock_token=lock.token, secret=auth)
+                           lock_token=lock.token, secret_file=auth)
     console.print(f"[bold]run[/] {cfg.run}  [bold]env[/] {cfg.env_id}  [bold]algo[/] {cfg.algo.algo} "
                   f"K={cfg.algo.actors} M={cfg.algo.workers}  budget {budget_text(cfg)}")
     for line in budget_warnings(cfg):  # no silent no-op: what the budget leaves out, and M < K
