@@ -119,15 +119,17 @@ def intrude(run: str, endpoint: str, spec: EnvSpec, tmp: Path) -> None:
     for creds in (None, guessed(tmp)):
         with pytest.raises(zenoh.ZError):
             bus.open_session(bus.make_config(connect=[endpoint], mode="client", auth_file=creds))
-    rows = np.zeros((1, spec.obs_dim), np.float32)
-    batch = TransitionBatch("w1", "intruder", 0, 0, 0, rows, np.zeros((1, spec.act_dim), np.float32),
-                            np.ones(1, np.float32), rows, np.zeros(1, bool), iteration=1, slot=1)
-    episode = SlotEpisode(1, 0, 1, rows, np.zeros((1, spec.act_dim), np.float32), rows)
+    rows, actions = np.zeros((1, spec.obs_dim), np.float32), np.zeros((1, spec.act_dim), np.float32)
+    # a start-phase row (version -1: no weights digest needed) for slot 1's first iteration, which
+    # the learner would insert if it arrived first
+    batch = TransitionBatch("w1", "intruder", 0, 0, -1, rows, actions, np.ones(1, np.float32), rows,
+                            np.zeros(1, bool), iteration=1, slot=1, episode_starts=(0,))
+    episode = SlotEpisode(1, 1, 2, rows, actions, rows).to_bytes("learner", 0)
     asked = []
 
     def answer(query: zenoh.Query) -> None:
         asked.append(query)
-        query.reply(query.key_expr, episode.to_bytes())
+        query.reply(query.key_expr, episode)
 
     with bus.session_scope(bus.make_config(connect=[endpoint], mode="peer")) as session:
         queryable = session.declare_queryable(keys.episode(run, 1), answer)
