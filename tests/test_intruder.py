@@ -71,9 +71,9 @@ def test_a_listening_session_with_the_secret_admits_only_sessions_that_present_i
     monkeypatch.setenv(bus.AUTH_ENV, str(auth))  # how `mam run`'s children get it
     assert json.loads(bus.make_config(listen=["tcp/127.0.0.1:1"]).get_json("transport/auth/usrpwd/user")) == "mam"
     monkeypatch.delenv(bus.AUTH_ENV)
+    bad = tmp_path / "bad"
+    bad.write_text("no colon\n")
     with pytest.raises(ValueError, match="not one user:password line"):
-        bad = tmp_path / "bad"
-        bad.write_text("no colon\n")
         bus.make_config(auth_file=bad)
     endpoint = bus.loopback_endpoint(bus.free_tcp_port())
     with bus.session_scope(bus.make_config(listen=[endpoint], auth_file=auth)):
@@ -120,8 +120,7 @@ def intrude(run: str, endpoint: str, spec: EnvSpec, tmp: Path) -> None:
         with pytest.raises(zenoh.ZError):
             bus.open_session(bus.make_config(connect=[endpoint], mode="client", auth_file=creds))
     rows, actions = np.zeros((1, spec.obs_dim), np.float32), np.zeros((1, spec.act_dim), np.float32)
-    # a start-phase row (version -1: no weights digest needed) for slot 1's first iteration, which
-    # the learner would insert if it arrived first
+    # a start-phase row of slot 1 (version -1: it needs no weights digest), as its worker sends them
     batch = TransitionBatch("w1", "intruder", 0, 0, -1, rows, actions, np.ones(1, np.float32), rows,
                             np.zeros(1, bool), iteration=1, slot=1, episode_starts=(0,))
     episode = SlotEpisode(1, 1, 2, rows, actions, rows).to_bytes("learner", 0)
