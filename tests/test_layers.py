@@ -6,8 +6,8 @@ From the ground up (docs/ARCHITECTURE.md):
 
 1. `mam_core`: the algorithm, pure (no Zenoh, no services).
 2. `services/messaging`: key expressions, codecs, the bus.
-3. What every process of a run shares: its config, option table, directory, lock, announcement,
-   CPU and device checks (`services/run/` less the supervision).
+3. What every process of a run shares: its config, option table, directory, lock, secret,
+   announcement, CPU and device checks (`services/run/` less the supervision).
 4. `services/roles`: the learner, workers, referee, monitor, router and their parts.
 5. Run supervision: the launcher, its progress view, the chaos runner, the run's figures.
 6. The command line (`services/cli`) and, beside it, `mam_lab`: neither imports the other;
