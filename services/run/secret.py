@@ -6,7 +6,8 @@ file through their environment (bus.AUTH_ENV), never on their command line, whic
 every user. Every session opened with it presents the password, and the learner, which listens,
 admits only sessions that present it (bus.make_config): a process without it cannot connect, so
 it can neither publish a batch nor answer an episode query. `mam watch --run NAME`, run by the
-same user, reads the file from the run directory. The file goes when the part ends.
+same user, reads the file from the run directory. The file goes when the part ends (one that
+stops before it starts its children, on a write error, may leave it: the next part replaces it).
 
 It keeps out other users and processes that cannot read the run directory's file; a process of
 the same Unix user can read the file (docs/DESIGN-DECISIONS.md, "Who may join a local run").
