@@ -44,12 +44,17 @@ APPLE = dict(hidden=(16, 16), batch_size=16, start_steps=100, compete_every=100,
 APPLE_STEPS = 450
 
 
+def apple_args(run: str, run_dir: Path, seed: int) -> list[str]:
+    """`mam run`'s flags for APPLE, APPLE_STEPS iterations of AppleCollect-v1 MA-DDPG."""
+    return ["--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--steps", str(APPLE_STEPS), "--workers", "5",
+            "--actors", "3", "--start-steps", "100", "--compete-every", "100", "--eliminate-at", "300",
+            "--eval-episodes", "2", "--eval-every", "100", "--hidden", "16,16", "--batch-size", "16",
+            "--seed", str(seed), "--run", run, "--run-dir", str(run_dir)]
+
+
 def _mam_run(tmp: Path, name: str, seed: int, *extra: str) -> Path:
     run_dir = tmp / name
-    mam("run", "--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--steps", str(APPLE_STEPS), "--workers", "5",
-        "--actors", "3", "--start-steps", "100", "--compete-every", "100", "--eliminate-at", "300",
-        "--eval-episodes", "2", "--eval-every", "100", "--hidden", "16,16", "--batch-size", "16", "--seed", str(seed),
-        "--run", unique_run(name), "--run-dir", str(run_dir), *extra, timeout=240)
+    mam("run", *apple_args(unique_run(name), run_dir, seed), *extra, timeout=240)
     return run_dir
 
 
@@ -266,7 +271,8 @@ def test_a_batch_lost_in_flight_is_sent_again_and_the_run_stays_exact(tmp_path: 
 
 @pytest.mark.slow
 def test_weights_overwritten_on_their_keys_neither_hang_nor_change_the_run(tmp_path: Path) -> None:
-    """A stranger floods every weights key (and the referee's snapshot keys) with junk. Workers and
+    """A process of the run's own (it holds the run's secret: one without it cannot even connect,
+    tests/test_intruder.py) floods every weights key (and the referee's snapshot keys) with junk. Workers and
     the referee screen it out in their subscription callbacks, so it never takes the place of the
     learner's last weights in a one-per-key subscriber nor fills the referee's snapshot queue (the
     learner's re-sends of late weights stay as the fallback for a sample lost anyway): the run
@@ -275,10 +281,7 @@ def test_weights_overwritten_on_their_keys_neither_hang_nor_change_the_run(tmp_p
 
     torch.set_num_threads(1)
     run, run_dir = unique_run("clobber"), tmp_path / "clobber"
-    args = ["--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--steps", str(APPLE_STEPS), "--workers", "5",
-            "--actors", "3", "--start-steps", "100", "--compete-every", "100", "--eliminate-at", "300",
-            "--eval-episodes", "2", "--eval-every", "100", "--hidden", "16,16", "--batch-size", "16", "--seed", "3",
-            "--run", run, "--run-dir", str(run_dir), "--no-plot"]
+    args = [*apple_args(run, run_dir, 3), "--no-plot"]
     proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", *args], cwd=ROOT, stdout=subprocess.DEVNULL,
                             stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONWARNINGS="ignore"))
     sent = 0
@@ -289,7 +292,8 @@ def test_weights_overwritten_on_their_keys_neither_hang_nor_change_the_run(tmp_p
             assert proc.poll() is None and time.monotonic() < deadline, "mam run did not start"
             time.sleep(0.1)
         endpoint = json.loads((run_dir / "config.json").read_text())["endpoint"]
-        with bus.session_scope(bus.make_config(connect=[endpoint]), retry_for=30) as session:
+        insider = bus.make_config(connect=[endpoint], auth_file=run_dir / "zenoh-auth")
+        with bus.session_scope(insider, retry_for=30) as session:
             targets = [keys.weights(run, k) for k in range(3)] + [keys.eval_weights(run, k) for k in range(3)]
             pubs = [session.declare_publisher(key) for key in targets]
             deadline = time.monotonic() + 240

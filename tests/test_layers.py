@@ -6,8 +6,8 @@ From the ground up (docs/ARCHITECTURE.md):
 
 1. `mam_core`: the algorithm, pure (no Zenoh, no services).
 2. `services/messaging`: key expressions, codecs, the bus.
-3. What every process of a run shares: its config, option table, directory, lock, announcement,
-   CPU and device checks (`services/run/` less the supervision).
+3. What every process of a run shares: its config, option table, directory, lock, secret,
+   announcement, CPU and device checks (`services/run/` less the supervision).
 4. `services/roles`: the learner, workers, referee, monitor, router and their parts.
 5. Run supervision: the launcher, its progress view, the chaos runner, the run's figures.
 6. The command line (`services/cli`) and, beside it, `mam_lab`: neither imports the other;
@@ -20,7 +20,8 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED_RUN = {"config", "rundir", "runlock", "announce", "cpu", "preflight", "registry", "options", "codecheck"}
+SHARED_RUN = {"config", "rundir", "runlock", "announce", "cpu", "preflight", "registry", "options", "codecheck",
+              "secret"}
 TOP = {"services.cli.app", "services.cli.__main__"}
 
 # Known: the import circles and reach-ins of roles into each other that issue 39's items 3 and 4

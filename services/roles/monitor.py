@@ -19,7 +19,7 @@ from services.messaging import bus, keys
 from services.messaging.codec import Allocation, Done, Eval, LearnerStats, MessageError, decode
 from services.roles import role
 from services.roles.monitor_view import MonitorState, PlainLines, message_body, render
-from services.run import config, options, registry
+from services.run import config, options, registry, secret
 from services.run.config import RunConfig
 
 log = logging.getLogger("mam.monitor")
@@ -43,7 +43,8 @@ def watch(run: str, conf: Any, refresh_per_s: float = 4.0, until_done: bool = Tr
         session_cm = bus.session_scope(conf, retry_for=30.0 if timeout is None else max(timeout, 0.1))
         session = session_cm.__enter__()
     except Exception as e:  # zenoh.ZError: nothing listens there
-        raise NoRun(f"nothing listens at the run's endpoint ({type(e).__name__}: {str(e)[:200]})") from None
+        raise NoRun(f"nothing listens at the run's endpoint, or it refused this process: a local run admits only "
+                    f"its own processes and its user's `mam watch` ({type(e).__name__}: {str(e)[:200]})") from None
     try:
         alive = bus.watch_alive(session, run, None, lambda role, id_, up: state.on_alive(role, id_, up))
         subs = {name: bus.Latest.subscribe(session, key) for name, key in (
@@ -98,17 +99,20 @@ class _Plain:
         return None
 
 
-def find_endpoint(run: str, run_dir: Path | None, timeout: float, console: Console) -> str:
-    """Where a local run listens: its config.json or the registry `mam run` writes
-    (services/run/registry.py), waiting up to `timeout` s for it to appear. NoRun if it does not."""
+def find_endpoint(run: str, run_dir: Path | None, timeout: float, console: Console) -> tuple[str, Path | None]:
+    """Where a local run listens and its secret (None if it has none this user can read): its
+    config.json or the registry `mam run` writes (services/run/registry.py), and its run directory
+    (services/run/secret.py), waiting up to `timeout` s for it to appear. NoRun if it does not."""
     deadline = time.monotonic() + timeout
     said = False
     while True:
         found = registry.lookup(run, run_dir)
         if found is not None:
-            endpoint, where = found
-            console.print(f"run {run}: {endpoint} (from {where})", highlight=False)
-            return endpoint
+            endpoint, where, found_dir = found
+            auth = secret.of_run(found_dir)
+            console.print(f"run {run}: {endpoint} (from {where}{'; with its secret' if auth else ''})",
+                          highlight=False)
+            return endpoint, auth
         if time.monotonic() >= deadline:
             raise NoRun(f"no local run {run!r} within {timeout:g} s (looked in {registry.places(run, run_dir)}); "
                         "for a run on another host pass --connect ENDPOINT")
@@ -156,9 +160,11 @@ def watch_command(run: str | None, connect: list[str] | None, zenoh_config: Path
     console = Console()
     plain = not console.is_terminal if plain is None else plain
     try:
+        auth = secret.of_run(run_dir)  # a local run admits its own user's `mam watch` (its secret)
         if not connect and not zenoh_config:
-            connect = [find_endpoint(run, run_dir, timeout, console)]
-        watch(run, role.client_config(connect, None, zenoh_config), until_done=not keep, console=console,
+            endpoint, auth = find_endpoint(run, run_dir, timeout, console)
+            connect = [endpoint]
+        watch(run, role.client_config(connect, None, zenoh_config, auth), until_done=not keep, console=console,
               timeout=timeout, plain=plain)
     except NoRun as e:
         console.print(f"[red]mam watch:[/] {e}", highlight=False)

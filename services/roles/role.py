@@ -35,10 +35,11 @@ def setup_logging(verbose: bool = False) -> None:
 
 
 def client_config(connect: list[str] | None, listen: list[str] | None = None,
-                  zenoh_config: Path | None = None) -> Any:
-    """The Zenoh config of a client role: `--connect`, else the config file, else DEFAULT_ENDPOINT."""
+                  zenoh_config: Path | None = None, auth_file: Path | None = None) -> Any:
+    """The Zenoh config of a client role: `--connect`, else the config file, else DEFAULT_ENDPOINT;
+    `auth_file`: a run's secret (default: bus.AUTH_ENV's, if set; services/run/secret.py)."""
     return bus.make_config(connect=connect or ([] if zenoh_config else [DEFAULT_ENDPOINT]), listen=listen,
-                           config_file=zenoh_config)
+                           config_file=zenoh_config, auth_file=auth_file)
 
 
 def serve_role(name: str, conf: Any, build: Callable[[RunConfig | None, Any], Any], *, run: str,

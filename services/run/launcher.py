@@ -1,16 +1,18 @@
 """`mam run`: a whole run on one box — learner, referee and M workers as child processes.
 
 The learner listens on a free loopback port; the referee and workers connect to it as clients
-(no multicast scouting, a unique run name). The launcher is one more client: it shows progress
-(services/run/progress.py), supervises the children (one that dies is restarted with backoff,
-the learner with `--resume`: RestartPolicy), stops them on Ctrl-C or at the end of the budget,
-reconciles what the workers sent with what the replay holds (`audit_transport`), draws plots.
-Children are started with `subprocess` (Zenoh sessions do not survive `fork`), each logging to
-RUN_DIR/logs/<role>.log (a restarted child appends to it).
+(no multicast scouting, a unique run name, a per-run secret that keeps other processes out:
+services/run/secret.py). The launcher is one more client: it shows progress (progress.py),
+supervises the children (one that dies is restarted with backoff, the learner with `--resume`:
+RestartPolicy), stops them on Ctrl-C or at the end of the budget, reconciles what the workers
+sent with what the replay holds (`audit_transport`), draws plots. Children are started with
+`subprocess` (Zenoh sessions do not survive `fork`), each logging to RUN_DIR/logs/<role>.log.
 """
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import json
 import os
 import signal
@@ -27,7 +29,7 @@ from rich.console import Console
 from mam_core import arithmetic
 from services.messaging import bus
 from services.messaging.codec import LearnerStats
-from services.run import codecheck, preflight, registry, rundir, runlock
+from services.run import codecheck, preflight, registry, rundir, runlock, secret
 from services.run.audit import audit_transport
 from services.run.config import RunConfig, budget_warnings
 from services.run.progress import budget_text, command_name, done_text, follow, outcome_text, waited_on
@@ -42,18 +44,13 @@ MAX_STALL_ACTIONS = 2  # watchdog restarts in a row without progress; one more s
 STARTUP_GRACE_S = 60.0  # the watchdog's limit until a (re)started learner's first stats arrive, if longer
 # `mam experiment --parallel`: the cores of a run's learner ("0,1"); its referee and workers float
 LEARNER_CPUS_ENV = "MAM_LEARNER_CPUS"
-CHECKPOINT_FILE = rundir.LEARNER_CHECKPOINT
 PR_SET_PDEATHSIG = 1
 
 
 def die_with_parent() -> None:
     """Runs in the child before exec: SIGTERM it if the launcher dies (even by SIGKILL)."""
-    try:
-        import ctypes
-
+    with contextlib.suppress(OSError):
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-    except OSError:
-        pass
 
 
 def _child_setup(role: str) -> Callable[[], None]:
@@ -163,6 +160,7 @@ class LocalCluster:
     stopping: bool = False
     done: bool = False  # the learner reported the budget reached
     lock_token: str = ""  # run.lock's token (services/run/runlock.py): lets the children into the run directory
+    secret_file: Path | None = None  # RUN_DIR/zenoh-auth (services/run/secret.py): lets the children into its session
     # The stall watchdog (`check_stall`): the learner's last stats and when progress was last seen
     last_stats: LearnerStats | None = None
     last_stats_at: float | None = None
@@ -177,7 +175,8 @@ class LocalCluster:
     def spawn(self, role: str, args: list[str]) -> Child:
         log_path = self.run_dir / rundir.LOGS / f"{role}.log"
         log_path.parent.mkdir(parents=True, exist_ok=True)
-        env = dict(os.environ, **{runlock.LOCK_ENV: self.lock_token}) if self.lock_token else None
+        env = dict(os.environ, **({runlock.LOCK_ENV: self.lock_token} if self.lock_token else {}),
+                   **secret.child_env(self.secret_file))  # never on argv: `ps` shows that to every user
         with open(log_path, "ab") as out:
             proc = subprocess.Popen([sys.executable, "-m", f"services.roles.{role.split('-')[0]}", *args],
                                     stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
@@ -404,10 +403,10 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
 
 def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, outcome: dict[str, Any] | None,
                 policy: RestartPolicy | None, lock: runlock.DirLock, code: Any, forced_code: list) -> dict[str, Any]:
-    port = bus.free_tcp_port()
-    endpoint = bus.loopback_endpoint(port)
+    endpoint = bus.loopback_endpoint(bus.free_tcp_port())
     cfg = RunConfig.from_dict({**cfg.to_dict(), "endpoint": endpoint})
-    try:
+    try:  # the secret first: whoever finds the endpoint in config.json can find it too, if allowed
+        auth = secret.create(run_dir)
         write_json(run_dir / rundir.CONFIG, cfg.to_dict())
     except OSError as e:
         console.print(f"[red]cannot write {run_dir / rundir.CONFIG}: {e.strerror or e} ({disk_free(run_dir)} free)[/]")
@@ -417,7 +416,7 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
         if why.startswith("[red]"):
             return {}
     cluster = LocalCluster(cfg, run_dir, endpoint, policy=policy or RestartPolicy(), console=console,
-                           lock_token=lock.token)
+                           lock_token=lock.token, secret_file=auth)
     console.print(f"[bold]run[/] {cfg.run}  [bold]env[/] {cfg.env_id}  [bold]algo[/] {cfg.algo.algo} "
                   f"K={cfg.algo.actors} M={cfg.algo.workers}  budget {budget_text(cfg)}")
     for line in budget_warnings(cfg):  # no silent no-op: what the budget leaves out, and M < K
@@ -451,6 +450,7 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         cluster.stop()
+        secret.remove(auth)  # the part is over: nobody joins it any more
         registry.unregister(cfg.run)
         for sig, handler in previous.items():
             signal.signal(sig, handler)

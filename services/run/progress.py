@@ -198,7 +198,7 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
     Children that die meanwhile are restarted (`LocalCluster.supervise`, which raises
     RoleKeepsDying when one dies too often).
     """
-    conf = bus.make_config(connect=[endpoint])
+    conf = bus.make_config(connect=[endpoint], auth_file=cluster.secret_file)  # the run's secret, if any
     with supervised_session(conf, cluster) as session:  # a learner that dies before we connect is restarted
         stats = bus.Latest.subscribe(session, keys.learner_stats(cfg.run))
         allocation = bus.Latest.subscribe(session, keys.allocation(cfg.run))

@@ -61,28 +61,28 @@ def _alive(pid: Any) -> bool:
     return True
 
 
-def lookup(run: str, run_dir: Path | None = None) -> tuple[str, str] | None:
-    """(endpoint, where it was found) of a local run, or None: `run_dir`'s config.json if given,
-    else a live registry entry, else ./runs/<run>/config.json."""
+def lookup(run: str, run_dir: Path | None = None) -> tuple[str, str, Path] | None:
+    """(endpoint, where it was found, run directory) of a local run, or None: `run_dir`'s
+    config.json if given, else a live registry entry, else ./runs/<run>/config.json."""
     if run_dir is not None:
         return _from_config(run, Path(run_dir) / rundir.CONFIG)
     entry = registry_dir() / f"{run}.json"
     try:
         data = json.loads(entry.read_text())
         if data.get("run") == run and _alive(data.get("pid")) and data.get("endpoint"):
-            return str(data["endpoint"]), str(entry)
-    except (OSError, ValueError, AttributeError):
+            return str(data["endpoint"]), str(entry), Path(data.get("run_dir") or Path("runs") / run)
+    except (OSError, ValueError, AttributeError, TypeError):
         pass
     return _from_config(run, Path("runs") / run / rundir.CONFIG)
 
 
-def _from_config(run: str, path: Path) -> tuple[str, str] | None:
+def _from_config(run: str, path: Path) -> tuple[str, str, Path] | None:
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
     if isinstance(data, dict) and data.get("run") == run and data.get("endpoint"):
-        return str(data["endpoint"]), str(path)
+        return str(data["endpoint"]), str(path), path.parent
     return None
 
 

@@ -24,6 +24,7 @@ looks for, so a rename is one edit. Plain string constants: importing this modul
     RUN_DIR/tb/                    TensorBoard event files
     RUN_DIR/launch.json, launcher.log, record.json   a run of a `mam experiment` grid
     RUN_DIR/launcher.json          `mam run`'s parts, restarts and wall time so far (RunParts)
+    RUN_DIR/zenoh-auth             mode 0600: the per-run secret of a live `mam run` part (services/run/secret.py)
 
     EXP_DIR/experiment.json, report.md, figures/, failures/   a `mam experiment` directory
     EXP_DIR/experiment.lock        the `mam experiment` working there (services/run/runlock.py)
@@ -67,6 +68,7 @@ WORKERS = "workers"
 PLOTS = "plots"
 TB = "tb"
 CHAOS = "chaos.json"  # `mam chaos`'s result
+RUN_SECRET = "zenoh-auth"  # mode 0600, while a `mam run` part lives: who may join its Zenoh session
 
 # --- a run of a `mam experiment` grid ------------------------------------------------------------
 LAUNCH = "launch.json"  # what the run process is to do (written by the grid)

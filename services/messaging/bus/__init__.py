@@ -7,8 +7,10 @@ role's loop, and asking). Callers use `from services.messaging import bus`.
 
 Topology: a star. The learner (or a ``mode: router`` session) listens; workers, the
 referee and monitors connect to it as clients. On one box the launcher picks a free
-port and uses ``tcp/127.0.0.1:<port>``. Multicast and gossip scouting are off unless
-a config file turns them on, so processes only meet through explicit endpoints.
+port and uses ``tcp/127.0.0.1:<port>``, admitting only sessions that present the run's
+secret (``AUTH_ENV``, user-password authentication; services/run/secret.py). Multicast and
+gossip scouting are off unless a config file turns them on, so processes only meet through
+explicit endpoints.
 
 Delivery rules (docs/ZENOH-NOTES.md has the measurements behind them):
 
@@ -47,7 +49,9 @@ from services.messaging.bus.alive import AliveWatch, declare_alive, watch_alive
 from services.messaging.bus.query import Answers, ask, ask_all
 from services.messaging.bus.receive import Inbox, Latest, Received
 from services.messaging.bus.session import (
+                                     AUTH_ENV,
                                      MODES,
+                                     REFUSALS_LOG,
                                      declare_latest_publisher,
                                      declare_reliable_publisher,
                                      free_tcp_port,
@@ -56,9 +60,11 @@ from services.messaging.bus.session import (
                                      make_config,
                                      open_session,
                                      session_scope,
+                                     use_credentials,
 )
 
-__all__ = ["DUPLICATE", "GAP", "IN_ORDER", "MAX_HOLES", "MODES", "RECOVERED", "REDUNDANT", "AliveWatch", "Answers",
-           "Inbox", "Latest", "Received", "RejectLog", "SequenceTracker", "ask", "ask_all", "declare_alive",
-           "declare_latest_publisher", "declare_reliable_publisher", "free_tcp_port", "init_zenoh_log",
-           "loopback_endpoint", "make_config", "open_session", "run_is_done", "session_scope", "watch_alive"]
+__all__ = ["AUTH_ENV", "DUPLICATE", "GAP", "IN_ORDER", "MAX_HOLES", "MODES", "RECOVERED", "REDUNDANT", "REFUSALS_LOG",
+           "AliveWatch", "Answers", "Inbox", "Latest", "Received", "RejectLog", "SequenceTracker", "ask", "ask_all",
+           "declare_alive", "declare_latest_publisher", "declare_reliable_publisher", "free_tcp_port", "init_zenoh_log",
+           "loopback_endpoint", "make_config", "open_session", "run_is_done", "session_scope", "use_credentials",
+           "watch_alive"]

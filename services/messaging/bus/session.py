@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import socket
 import time
 from contextlib import contextmanager
@@ -19,15 +20,24 @@ from zenoh.ext import (
 )
 
 MODES = ("peer", "client", "router")
+# The file of a run's credentials, one `user:password` line (services/run/secret.py): a session
+# opened with it set presents them, and one that listens admits only sessions that present them.
+AUTH_ENV = "MAM_ZENOH_AUTH"
+# Where a listening session says whom it refused (Zenoh logs it at debug only): "UsrPwd extension -
+# Recv InitSyn. Expected extension." (no credentials), "... Recv OpenSyn. Invalid password." (or
+# "Invalid user."); and one "New transport link accepted from <zid> ..." line per session it admits.
+REFUSALS_LOG = "zenoh_transport::unicast::establishment::accept=debug"
 
 
 # --------------------------------------------------------------------------- config & sessions
 
 
 def init_zenoh_log() -> None:
-    """Zenoh's own log (TLS and connection errors) on stderr: RUST_LOG if set, else warnings."""
+    """Zenoh's own log (TLS and connection errors) on stderr: RUST_LOG if set, else warnings, and
+    in a process that holds a run's credentials (AUTH_ENV) also the connections it accepted or
+    refused (REFUSALS_LOG): a process without them that tries to join shows in the learner's log."""
     try:
-        zenoh.init_log_from_env_or("warn")
+        zenoh.init_log_from_env_or("warn" + ("," + REFUSALS_LOG if os.environ.get(AUTH_ENV) else ""))
     except Exception:  # already initialised in this process
         pass
 
@@ -51,6 +61,7 @@ def make_config(
     listen: list[str] | None = None,
     config_file: str | Path | None = None,
     mode: str | None = None,
+    auth_file: str | Path | None = None,
 ) -> zenoh.Config:
     """A Zenoh config for one role.
 
@@ -60,6 +71,11 @@ def make_config(
     a file's mode is kept; otherwise ``connect`` alone gives a client, anything else a peer.
     No connect and no listen gives a peer that nobody can reach: tests and launchers
     always pass explicit endpoints.
+
+    ``auth_file`` (default: the file named by ``$MAM_ZENOH_AUTH``, if set) holds one
+    ``user:password`` line: the session presents it when it connects (Zenoh's user-password
+    authentication), and takes the file as its dictionary, so when it listens it admits only
+    sessions that present the same (``mam run``'s per-run secret, services/run/secret.py).
     """
     if mode is not None and mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -89,7 +105,24 @@ def make_config(
         conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    auth = auth_file if auth_file is not None else os.environ.get(AUTH_ENV)
+    if auth:
+        use_credentials(conf, Path(auth))
     return conf
+
+
+def use_credentials(conf: zenoh.Config, path: Path) -> None:
+    """Present `path`'s `user:password` when connecting, and admit only sessions that present it
+    (the file is also Zenoh's dictionary, what a listening session checks the credentials against)."""
+    try:
+        user, sep, password = path.read_text().strip().partition(":")
+    except OSError as e:
+        raise ValueError(f"cannot read the run's credentials {path} ({AUTH_ENV}): {e.strerror or e}") from None
+    if not (sep and user and password):
+        raise ValueError(f"{path} ({AUTH_ENV}) is not one user:password line")
+    conf.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
+    conf.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
+    conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(path)))
 
 
 def open_session(conf: zenoh.Config, *, retry_for: float = 0.0) -> zenoh.Session:
