@@ -154,11 +154,9 @@ class Learner:
             if not stage.ready(index, it.slots):  # stopped
                 break
             rows, sources, used = stage.take(index, it.slots)
-            self.buffer.add_batch(rows["obs"], rows["action"], rows["reward"], rows["next_obs"],
-                                  rows["terminated"], actor=rows["actor"], version=rows["version"])
+            self.intake.insert(rows, sources)
             p.env_steps += len(it.slots)
-            for batch, used_rows in sources:
-                self.intake.insert_row(batch, used_rows)
+            for batch, _ in sources:
                 if why := self.state.digests.foreign(batch):  # a row acted with weights this learner never made
                     p.break_exact(why)
             self.state.episodes.inserted(index, it.slots, sources)
