@@ -9,6 +9,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from mam_core.replay import ReplayBuffer
 from services.messaging import bus, keys
 from services.messaging.codec import MessageError, TransitionBatch, TransitionSpec, WorkerCounters
@@ -111,6 +113,14 @@ class Intake:
             w.redundant_rows += batch.rows
             return False
         return True
+
+    def insert(self, rows: dict[str, np.ndarray], sources: list[tuple[TransitionBatch, int]]) -> None:
+        """An iteration's rows into the replay buffer, in slot order (`SlotStage.take`: the rows, and
+        for each its batch and how many rows of it are used so far), each counted for its stream."""
+        self.buffer.add_batch(rows["obs"], rows["action"], rows["reward"], rows["next_obs"], rows["terminated"],
+                              actor=rows["actor"], version=rows["version"])
+        for batch, used in sources:
+            self.insert_row(batch, used)
 
     def insert_row(self, batch: TransitionBatch, used: int) -> None:
         """A row of `batch` went into the replay, the `used`-th of it (the per-stream count the

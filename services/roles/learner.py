@@ -4,7 +4,8 @@ One loop, Algorithm 1's iterations in lock-step (mam_core/algorithm1.py, service
 stage the workers' transitions per slot, insert iteration i's rows in slot order, make its
 updates (the referee's elimination where the plan places it), publish weights when they change
 and the snapshots the referee judges, stats a few times a second, checkpoint
-(services/roles/checkpoint.py), and end the run with the plan's last iteration.
+(services/roles/checkpoint.py), and end the run with the plan's last iteration. Its state is a
+`LearnerState` (services/roles/learner_state.py) that its helpers take: learner_files.py, outbox.py.
 """
 
 from __future__ import annotations
@@ -36,10 +37,10 @@ from services.roles.checkpoint import (
     load_checkpoint,
     replay_dir,
 )
-from services.roles.episodes import SlotEpisodes
 from services.roles.intake import Intake
+from services.roles.learner_state import LearnerState, LogRates
 from services.roles.lockstep import SlotStage
-from services.roles.outbox import Outbox, PublishedDigests
+from services.roles.outbox import Outbox, Watches
 from services.run import announce, cpu, options, rundir, runlock
 from services.run.config import RunConfig
 from services.run.rundir import JsonlWriter, write_json
@@ -64,88 +65,76 @@ class Learner:
         self.device = pick_device(self.algo.device)
         torch.manual_seed(self.algo.seed)
         gemm.use_learner_threads(cfg.learner_threads)  # mam_core/gemm.py
-        self.agent = MultiActorAgent(self.algo, self.spec, self.device)
-        self.plan = Algorithm1.for_run(self.algo, cfg.steps)  # every "when" of the run
-        self.schedule = self.plan.schedule
-        self.iteration = 0  # iterations whose updates are done
-        self.inexact = ""  # why the run is not exact ("" while it is)
-        self.decided_survivor: int | None = None  # the referee's choice at C, applied where the plan places it
-        self.buffer = ReplayBuffer(self.plan.replay_capacity(self.algo.buffer_size), self.spec.obs_dim,
-                                   self.spec.act_dim, self.device, self.algo.seed)
+        agent = MultiActorAgent(self.algo, self.spec, self.device)
+        plan = Algorithm1.for_run(self.algo, cfg.steps)  # every "when" of the run
+        buffer = ReplayBuffer(plan.replay_capacity(self.algo.buffer_size), self.spec.obs_dim, self.spec.act_dim,
+                              self.device, self.algo.seed)
         spec = TransitionSpec(self.spec.obs_dim, self.spec.act_dim, self.algo.actors, max_rows=4096,
                               max_action=max(self.spec.max_action))
         max_message = spec.max_rows * (2 * self.spec.obs_dim + self.spec.act_dim + 2) * 4 + (1 << 16)
-        self.intake = Intake(self.buffer, spec, max_message)
-        self.intake.incarnation = self.incarnation
-        self.replay_log = ReplayLog(replay_dir(run_dir)) if cfg.save_replay else None
-        # Per worker: (incarnation, seq) such that all its batches up to seq are in the checkpoint
-        # generation before the newest (with the replay). Workers keep the batches after it and
-        # resend them to a restarted learner. One generation late: when the newest fails to
-        # verify at a resume, the learner falls back to the previous one, and the rows after that
-        # are still with the workers.
-        self.acked: dict[str, tuple[str, int]] = {}
-        self.acked_newest: dict[str, tuple[str, int]] = {}  # the same for the newest generation
-        self.referee_seen = False
-        self.other_rejects = bus.RejectLog(log, "message")  # allocation topic
-        self.metrics: dict[str, float] = {}
-        self.env_steps = 0  # transitions in the replay buffer
-        self.survivor: int | None = None
-        self.checkpoints = CheckpointRule(cfg.checkpoint_every, cfg.checkpoint_rows, cfg.checkpoint_seconds)
-        self.started = time.monotonic()
-        self.wall_before = 0.0  # wall seconds of the run before this incarnation (from the checkpoint)
+        intake = Intake(buffer, spec, max_message)
+        intake.incarnation = self.incarnation
+        replay_log = ReplayLog(replay_dir(run_dir)) if cfg.save_replay else None
+        checkpoints = CheckpointRule(cfg.checkpoint_every, cfg.checkpoint_rows, cfg.checkpoint_seconds)
+        # What the checkpoint saves and the helpers (learner_files.py, outbox.py) take: learner_state.py
+        self.state = LearnerState(plan, agent, buffer, replay_log, intake, checkpoints)
+        self.agent, self.plan, self.buffer, self.intake = agent, plan, buffer, intake
+        self.progress = self.state.progress  # (restored in place)
         self.stop_requested = False
-        self.mid_iteration, self.ahead = False, 0  # half an iteration (the elimination); updates ahead of rows
-        self.stage: SlotStage | None = None
-        self.episodes = SlotEpisodes(self.plan)  # per slot, where its current episode began (a takeover's replay)
-        self.awaiting: tuple[int, ...] = ()  # slots whose rows the loop waits for; -1: the referee's decision
-        self.digests = PublishedDigests()  # of the versions a slot may act with (checked per batch)
-        # From a checkpoint: older versions to publish, the referee's pending snapshots, slots' lost owners
-        self.kept_weights, self.kept_snapshots, self.retired = [], [], set()
+        self.mid_iteration = False  # half an iteration (stopped in the elimination's wait)
         if resume is not None:
-            learner_files.restore(self, resume)
+            learner_files.restore(self.state, resume, run_dir, self.algo)
+
+    @property
+    def iteration(self) -> int:
+        """Iterations whose updates are done."""
+        return self.progress.iteration
+
+    @property
+    def inexact(self) -> str:
+        """Why the run is not exact ("" while it is)."""
+        return self.progress.inexact
 
     def serve(self) -> None:
         run, s = self.cfg.run, self.session
         self.token = bus.declare_alive(s, run, "learner", self.id)
-        self.workers = bus.watch_alive(s, run, "worker")
-        self.referees = bus.watch_alive(s, run, "referee")
+        workers, referees = bus.watch_alive(s, run, "worker"), bus.watch_alive(s, run, "referee")
         self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
-        self.referee_reports = bus.Latest(late_join=False).subscribe(s, keys.role_stats_all(run, "referee"))
+        self.watches = Watches(workers, referees, bus.Latest(late_join=False).subscribe(
+            s, keys.role_stats_all(run, "referee")))  # the referee's `events` and `final`
         self.rivals = bus.Latest(late_join=False).subscribe(s, keys.learner_stats(run))  # a higher epoch: stale
         self.inbox = bus.Inbox(maxsize=8192).subscribe(s, keys.transitions_all(run))
         self.episode_queries = bus.Answers(s, keys.episode_all(run))
-        self.out = Outbox(self)
+        self.out = Outbox(s, self.cfg, self.state, self.id, self.incarnation, self.watches)
         self.board = tb.RunBoard(self.run_dir, "learner")  # RUN_DIR/tb/learner: the JSONL rows' scalars
         self.log_writer = self.board.tee(JsonlWriter(self.run_dir / rundir.LEARNER_LOG), tb.learner_scalars)
         self.bias_writer = (self.board.tee(JsonlWriter(self.run_dir / rundir.BIAS), tb.bias_scalars)
                             if self.cfg.bias_every else None)
         self.out.config()
-        workers = announce.WorkerCount(s, self.cfg, log)  # a split-role run short of M workers warns
+        worker_count = announce.WorkerCount(s, self.cfg, log)  # a split-role run short of M workers warns
         try:
             self._loop()
         finally:
-            workers.close()
-            for closable in (self.inbox, self.episode_queries, self.allocation, self.referee_reports, self.rivals,
-                             self.workers, self.referees, self.log_writer, self.bias_writer, self.board):
+            worker_count.close()
+            w = self.watches
+            for closable in (self.inbox, self.episode_queries, self.allocation, w.referee_reports, self.rivals,
+                             w.workers, w.referees, self.log_writer, self.bias_writer, self.board):
                 if closable is not None:
                     closable.close()
 
     # -- the loop: Algorithm 1's iterations in lock-step ------------------------------------------
     def _loop(self) -> None:
         """Iterations of the plan: iteration i's rows in slot order, then its updates."""
-        plan = self.plan
-        stage = self.stage = SlotStage(self.algo.workers, start=self.iteration + 1)
-        stage.retired |= self.retired  # (from the checkpoint) a stale owner never takes its slot back
-        self.out.restore(self.kept_weights, self.kept_snapshots)  # lag B > 0, a referee behind the checkpoint
+        plan, p, stage = self.plan, self.progress, self.state.stage
+        self.out.restore(self.state.carried)  # lag B > 0, a referee behind the checkpoint
         self.out.weights(all_actors=True)
-        self.checkpoints.mark(self.agent.updates, self.env_steps, time.monotonic())
-        learner_files.checkpoint(self)  # at once: a learner killed early resumes from here
+        self.state.checkpoints.mark(self.agent.updates, p.env_steps, time.monotonic())
+        self.checkpoint()  # at once: a learner killed early resumes from here
         self.stats_due, self.heartbeat, self.log_row = map(role.Every, (STATS_PERIOD_S, HEARTBEAT_S, LOG_PERIOD_S))
-        self.rates, self._rate_base = (0.0, 0.0), (self.env_steps, self.agent.updates, time.monotonic())
-        self.wait_s = 0.0  # seconds the loop waited for an iteration's rows (learner.jsonl: where time goes)
-        self.out.snapshots_after(self.iteration)
+        self.state.rates = LogRates((p.env_steps, self.agent.updates, time.monotonic()))
+        self.out.snapshots_after(p.iteration)
         while not self.stop_requested:
-            index = self.iteration + 1
+            index = p.iteration + 1
             if index > plan.iterations:
                 self.finish()
                 return
@@ -153,59 +142,60 @@ class Learner:
             versions = list(self.agent.versions)  # before its updates (the intake's lag counters)
             early = None if stage.ready(index, it.slots) else plan.updates_ahead(it, self.agent, self.buffer,
                                                                                     self.apply_elimination)
-            self.ahead = it.updates[1] - it.updates[0] if early is not None else 0  # made before the rows are in
+            p.ahead = it.updates[1] - it.updates[0] if early is not None else 0  # made before the rows are in
             waited = time.perf_counter()
             while not stage.ready(index, it.slots) and not (  # line 9; a stop after updates ahead: STOP_GRACE_S
-                    self.stop_requested and (not self.ahead or time.perf_counter() - waited > STOP_GRACE_S)):
+                    self.stop_requested and (not p.ahead or time.perf_counter() - waited > STOP_GRACE_S)):
                 self.receive(stage, timeout=0.002)
-                self.awaiting = tuple(stage.missing(index, it.slots))
-                self.idle_duties(f"iteration {index}'s rows from slots {list(self.awaiting)}", waited)
-            self.awaiting = ()
-            self.wait_s += time.perf_counter() - waited
+                p.awaiting = tuple(stage.missing(index, it.slots))
+                self.idle_duties(f"iteration {index}'s rows from slots {list(p.awaiting)}", waited)
+            p.awaiting = ()
+            p.wait_s += time.perf_counter() - waited
             if not stage.ready(index, it.slots):  # stopped
                 break
             rows, sources, used = stage.take(index, it.slots)
-            self.buffer.add_batch(rows["obs"], rows["action"], rows["reward"], rows["next_obs"],
-                                  rows["terminated"], actor=rows["actor"], version=rows["version"])
-            self.env_steps += len(it.slots)
-            for batch, used_rows in sources:
-                self.intake.insert_row(batch, used_rows)
-                if why := self.digests.foreign(batch):  # a row acted with weights this learner never made
-                    self.break_exact(why)
-            self.episodes.inserted(index, it.slots, sources)
+            self.intake.insert(rows, sources)
+            p.env_steps += len(it.slots)
+            for batch, _ in sources:
+                if why := self.state.digests.foreign(batch):  # a row acted with weights this learner never made
+                    p.break_exact(why)
+            self.state.episodes.inserted(index, it.slots, sources)
             for batch in used:
                 if self.intake.admit(batch):
                     self.intake.count(batch, versions)
             if early is None:
                 early = plan.run_updates(it, self.agent, self.sample, self.apply_elimination)
-            self.metrics, self.ahead = early or self.metrics, 0
-            if it.eliminate and self.survivor is None:  # stopped in the elimination's wait: half an iteration
+            p.metrics, p.ahead = early or p.metrics, 0
+            if it.eliminate and p.survivor is None:  # stopped in the elimination's wait: half an iteration
                 self.mid_iteration = True
                 break
-            self.iteration = index
+            p.iteration = index
             if plan.weights_change(index):
                 self.out.weights()
             self.out.snapshots_after(index)
             bias = plan.crossing(index, self.cfg.bias_every)
             if bias is not None:
-                learner_files.measure_bias(self, bias)
+                learner_files.measure_bias(self.state, self.cfg, self.bias_writer, bias)
             now = time.monotonic()
             if self.stats_due.due(now):
                 self.out.stats()
             if self.log_row.due(now):
-                learner_files.write_log(self, now)
+                learner_files.write_log(self.state, self.log_writer, now)
             if self.heartbeat.due(now):
                 self.out.config()
                 self.out.remind_referee()
-                learner_files.fence(self)
-            if self.checkpoints.due(self.agent.updates, self.env_steps, now):
-                learner_files.checkpoint(self)
+                learner_files.fence(self.rivals, self.incarnation, self.cfg.run)
+            if self.state.checkpoints.due(self.agent.updates, p.env_steps, now):
+                self.checkpoint()
             if self.inbox.qsize() > INBOX_STAGE_AHEAD:  # a resend of thousands of batches: staged before the
                 self.receive(stage, timeout=0.0, max_items=self.inbox.qsize())  # inbox sheds any of it
         # Stopped by a signal: keep a usable checkpoint (of the last whole iteration); the run is not done.
-        learner_files.write_log(self)
-        if not self.mid_iteration and not self.ahead:  # (a checkpoint would hold updates without their rows)
-            learner_files.checkpoint(self)
+        learner_files.write_log(self.state, self.log_writer)
+        if not self.mid_iteration and not p.ahead:  # (a checkpoint would hold updates without their rows)
+            self.checkpoint()
+
+    def checkpoint(self) -> None:
+        learner_files.checkpoint(self.state, self.cfg, self.run_dir, self.out.kept())
 
     def sample(self) -> Any:  # `agent.sampler`: on a GPU, indices staged for the CUDA graphs
         return self.agent.sampler(self.buffer, self.algo.batch_size)()
@@ -218,19 +208,20 @@ class Learner:
             self.out.stats()
         if self.heartbeat.due(now):
             self.out.config()
-            learner_files.fence(self)
+            learner_files.fence(self.rivals, self.incarnation, self.cfg.run)
             if time.perf_counter() - since > HEARTBEAT_S:  # late: something may be lost
                 self.out.resend()
         if self.log_row.due(now):
-            learner_files.write_log(self, now)
+            learner_files.write_log(self.state, self.log_writer, now)
         limit, waited = self.cfg.stall_timeout, time.perf_counter() - since
         if limit > 0 and waited > limit and now - getattr(self, "_stall_note", 0.0) > limit:
             self._stall_note = now
             log.warning("waiting %.0f s for %s; %d workers live, referee %s", waited, awaited,
-                        len(self.workers.live()), "live" if self.referees.live() else "gone")
+                        len(self.watches.workers.live()), "live" if self.watches.referees.live() else "gone")
 
     def receive(self, stage: SlotStage, timeout: float, max_items: int = 256) -> None:
         """Stage what arrived; follow the referee."""
+        p = self.progress
         items = self.inbox.drain(max_items=max_items)
         if not items and timeout > 0:
             item = self.inbox.get(timeout=timeout)
@@ -245,38 +236,32 @@ class Learner:
             if not staged and not why and not trimmed:  # held back (SlotStage.add): its rows come again
                 continue
             for reason in (why, *batch.inexact_reasons(self.cfg.env_id)):
-                self.break_exact(reason)
+                p.break_exact(reason)
             new = staged or self.intake.admit(batch)  # not staged: the tracker sees it now (redundant, or new)
             if trimmed and new:  # rows of iterations the slot has: skipped, but for those in the replay already
                 rest = trimmed - min(trimmed, self.intake.own_rows(batch))
                 if rest:
                     self.intake.skip(batch, rest)
-        self.episode_queries.poll(lambda key, _: self.episodes.reply(key, self.stage, self.buffer, self.id,
-                                                                     self.out.next_seq))
+        self.episode_queries.poll(lambda key, _: self.state.episodes.reply(key, stage, self.buffer, self.id,
+                                                                           self.out.next_seq))
         self.follow_allocation()
-        if not self.referee_seen and self.referees.live():
-            self.referee_seen = True  # finish() waits for its final evaluation
-
-    def break_exact(self, why: str) -> None:
-        """The run goes on in the same order, but it is no longer the seed's run (stats, summary)."""
-        if why and not self.inexact:
-            self.inexact = why
-            log.warning("the run is no longer exact: %s; it goes on in lock-step", why)
+        if not p.referee_seen and self.watches.referees.live():
+            p.referee_seen = True  # finish() waits for its final evaluation
 
     def apply_elimination(self) -> None:
         """The referee's survivor at C (it evaluates the actors after iteration C-1 while C's rows come in)."""
-        since = time.perf_counter()
-        self.awaiting = (-1,)
-        while self.decided_survivor is None and not self.stop_requested:
+        since, p = time.perf_counter(), self.progress
+        p.awaiting = (-1,)
+        while p.decided_survivor is None and not self.stop_requested:
             self.follow_allocation()
             self.idle_duties("the referee's elimination", since)
             self.allocation.wait_fresh(timeout=0.05)
-        self.awaiting = ()
-        if self.decided_survivor is None:
+        p.awaiting = ()
+        if p.decided_survivor is None:
             return  # stopping: the checkpoint is of the iteration before
-        self.survivor = self.decided_survivor
-        self.agent.eliminate(self.survivor)
-        log.info("eliminated all actors but %d at iteration %d", self.survivor, self.plan.elimination)
+        p.survivor = p.decided_survivor
+        self.agent.eliminate(p.survivor)
+        log.info("eliminated all actors but %d at iteration %d", p.survivor, self.plan.elimination)
 
     def follow_allocation(self) -> None:
         """The survivor, once the referee has decided it (applied where the plan places it)."""
@@ -286,50 +271,30 @@ class Learner:
         try:
             alloc = Allocation.from_bytes(item.payload, self.algo.actors)
         except MessageError as e:
-            self.other_rejects.reject("allocation", e)
+            self.state.allocation_rejects.reject("allocation", e)
             return
         if alloc.survivor is not None:
-            self.decided_survivor = alloc.survivor
-
-    @property
-    def iterations(self) -> int:
-        """Schedule steps done: Algorithm 1's iterations (paper) or transitions (equal-data)."""
-        return self.schedule.units_at(self.env_steps)
-
-    @property
-    def updates(self) -> int:
-        """Updates of the iterations whose rows are in (what stats and logs count): the agent's, less any ahead."""
-        return self.agent.updates - self.ahead
-
-    def utd(self) -> float:
-        """Updates per schedule step past the start (per iteration or per transition)."""
-        consumed = self.plan.units_past_start(self.iterations)
-        return self.updates / consumed if consumed else 0.0
-
-    def rejected(self) -> dict[str, int]:
-        """Rejection counts by reason: transitions by reason, the allocation topic as allocation:<reason>."""
-        other = self.other_rejects.counts()
-        return {**self.intake.rejects.counts(), **{f"allocation:{r}": k for r, k in other.items()}}
+            self.progress.decided_survivor = alloc.survivor
 
     def finish(self) -> None:
         """Budget reached: final weights, checkpoint, then tell everyone until they have left."""
         self.out.weights(all_actors=True)
-        learner_files.write_log(self)
-        learner_files.checkpoint(self)
+        learner_files.write_log(self.state, self.log_writer)
+        self.checkpoint()
         self.out.stats(done=True)
-        msg = Done("budget", self.env_steps, self.agent.updates)
+        msg = Done("budget", self.progress.env_steps, self.agent.updates)
         deadline = time.monotonic() + 10.0
         while True:  # the last put before close can be lost: repeat until the workers have gone (tokens vanish)
             self.out.done(msg.to_bytes(self.id, self.out.next_seq()))
             self.out.stats(done=True)
-            if not self.workers.live() or time.monotonic() > deadline:
+            if not self.watches.workers.live() or time.monotonic() > deadline:
                 break
-            learner_files.count_late(self, self.inbox.drain())
+            learner_files.count_late(self.intake, self.agent.versions, self.inbox.drain())
             time.sleep(0.1)
         self.inbox.close()
-        learner_files.count_late(self, self.inbox.drain())
-        self.out.wait_for_referee(msg)
-        learner_files.write_transport(self)
+        learner_files.count_late(self.intake, self.agent.versions, self.inbox.drain())
+        self.out.wait_for_referee(msg, lambda: self.stop_requested)
+        learner_files.write_transport(self.state, self.run_dir, self.inbox.dropped)
 
 
 def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None:

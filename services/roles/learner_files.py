@@ -1,53 +1,49 @@
-"""What the learner writes and reads back (services/roles/learner.py): its checkpoints and
-the counters they carry, learner.jsonl rows, and the Eq. 17 rows of bias.jsonl."""
+"""What the learner writes and reads back (services/roles/learner.py): checkpoints of its state
+(`LearnerState`, learner_state.py) and their restore, learner.jsonl rows, transport.json, and the
+Eq. 17 rows of bias.jsonl. Each function takes the state and what else it needs, not the learner."""
 
 from __future__ import annotations
 
 import json
 import logging
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
 
+from mam_core.config import AlgoConfig
 from mam_core.evaluation import estimation_bias
 from mam_core.seeding import bias_seed
+from services.messaging import bus
 from services.messaging.codec import LearnerStats, MessageError
 from services.roles import role
 from services.roles.checkpoint import save_checkpoint
-from services.roles.outbox import PublishedDigests
+from services.roles.intake import Intake
+from services.roles.learner_state import Carried, KeptParams, LearnerState
 from services.run import codecheck, rundir, runlock
-from services.run.rundir import write_json
-
-if TYPE_CHECKING:
-    from services.roles.learner import Learner
+from services.run.config import RunConfig
+from services.run.rundir import JsonlWriter, write_json
 
 log = logging.getLogger("mam.learner")
 
 
-def checkpoint(lr: Learner) -> None:
-    started = time.monotonic()
-    counters = {"env_steps": lr.env_steps, "per_worker": json.dumps(lr.intake.tracker.per_sender()),
-                "stream_rows": json.dumps(lr.intake.stream_rows),
-                "stream_skipped": json.dumps(lr.intake.stream_skipped),
-                "stream_partial": json.dumps(lr.intake.stream_partial), "referee_seen": int(lr.referee_seen),
-                "iteration": lr.iteration, "inexact": lr.inexact, "episodes": lr.episodes.to_json(),
-                "digests": lr.digests.to_json(),
-                "retired": json.dumps(sorted(lr.stage.retired | lr.retired) if lr.stage is not None
-                                      else sorted(lr.retired)),
-                "wall_s": round(lr.wall_before + time.monotonic() - lr.started, 3)}
-    path = save_checkpoint(lr.run_dir, lr.agent, lr.buffer, counters, lr.cfg, lr.replay_log,
-                           survivor=lr.survivor,  # with policy.npz, in a verified generation
-                           extra={"kept_weights": kept_weights_state(lr.out.kept_weights()),
-                                  "kept_snapshots": kept_weights_state(lr.out.kept_snapshots())})
-    lr.checkpoints.mark(lr.agent.updates, lr.env_steps, time.monotonic())
-    if lr.replay_log is not None:  # only now on disk: workers may drop what the previous one holds
-        lr.acked, lr.acked_newest = lr.acked_newest, lr.intake.checkpointed_prefixes()
-    log.info("checkpoint %s at iteration %d, %d updates, %d transitions (%.2f s)", path, lr.iteration,
-             lr.agent.updates, lr.env_steps, time.monotonic() - started)
-
+def checkpoint(st: LearnerState, cfg: RunConfig, run_dir: Path, kept: Carried) -> Path:
+    """A new checkpoint generation of `st`, with the versions and snapshots the outbox keeps
+    (`kept`); the workers may then drop what the generation before it holds (`st.acks`)."""
+    started, p = time.monotonic(), st.progress
+    path = save_checkpoint(run_dir, st.agent, st.buffer, st.counters(), cfg, st.replay_log,
+                           survivor=p.survivor,  # with policy.npz, in a verified generation
+                           extra={"kept_weights": kept_weights_state(kept.kept_weights),
+                                  "kept_snapshots": kept_weights_state(kept.kept_snapshots)})
+    st.checkpoints.mark(st.agent.updates, p.env_steps, time.monotonic())
+    if st.replay_log is not None:  # only now on disk: workers may drop what the previous one holds
+        st.acks.checkpointed(st.intake.checkpointed_prefixes())
+    log.info("checkpoint %s at iteration %d, %d updates, %d transitions (%.2f s)", path, p.iteration,
+             st.agent.updates, p.env_steps, time.monotonic() - started)
+    return path
 
 
 def next_epoch(run_dir: Path) -> int:
@@ -59,55 +55,55 @@ def next_epoch(run_dir: Path) -> int:
     return epoch
 
 
-def fence(lr: Learner) -> None:
-    """The stats of a learner of a higher epoch on this run's key: another took the run over while
-    this one was frozen or cut off. Stop at once, exit 73, without a checkpoint (the run's state
-    is that one's now)."""
-    for item in lr.rivals.fresh().values():
+def fence(rivals: bus.Latest, incarnation: str, run: str) -> None:
+    """The stats of a learner of a higher epoch on this run's key (`rivals`): another took the run
+    over while this one (`incarnation`) was frozen or cut off. Stop at once, exit 73, without a
+    checkpoint (the run's state is that one's now)."""
+    for item in rivals.fresh().values():
         try:
             other = LearnerStats.from_bytes(item.payload).incarnation
         except MessageError:
             continue
-        if role.learner_order(other) > role.learner_order(lr.incarnation):
+        if role.learner_order(other) > role.learner_order(incarnation):
             log.error("stopping: learner %s (a higher epoch) serves run %r: this one (%s) is stale", other,
-                      lr.cfg.run, lr.incarnation)
+                      run, incarnation)
             raise SystemExit(runlock.EXIT_REFUSED)
 
 
-def count_late(lr: Learner, items: list) -> None:
+def count_late(intake: Intake, versions: Sequence[int], items: list[bus.Received]) -> None:
     """Batches that arrive after the last iteration (a resend): counted, never inserted."""
     for item in items:
-        batch = lr.intake.validate(item, lr.agent.versions)
+        batch = intake.validate(item, versions)
         if batch is not None:
-            lr.intake.admit(batch)
+            intake.admit(batch)
 
 
-def write_transport(lr: Learner) -> None:
-    """transport.json at the end: the counters `mam run`'s audit holds against the workers' logs."""
-    tracker = lr.intake.tracker
-    write_json(lr.run_dir / rundir.TRANSPORT, {
-        "env_steps": lr.env_steps, "iterations": lr.iterations, "updates": lr.updates,
-        "lost": tracker.lost, "duplicates": tracker.duplicates, "rejected": lr.rejected(),
+def write_transport(st: LearnerState, run_dir: Path, inbox_dropped: int) -> None:
+    """transport.json at the end: the counters `mam run`'s audit holds against the workers' logs
+    (`inbox_dropped`: batches shed before decoding when the inbox overflowed)."""
+    p, tracker = st.progress, st.intake.tracker
+    write_json(run_dir / rundir.TRANSPORT, {
+        "env_steps": p.env_steps, "iterations": st.iterations(), "updates": st.updates(),
+        "lost": tracker.lost, "duplicates": tracker.duplicates, "rejected": st.rejected(),
         "recovered": tracker.recovered, "redundant": tracker.redundant,
-        "replay_rows": lr.buffer.inserted if lr.replay_log is not None else None,
-        "wall_s": round(lr.wall_before + time.monotonic() - lr.started, 3),
-        **lr.intake.transport(),
-        "inbox_dropped": lr.inbox.dropped})  # shed before decoding when the inbox overflowed
+        "replay_rows": st.buffer.inserted if st.replay_log is not None else None,
+        "wall_s": p.wall_s(),
+        **st.intake.transport(),
+        "inbox_dropped": inbox_dropped})
     log.info("done: %d transitions, %d updates, lost %d, duplicates %d, rejected %d, survivor %s, %s; the final "
-             "returns: the referee's %s", lr.env_steps, lr.agent.updates, tracker.lost, tracker.duplicates,
-             lr.intake.rejects.total, "-" if lr.survivor is None else lr.survivor,
-             "exact" if not lr.inexact else f"not exact ({lr.inexact})", lr.run_dir / rundir.SUMMARY)
+             "returns: the referee's %s", p.env_steps, st.agent.updates, tracker.lost, tracker.duplicates,
+             st.intake.rejects.total, "-" if p.survivor is None else p.survivor,
+             "exact" if not p.inexact else f"not exact ({p.inexact})", run_dir / rundir.SUMMARY)
 
 
-def kept_weights_state(kept: list[tuple[int, int, int, dict[str, np.ndarray]]]) -> list[list[Any]]:
+def kept_weights_state(kept: list[KeptParams]) -> list[list[Any]]:
     """The versions a slot may still act with (Outbox.kept_weights) as checkpoint entries:
     [plan version, actor, its version, {name: tensor}]."""
     return [[key, k, version, {name: torch.from_numpy(a) for name, a in params.items()}]
             for key, k, version, params in kept]
 
 
-def kept_weights_from(rows: Any, shapes: dict[str, tuple[int, ...]], actors: int) \
-        -> list[tuple[int, int, int, dict[str, np.ndarray]]]:
+def kept_weights_from(rows: Any, shapes: dict[str, tuple[int, ...]], actors: int) -> list[KeptParams]:
     """`kept_weights_state` read back, every entry checked (ValueError naming the first that is not
     an actor of this run's shapes)."""
     out = []
@@ -123,104 +119,81 @@ def kept_weights_from(rows: Any, shapes: dict[str, tuple[int, ...]], actors: int
     return out
 
 
-def restore(lr: Learner, state: dict[str, Any]) -> None:
-    lr.agent.load_state_dict(state["agent"])
-    c = state["counters"]
-    lr.env_steps = int(c["env_steps"])
-    if "replay" in state:  # checkpoints written before the chunked replay log
-        lr.buffer.load_state_dict(state["replay"])
-    if "replay_log" in state and lr.replay_log is not None:
-        meta = state["replay_log"]
-        lr.replay_log.restore(lr.buffer, meta["manifest"], int(meta["inserted"]), json.loads(meta["rng"]))
-        if lr.buffer.inserted != lr.env_steps:
-            raise ValueError(f"checkpoint counts {lr.env_steps} transitions, its replay {lr.buffer.inserted}")
-    lr.intake.stream_rows = {k: int(v) for k, v in json.loads(c.get("stream_rows", "{}")).items()}
-    lr.intake.stream_skipped = {k: int(v) for k, v in json.loads(c.get("stream_skipped", "{}")).items()}
-    lr.intake.stream_partial = {k: (int(v[0]), int(v[1])) for k, v in json.loads(c.get("stream_partial", "{}")).items()}
-    # The run had a referee: a learner resumed at its budget waits for it (its final evaluation).
-    lr.referee_seen = bool(int(c.get("referee_seen", 0)))
-    # Sequence numbers go on from the checkpoint: a gap then counts what died with the old
-    # learner, until the workers' resends fill it.
-    lr.intake.tracker.restore(json.loads(c.get("per_worker", "{}")))
-    if lr.replay_log is not None:  # just verified: its rows need not be kept twice
-        lr.acked = lr.acked_newest = lr.intake.checkpointed_prefixes()
-    lr.iteration = int(c["iteration"]) if "iteration" in c else lr.plan.iteration_at(lr.env_steps)
-    lr.wall_before = float(c.get("wall_s", 0.0))
-    lr.episodes.inserted_through = lr.iteration
-    if "episodes" in c:
-        lr.episodes.restore(str(c["episodes"]))
-    if "digests" in c:  # what the dead learner published: rows acted with it are checked too (lag B > 0)
-        lr.digests = PublishedDigests.from_json(str(c["digests"]))
-    # Every stream and the staging point are in the checkpoint; the workers resend the rows after
-    # it: the resumed learner recomputes the same updates (exact unless the run was inexact already).
-    lr.inexact = str(c.get("inexact", ""))
-    if not lr.inexact and (why := codecheck.inexact_reason(lr.run_dir)):  # resumed onto other code, forced
-        lr.break_exact(why)
-    if lr.env_steps > 0 and len(lr.buffer) == 0:  # --no-save-replay: nothing of the replay is on disk
-        lr.break_exact(f"resumed at iteration {lr.iteration:,} with an empty replay buffer: the run keeps no replay "
-                       f"(--no-save-replay), so the {lr.env_steps:,} transitions before it and the sampling "
-                       "stream's state are gone")
-    # Slot owners that lost their slot (a stale worker back from a pause): their batches stay refused.
-    lr.retired = {(str(w), str(i)) for w, i in json.loads(c.get("retired", "[]"))}
-    # The versions before its own that the workers' next iterations act with (lag B > 0).
-    lr.kept_weights = kept_weights_from(state.get("kept_weights", []), lr.agent.actor_shapes(), lr.algo.actors)
-    # ... and the snapshots of the evaluations the referee had not reported done (it may be behind)
-    lr.kept_snapshots = kept_weights_from(state.get("kept_snapshots", []), lr.agent.actor_shapes(), lr.algo.actors)
-    if lr.algo.lag > 0 and "kept_weights" not in state:
+def restore(st: LearnerState, saved: dict[str, Any], run_dir: Path, algo: AlgoConfig) -> None:
+    """A resume: `st` as the checkpoint `saved` (load_checkpoint, verified) holds it."""
+    p = st.progress
+    st.agent.load_state_dict(saved["agent"])
+    c = saved["counters"]
+    p.env_steps = int(c["env_steps"])
+    if "replay" in saved:  # checkpoints written before the chunked replay log
+        st.buffer.load_state_dict(saved["replay"])
+    if "replay_log" in saved and st.replay_log is not None:
+        meta = saved["replay_log"]
+        st.replay_log.restore(st.buffer, meta["manifest"], int(meta["inserted"]), json.loads(meta["rng"]))
+        if st.buffer.inserted != p.env_steps:
+            raise ValueError(f"checkpoint counts {p.env_steps} transitions, its replay {st.buffer.inserted}")
+    st.restore_counters(c)
+    if not p.inexact and (why := codecheck.inexact_reason(run_dir)):  # resumed onto other code, forced
+        p.break_exact(why)
+    if p.env_steps > 0 and len(st.buffer) == 0:  # --no-save-replay: nothing of the replay is on disk
+        p.break_exact(f"resumed at iteration {p.iteration:,} with an empty replay buffer: the run keeps no replay "
+                      f"(--no-save-replay), so the {p.env_steps:,} transitions before it and the sampling "
+                      "stream's state are gone")
+    # The versions before its own that the workers' next iterations act with (lag B > 0) ...
+    shapes = st.agent.actor_shapes()
+    st.carried = Carried(kept_weights_from(saved.get("kept_weights", []), shapes, algo.actors),
+                         # ... and the snapshots of the evaluations the referee had not reported done
+                         kept_weights_from(saved.get("kept_snapshots", []), shapes, algo.actors))
+    if algo.lag > 0 and "kept_weights" not in saved:
         log.warning("the checkpoint keeps no older actor versions (written before they were kept): at lag %d the "
-                    "workers may wait for a version this learner cannot publish", lr.algo.lag)
-    live = lr.agent.live_actors
-    if sum(live) == 1 and lr.algo.actors > 1:
-        lr.survivor = lr.decided_survivor = live.index(True)
-    log.info("resumed at iteration %d: %d transitions, %d updates (replay rows: %d)", lr.iteration,
-             lr.env_steps, lr.agent.updates, len(lr.buffer))
+                    "workers may wait for a version this learner cannot publish", algo.lag)
+    live = st.agent.live_actors
+    if sum(live) == 1 and algo.actors > 1:
+        p.survivor = p.decided_survivor = live.index(True)
+    log.info("resumed at iteration %d: %d transitions, %d updates (replay rows: %d)", p.iteration,
+             p.env_steps, st.agent.updates, len(st.buffer))
 
 
-
-def write_log(lr: Learner, now: float | None = None) -> None:
+def write_log(st: LearnerState, writer: JsonlWriter, now: float | None = None) -> None:
     """One learner.jsonl row; with `now`, the rates since the previous such row first."""
+    p, intake = st.progress, st.intake
     if now is not None:
-        steps, updates, t = lr._rate_base
-        dt = max(now - t, 1e-9)
-        lr.rates = ((lr.env_steps - steps) / dt, (lr.updates - updates) / dt)
-        lr._rate_base = (lr.env_steps, lr.updates, now)
-    tracker = lr.intake.tracker
-    row = {"t": round(time.monotonic() - lr.started, 3), "env_steps": lr.env_steps,
-           "iterations": lr.iterations, "updates": lr.updates, "utd": lr.utd(),
-           "transitions_per_s": round(lr.rates[0], 2), "updates_per_s": round(lr.rates[1], 2),
-           "versions": list(lr.agent.versions), "live": lr.agent.live_actors,
+        st.rates.advance(p.env_steps, st.updates(), now)
+    tracker = intake.tracker
+    row = {"t": round(time.monotonic() - p.started, 3), "env_steps": p.env_steps,
+           "iterations": st.iterations(), "updates": st.updates(), "utd": st.utd(),
+           "transitions_per_s": round(st.rates.per_s[0], 2), "updates_per_s": round(st.rates.per_s[1], 2),
+           "versions": list(st.agent.versions), "live": st.agent.live_actors,
            "lost": tracker.lost, "duplicates": tracker.duplicates,
-           "rejected": lr.intake.rejects.total, "buffer": len(lr.buffer),
-           "received": {w: t.received for w, t in lr.intake.workers.items()},
-           "exact_wait_s": round(getattr(lr, "wait_s", 0.0), 3), "update_s": round(lr.agent.update_s, 3)}
-    row.update(lr.metrics)
-    if lr.intake.episode_returns:
-        row["train_return"] = float(np.mean(lr.intake.episode_returns))
-        row["train_episodes"] = len(lr.intake.episode_returns)
-        lr.intake.episode_returns.clear()
-    lr.log_writer.write(row)
+           "rejected": intake.rejects.total, "buffer": len(st.buffer),
+           "received": {w: t.received for w, t in intake.workers.items()},
+           "exact_wait_s": round(p.wait_s, 3), "update_s": round(st.agent.update_s, 3)}
+    row.update(p.metrics)
+    if intake.episode_returns:
+        row["train_return"] = float(np.mean(intake.episode_returns))
+        row["train_episodes"] = len(intake.episode_returns)
+        intake.episode_returns.clear()
+    writer.write(row)
 
 
-
-def measure_bias(lr: Learner, point_index: int) -> None:
+def measure_bias(st: LearnerState, cfg: RunConfig, writer: JsonlWriter, point_index: int) -> None:
     """Eq. 17 for every live actor k at bias point j: Q_k1(s0, π_k(s0)) of the current critic
     against the discounted Monte-Carlo return of π_k from the same initial states
     (`bias_rollouts` rollouts, `seeding.bias_seed`). Training pauses meanwhile."""
-    started = time.monotonic()
-    point = point_index * lr.cfg.bias_every
-    live = lr.agent.live_actors
+    started, agent, p = time.monotonic(), st.agent, st.progress
+    point = point_index * cfg.bias_every
+    live = agent.live_actors
     for k in (k for k, alive in enumerate(live) if alive):
         try:
-            result = estimation_bias(lambda obs, k=k: lr.agent.act(obs, k),
-                                     lambda obs, act, k=k: lr.agent.q_value(obs, act, k),
-                                     lr.cfg.env_id, lr.cfg.bias_rollouts, lr.algo.gamma,
-                                     bias_seed(lr.algo.seed, point_index), lr.cfg.env_kwargs,
-                                     horizon=lr.cfg.bias_horizon)
+            result = estimation_bias(lambda obs, k=k: agent.act(obs, k),
+                                     lambda obs, act, k=k: agent.q_value(obs, act, k),
+                                     cfg.env_id, cfg.bias_rollouts, cfg.algo.gamma,
+                                     bias_seed(cfg.algo.seed, point_index), cfg.env_kwargs,
+                                     horizon=cfg.bias_horizon)
         except Exception:  # a diagnostic never stops the training
             log.exception("bias measurement at %d failed (actor %d)", point, k)
             continue
-        lr.bias_writer.write({"env_steps": lr.env_steps, "iterations": lr.iterations, "point": point,
-                                "updates": lr.updates, "live": list(live),
-                                "rollouts": lr.cfg.bias_rollouts, "bias": {"actor": k, **result}})
-    log.info("bias at %d transitions measured in %.1f s", lr.env_steps, time.monotonic() - started)
-
+        writer.write({"env_steps": p.env_steps, "iterations": st.iterations(), "point": point,
+                      "updates": st.updates(), "live": list(live),
+                      "rollouts": cfg.bias_rollouts, "bias": {"actor": k, **result}})
+    log.info("bias at %d transitions measured in %.1f s", p.env_steps, time.monotonic() - started)

@@ -9,19 +9,20 @@ until the referee reports the evaluations that judge them done (its role stats' 
 
 from __future__ import annotations
 
-import json
 import logging
 import time
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from mam_core.policy import params_digest
 from services.messaging import bus, keys
-from services.messaging.codec import Done, LearnerStats, MessageError, TransitionBatch, Weights, decode, encode
+from services.messaging.codec import Done, LearnerStats, MessageError, Weights, decode, encode
+from services.roles.learner_state import Carried, KeptParams, LearnerState, PublishedDigests
+from services.run.config import RunConfig
 
-if TYPE_CHECKING:
-    from services.roles.learner import Learner
+__all__ = ["Outbox", "PublishedDigests", "Watches"]  # PublishedDigests: its home is learner_state.py
 
 log = logging.getLogger("mam.learner")
 
@@ -31,48 +32,23 @@ REFEREE_GRACE_S = 60.0
 REFEREE_WAIT_S = 240.0  # ... and at most, in all, for its final evaluation
 
 
-class PublishedDigests:
-    """`params_digest` of every actor version a slot may still act with, as this learner published
-    it, to check the `policy_digest` a batch reports (`foreign`). Kept in the learner's checkpoint:
-    with lag B > 0 a restarted learner receives rows acted with versions its predecessor published
-    before the checkpoint, and checks those too."""
+@dataclass(frozen=True)
+class Watches:
+    """What the outbox follows of the other roles: their liveliness tokens, and the referee's role
+    stats (the evaluations it reports done, `events`, and its `final` one)."""
 
-    def __init__(self, known: dict[tuple[int, int], str] | None = None) -> None:
-        self.known: dict[tuple[int, int], str] = dict(known or {})  # (actor, version) -> digest
-
-    def record(self, actor: int, version: int, params: dict) -> None:
-        self.known[(actor, version)] = params_digest(params)
-
-    def foreign(self, batch: TransitionBatch) -> str:
-        """Why `batch`'s rows were acted with other weights than this learner's of their version
-        (a dead incarnation's that computed otherwise), or "" (the same, or not known here)."""
-        mine = self.known.get((batch.actor, batch.version)) if batch.version >= 0 else None
-        if mine is None or batch.policy_digest == mine:  # (a batch without a digest is refused by the intake)
-            return ""
-        return (f"slot {batch.slot} acted at iteration {batch.iteration} with actor {batch.actor}'s version "
-                f"{batch.version} of learner {batch.policy_from or '?'}, not this learner's")
-
-    def prune(self, needed: int, live: list[bool]) -> None:
-        """Forget live actors' versions older than `needed` - 1 (no slot acts with them again; an
-        eliminated actor's last versions stay, a few entries)."""
-        for key in [key for key in self.known if key[1] < needed - 1 and live[key[0]]]:
-            del self.known[key]
-
-    def to_json(self) -> str:
-        return json.dumps([[a, v, d] for (a, v), d in sorted(self.known.items())])
-
-    @classmethod
-    def from_json(cls, text: str) -> PublishedDigests:
-        rows = json.loads(text)
-        if not isinstance(rows, list) or not all(isinstance(r, list) and len(r) == 3 for r in rows):
-            raise ValueError("published digests: not a list of [actor, version, digest]")
-        return cls({(int(a), int(v)): str(d) for a, v, d in rows})
+    workers: bus.AliveWatch
+    referees: bus.AliveWatch
+    referee_reports: bus.Latest
 
 
 class Outbox:
-    def __init__(self, learner: Learner) -> None:
-        self.learner = learner
-        run, s, k = learner.cfg.run, learner.session, learner.algo.actors
+    """Publishes what `st` holds, as learner `sender` (of `incarnation`), on `cfg.run`'s keys."""
+
+    def __init__(self, session: Any, cfg: RunConfig, st: LearnerState, sender: str, incarnation: str,
+                 watches: Watches) -> None:
+        self.cfg, self.st, self.sender, self.incarnation, self.watches = cfg, st, sender, incarnation, watches
+        run, s, k = cfg.run, session, cfg.algo.actors
         self.config_pub = bus.declare_latest_publisher(s, keys.config(run), drop=True)  # heartbeats: never block
         self.weights_pubs = [bus.declare_latest_publisher(s, keys.weights(run, a)) for a in range(k)]
         self.stats_pub = bus.declare_latest_publisher(s, keys.learner_stats(run), drop=True)  # 10 Hz, latest only
@@ -84,7 +60,6 @@ class Outbox:
         self.recent_params: dict[int, list[tuple[int, int, dict[str, np.ndarray]]]] = {}  # -> (actor, version, params)
         self.snapshots: dict[int, list[tuple[int, bytes]]] = {}
         self.snapshot_params: dict[int, list[tuple[int, int, dict[str, np.ndarray]]]] = {}  # as recent_params
-        self.digests = learner.digests  # what it published (and its predecessor, from the checkpoint)
         self.referee_events = 0  # evaluations the referee reports done
         self.seq = 0
 
@@ -94,48 +69,51 @@ class Outbox:
 
     def weights_message(self, k: int, version: int | None = None, params: dict[str, np.ndarray] | None = None) -> bytes:
         """Actor `k`'s weights message: its current parameters, or `params` as its `version`."""
-        lr = self.learner
+        agent, spec = self.st.agent, self.st.agent.spec
         if params is None or version is None:
-            version, params = lr.agent.versions[k], lr.agent.actor_params(k)
-        self.digests.record(k, version, params)
-        return Weights(k, version, params, lr.spec.obs_dim, lr.spec.act_dim,
-                       max(lr.spec.max_action), tuple(lr.algo.hidden), lr.incarnation).to_bytes(lr.id, self.next_seq())
+            version, params = agent.versions[k], agent.actor_params(k)
+        self.st.digests.record(k, version, params)  # what it published (and its predecessor, from the checkpoint)
+        return Weights(k, version, params, spec.obs_dim, spec.act_dim, max(spec.max_action),
+                       tuple(self.cfg.algo.hidden), self.incarnation).to_bytes(self.sender, self.next_seq())
 
     def weights(self, all_actors: bool = False) -> None:
         """The live actors' weights (all with `all_actors`), kept while a slot may act with them."""
-        lr, plan = self.learner, self.learner.plan
+        agent, plan, after = self.st.agent, self.st.plan, self.st.progress.iteration  # iterations done
         msgs, params = [], []
-        for k, alive in enumerate(lr.agent.live_actors):
+        for k, alive in enumerate(agent.live_actors):
             if alive or all_actors:
-                params.append((k, lr.agent.versions[k], lr.agent.actor_params(k)))
+                params.append((k, agent.versions[k], agent.actor_params(k)))
                 msg = self.weights_message(k, *params[-1][1:])
                 self.weights_pubs[k].put(msg)
                 msgs.append((k, msg))
-        self.recent_weights[plan.version_after(lr.iteration)] = msgs
-        self.recent_params[plan.version_after(lr.iteration)] = params
+        self.recent_weights[plan.version_after(after)] = msgs
+        self.recent_params[plan.version_after(after)] = params
         self.prune_weights()
 
     def prune_weights(self) -> None:
         """Forget the versions no slot acts with again (before the next iteration's)."""
-        lr, plan = self.learner, self.learner.plan
-        needed = plan.version_for(min(lr.iteration + 1, plan.iterations))
+        plan = self.st.plan
+        needed = plan.version_for(min(self.st.progress.iteration + 1, plan.iterations))
         for old in [v for v in self.recent_weights if v < needed]:
             del self.recent_weights[old]
             self.recent_params.pop(old, None)
-        self.digests.prune(needed, lr.agent.live_actors)
+        self.st.digests.prune(needed, self.st.agent.live_actors)
 
-    def restore(self, weights: list[tuple[int, int, int, dict[str, np.ndarray]]],
-                snapshots: list[tuple[int, int, int, dict[str, np.ndarray]]]) -> None:
+    def restore(self, carried: Carried) -> None:
         """A resumed learner: what its predecessor's checkpoint kept, published again."""
-        self.restore_weights(weights)
-        self.restore_snapshots(snapshots)
+        self.restore_weights(carried.kept_weights)
+        self.restore_snapshots(carried.kept_snapshots)
 
-    def restore_weights(self, kept: list[tuple[int, int, int, dict[str, np.ndarray]]]) -> None:
+    def kept(self) -> Carried:
+        """What a checkpoint keeps for the next incarnation's `restore`."""
+        return Carried(self.kept_weights(), self.kept_snapshots())
+
+    def restore_weights(self, kept: list[KeptParams]) -> None:
         """A resumed learner: publish the versions its predecessor kept for the workers' next
         iterations (`kept_weights`, from the checkpoint), as its own messages, before its current
         one. Without them a run at lag B > 0 waits forever: a worker's first iteration after the
         resume acts with the version B iterations older than the learner's."""
-        current = self.learner.plan.version_after(self.learner.iteration)  # `weights` publishes that one
+        current = self.st.plan.version_after(self.st.progress.iteration)  # `weights` publishes that one
         for key, k, version, params in sorted(kept, key=lambda row: (row[0], row[1])):
             if key >= current:
                 continue
@@ -145,7 +123,7 @@ class Outbox:
             self.recent_params.setdefault(key, []).append((k, version, params))
         self.prune_weights()
 
-    def kept_weights(self) -> list[tuple[int, int, int, dict[str, np.ndarray]]]:
+    def kept_weights(self) -> list[KeptParams]:
         """(plan version, actor, its version, params) of every version a slot may still act with:
         kept in the checkpoint for `restore_weights`."""
         return [(key, k, version, params) for key, rows in sorted(self.recent_params.items())
@@ -153,16 +131,16 @@ class Outbox:
 
     def snapshots_after(self, index: int) -> None:
         """The versions the referee's next evaluations judge, once each (`Algorithm1.judged_after`)."""
-        lr = self.learner
-        for version in sorted(lr.plan.judged_after(index) - set(self.snapshots)):
-            self.snapshot_params[version] = [(k, lr.agent.versions[k], lr.agent.actor_params(k))
-                                             for k, alive in enumerate(lr.agent.live_actors) if alive]
+        agent = self.st.agent
+        for version in sorted(self.st.plan.judged_after(index) - set(self.snapshots)):
+            self.snapshot_params[version] = [(k, agent.versions[k], agent.actor_params(k))
+                                             for k, alive in enumerate(agent.live_actors) if alive]
             self.snapshots[version] = [(k, self.weights_message(k, v, params))
                                        for k, v, params in self.snapshot_params[version]]
             for k, msg in self.snapshots[version]:
                 self.snapshot_pubs[k].put(msg)
 
-    def restore_snapshots(self, kept: list[tuple[int, int, int, dict[str, np.ndarray]]]) -> None:
+    def restore_snapshots(self, kept: list[KeptParams]) -> None:
         """A resumed learner: publish the snapshots its predecessor kept for evaluations the
         referee had not reported done (`kept_snapshots`, from the checkpoint). A referee behind
         the checkpoint (killed with the learner mid-evaluation, or slow) judges versions older
@@ -172,7 +150,7 @@ class Outbox:
             self.snapshots.setdefault(key, []).append((k, self.weights_message(k, version, params)))
             self.snapshot_pubs[k].put(self.snapshots[key][-1][1])
 
-    def kept_snapshots(self) -> list[tuple[int, int, int, dict[str, np.ndarray]]]:
+    def kept_snapshots(self) -> list[KeptParams]:
         """(plan version, actor, its version, params) of every snapshot an evaluation the referee
         has not reported done judges: kept in the checkpoint for `restore_snapshots`."""
         self.pending_snapshots()
@@ -195,8 +173,8 @@ class Outbox:
     def pending_snapshots(self) -> set[int]:
         """The versions of the evaluations the referee has not reported done (its role stats'
         `events`); the snapshots before them are forgotten."""
-        plan = self.learner.plan
-        for item in self.learner.referee_reports.snapshot().values():
+        plan = self.st.plan
+        for item in self.watches.referee_reports.snapshot().values():
             try:
                 self.referee_events = max(self.referee_events, int(decode(item.payload).get("events", 0)))
             except (MessageError, TypeError, ValueError):
@@ -220,30 +198,29 @@ class Outbox:
                 self.snapshot_pubs[k].put(msg)
 
     def config(self) -> None:
-        lr = self.learner
-        self.config_pub.put(encode("config", {"config": lr.cfg.to_dict()}, sender=lr.id, seq=self.next_seq()))
+        self.config_pub.put(encode("config", {"config": self.cfg.to_dict()}, sender=self.sender, seq=self.next_seq()))
 
     def stats(self, done: bool = False) -> None:
-        self.stats_pub.put(self.learner_stats(done).to_bytes(self.learner.id, self.next_seq()))
+        self.stats_pub.put(self.learner_stats(done).to_bytes(self.sender, self.next_seq()))
 
     def done(self, msg: bytes) -> None:
         self.done_pub.put(msg)
 
     def learner_stats(self, done: bool = False) -> LearnerStats:
-        lr, now = self.learner, time.monotonic()
-        losses = {k.split("/", 1)[1]: v for k, v in lr.metrics.items() if k.startswith("loss/")}
-        q_means = [lr.metrics.get(f"q/actor{k}", float("nan")) for k in range(lr.algo.actors)]
+        st, p, now = self.st, self.st.progress, time.monotonic()
+        losses = {k.split("/", 1)[1]: v for k, v in p.metrics.items() if k.startswith("loss/")}
+        q_means = [p.metrics.get(f"q/actor{k}", float("nan")) for k in range(self.cfg.algo.actors)]
+        budget = st.plan.schedule.budget
         return LearnerStats(
-            env_steps=lr.env_steps, updates=lr.updates, accept_until=lr.schedule.budget,
-            utd=lr.utd(), losses=losses, q_means=tuple(q_means), versions=tuple(lr.agent.versions),
-            per_worker=lr.intake.counters(now, lr.acked), rejected=lr.rejected(), done=done,
-            live=tuple(lr.agent.live_actors), workers=max(len(lr.workers.live()), lr.intake.active(now)),
-            steps=lr.schedule.budget, incarnation=lr.incarnation, exact=not lr.inexact,
-            iteration=lr.iteration, inexact=lr.inexact, awaiting=lr.awaiting,
-            slots_next=tuple(lr.stage.end) if lr.stage is not None else (),
-            owners=tuple(f"{o[0]}/{o[1]}" if o else "" for o in lr.stage.owner) if lr.stage is not None else ())
+            env_steps=p.env_steps, updates=st.updates(), accept_until=budget,
+            utd=st.utd(), losses=losses, q_means=tuple(q_means), versions=tuple(st.agent.versions),
+            per_worker=st.intake.counters(now, st.acks.acked), rejected=st.rejected(), done=done,
+            live=tuple(st.agent.live_actors), workers=max(len(self.watches.workers.live()), st.intake.active(now)),
+            steps=budget, incarnation=self.incarnation, exact=not p.inexact,
+            iteration=p.iteration, inexact=p.inexact, awaiting=p.awaiting, slots_next=tuple(st.stage.end),
+            owners=tuple(f"{o[0]}/{o[1]}" if o else "" for o in st.stage.owner))
 
-    def wait_for_referee(self, msg: Done) -> None:
+    def wait_for_referee(self, msg: Done, stopping: Callable[[], bool]) -> None:
         """Stay up (repeating done) until the referee has written its final evaluation.
 
         A referee that dies now is restarted (`mam run`) and needs this learner's config,
@@ -251,17 +228,16 @@ class Outbox:
         reported `final`: up to REFEREE_GRACE_S without any referee alive, and at most
         REFEREE_WAIT_S in all.
         """
-        lr = self.learner
-        if not lr.referee_seen:
+        if not self.st.progress.referee_seen:
             return
         deadline = time.monotonic() + REFEREE_WAIT_S
         gone_since: float | None = None
         last_put = 0.0
-        while time.monotonic() < deadline and not lr.stop_requested:
-            if any(self._is_final(item) for item in lr.referee_reports.snapshot().values()):
+        while time.monotonic() < deadline and not stopping():
+            if any(self._is_final(item) for item in self.watches.referee_reports.snapshot().values()):
                 return
             now = time.monotonic()
-            if lr.referees.live():
+            if self.watches.referees.live():
                 gone_since = None
             elif gone_since is None:
                 gone_since = now
@@ -270,7 +246,7 @@ class Outbox:
                             REFEREE_GRACE_S)
                 return
             if now - last_put >= 1.0:  # a restarted referee needs these (the caches serve them too)
-                self.done(msg.to_bytes(lr.id, self.next_seq()))
+                self.done(msg.to_bytes(self.sender, self.next_seq()))
                 self.stats(done=True)
                 self.config()
                 self.resend()

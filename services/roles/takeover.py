@@ -13,14 +13,17 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from typing import Any
 
+from mam_core.algorithm1 import Algorithm1
+from mam_core.policy import EnvSpec
 from mam_core.slot import SlotStreams, replay_episode
 from services.messaging import bus, keys
 from services.messaging.codec import LearnerStats, MessageError, SlotEpisode
-
-if TYPE_CHECKING:
-    from services.roles.worker import Worker
+from services.roles.kept import KeptBatches
+from services.roles.simulator import GuardedSimulator
+from services.roles.worker_state import LearnerWatch, SlotState
 
 log = logging.getLogger("mam.worker")
 
@@ -28,17 +31,18 @@ ASK_TIMEOUT_S = 5.0
 RESYNC_S = 2.0  # waiting this long while a restarted learner needs another iteration of this slot: go there
 
 
-def ask_episode(w: Worker) -> SlotEpisode | None:
-    """The learner's answer for this worker's slot (asked until one comes; None: stopping, or
-    the run is over). Every answer is read: when they disagree (a process that is not the
-    run's learner answers too, or a stale learner), none is taken and the question is asked again."""
-    key = keys.episode(w.cfg.run, w.slot)
-    while not w.stop_requested and not bus.run_is_done(w.done, w.cfg.run, w.rejects):
-        payloads = bus.ask_all(w.session, key, ASK_TIMEOUT_S)
+def ask_episode(session: Any, run: str, slot: int, spec: EnvSpec, done: bus.Latest, rejects: bus.RejectLog,
+                stopping: Callable[[], bool]) -> SlotEpisode | None:
+    """The learner's answer for `slot` (asked until one comes; None: `stopping`, or the run is
+    `done`). Every answer is read: when they disagree (a process that is not the run's learner
+    answers too, or a stale learner), none is taken and the question is asked again."""
+    key = keys.episode(run, slot)
+    while not stopping() and not bus.run_is_done(done, run, rejects):
+        payloads = bus.ask_all(session, key, ASK_TIMEOUT_S)
         if not payloads:
             log.info("no answer from the learner on %s yet; asking again", key)
             continue
-        episode = agreed_episode(payloads, w.slot, w.spec.obs_dim, w.spec.act_dim, w.rejects)
+        episode = agreed_episode(payloads, slot, spec.obs_dim, spec.act_dim, rejects)
         if episode is not None:
             return episode
         time.sleep(0.5)
@@ -66,61 +70,61 @@ def agreed_episode(payloads: list[bytes], slot: int, obs_dim: int, act_dim: int,
     return episodes[0] if episodes else None
 
 
-def out_of_step(w: Worker, index: int, waiting_since: float) -> bool:
-    """The slot waits, and a learner restarted since its position was set still needs another
-    iteration of it well after this worker's resends (and not one its kept batches hold: a learner
-    still catching up on a long resend): the slot is rebuilt there (`take_over`)."""
-    st = w.stats  # (rows still pending here, after a pause: no resync)
-    if st is None or w.slot >= len(st.slots_next) or st.slots_next[w.slot] == index or w.p_n or \
-            st.incarnation == w.synced_with:
+def out_of_step(learner: LearnerWatch, slot: int, index: int, waiting_since: float, pending_rows: int,
+                flushed_at: float, kept: KeptBatches) -> bool:
+    """Slot `slot` waits at iteration `index`, and a learner restarted since its position was set
+    still needs another iteration of it well after this worker's resends (and not one its `kept`
+    batches hold: a learner still catching up on a long resend): the slot is rebuilt there (`rebuild`)."""
+    st = learner.stats  # (rows still pending here, after a pause: no resync)
+    if st is None or slot >= len(st.slots_next) or st.slots_next[slot] == index or pending_rows or \
+            st.incarnation == learner.synced_with:
         return False
-    since = max(waiting_since, w.flushed_at, w.learner_seen_at)  # stats must be newer than all three
-    if not (time.monotonic() - since > RESYNC_S and w.stats_at - since > RESYNC_S / 2):
+    since = max(waiting_since, flushed_at, learner.seen_at)  # stats must be newer than all three
+    if not (time.monotonic() - since > RESYNC_S and learner.stats_at - since > RESYNC_S / 2):
         return False
     # The catch-up of a long checkpoint interval's resend takes the learner longer than RESYNC_S; one
     # batch lost in flight goes again (Worker.resend_lost). Stepping again would end exactness for nothing.
-    need = st.slots_next[w.slot]
-    return not (need < index and w.kept.holds(need))
+    need = st.slots_next[slot]
+    return not (need < index and kept.holds(need))
 
 
-def follow_owner(w: Worker, st: LearnerStats) -> None:
+def follow_owner(learner: LearnerWatch, st: LearnerStats, slot: int, worker: str, incarnation: str) -> None:
     """Fencing: the learner's stats name each slot's owner. Once they named this incarnation, another
     owner means a worker took the slot over while this one was away (paused, cut off): this one is
     stale, its rows are refused, and it leaves (`lost_to`) instead of waiting forever."""
-    owner = st.owners[w.slot] if w.slot < len(st.owners) else ""
-    if owner == f"{w.id}/{w.incarnation}":
-        w.owned = True
-    elif owner and w.owned and not w.lost_to:
-        w.lost_to = owner
+    owner = st.owners[slot] if slot < len(st.owners) else ""
+    if owner == f"{worker}/{incarnation}":
+        learner.owned = True
+    elif owner and learner.owned and not learner.lost_to:
+        learner.lost_to = owner
         log.warning("slot %d was taken over by %s while this worker (incarnation %s) was away (paused or cut off): "
-                    "the learner takes that one's rows now; this worker leaves the slot and exits", w.slot, owner,
-                    w.incarnation)
+                    "the learner takes that one's rows now; this worker leaves the slot and exits", slot, owner,
+                    incarnation)
 
 
-def take_over(w: Worker, index: int) -> int:
-    """Rebuild slot `w.slot` where the learner needs it next; that iteration."""
-    episode = ask_episode(w)
-    if episode is None:
-        return index
-    w.streams = SlotStreams.for_slot(w.algo.seed, w.slot)
+def rebuild(sim: GuardedSimulator, episode: SlotEpisode, plan: Algorithm1, seed: int, slot: int,
+            inexact: str) -> SlotState:
+    """Slot `slot` where the learner needs it next (`episode.next`), its env `sim` stepped there:
+    the episode replayed, or a fresh one when that cannot be done exactly (the state then says why;
+    `inexact`: why it was not the seed's already)."""
+    streams = SlotStreams.for_slot(seed, slot)
     why = episode.why
     if not why:
         try:
-            replayed = replay_episode(w.env, w.streams, episode.start, episode.next, episode.obs, episode.action,
+            replayed = replay_episode(sim.env, streams, episode.start, episode.next, episode.obs, episode.action,
                                       episode.next_obs)
-            why = replayed.mismatch and f"{w.cfg.env_id} replayed slot {w.slot}'s episode differently: " \
+            why = replayed.mismatch and f"{sim.cfg.env_id} replayed slot {slot}'s episode differently: " \
                                         f"{replayed.mismatch} (the env is not deterministic)"
         except Exception as e:  # the simulator failed on the recorded actions: the same outcome as a mismatch
-            why = f"{w.cfg.env_id} failed replaying slot {w.slot}'s episode: {type(e).__name__}: {e}"
+            why = f"{sim.cfg.env_id} failed replaying slot {slot}'s episode: {type(e).__name__}: {e}"
     if why:
         log.warning("slot %d cannot be rebuilt exactly: %s; it goes on from a fresh episode at iteration %d",
-                    w.slot, why, episode.next)
-        w.inexact = why[:1000]
-        w.obs, w.episode_return, w.first_row = w.reset_env(seed=w.streams.episode_seed(episode.next)), 0.0, True
+                    slot, why, episode.next)
+        state = SlotState(streams, sim.reset_env(seed=streams.episode_seed(episode.next)), inexact=why[:1000])
     else:
-        w.obs, w.episode_return, w.first_row = replayed.obs, replayed.episode_return, replayed.fresh
+        state = SlotState(streams, replayed.obs, replayed.episode_return, replayed.fresh, inexact)
         log.info("slot %d rebuilt at iteration %d: its episode from iteration %d replayed (%d steps, every "
-                 "observation equal)", w.slot, episode.next, episode.start, len(episode.action))
-    random_steps, policy_steps = w.plan.slot_steps(w.slot, episode.next)
-    w.streams.fast_forward(w.env, random_steps, policy_steps)
-    return episode.next
+                 "observation equal)", slot, episode.next, episode.start, len(episode.action))
+    random_steps, policy_steps = plan.slot_steps(slot, episode.next)
+    streams.fast_forward(sim.env, random_steps, policy_steps)
+    return state

@@ -5,7 +5,8 @@ learner's config topic. It steps iteration i once it holds the allocation and th
 that apply to i (mam_core/algorithm1.py: with a lag B, up to B iterations ahead of the
 learner), explores (Gaussian noise, or SAC's sampled actions; uniform random actions in the start phase), sends
 transitions in small batches tagged with worker id, incarnation, slot, iteration, actor and
-policy version, and exits when the run is done.
+policy version, and exits when the run is done. Its state is a few dataclasses its helpers take
+(services/roles/worker_state.py: the slot's position, the batch being built, what it knows of the learner).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from services.roles import role, takeover
 from services.roles.kept import KeptBatches
 from services.roles.lockstep import WeightsHistory
 from services.roles.simulator import FAULTS, EnvFault, GuardedSimulator
+from services.roles.worker_state import LearnerWatch, PendingBatch, SlotState
 from services.run import config, options, rundir
 from services.run.config import RunConfig
 from services.run.rundir import write_json
@@ -54,13 +56,11 @@ class Worker(GuardedSimulator):
         # The slot's streams (mam_core.slot): from --seed and the slot only. A worker taking the slot
         # over mid-run rebuilds them and the env from the slot's current episode (takeover.py).
         self.slot = slot_index
-        self.streams = SlotStreams.for_slot(self.algo.seed, slot_index)
+        streams = SlotStreams.for_slot(self.algo.seed, slot_index)
         # Simulator faults: the step is retried on a reset env, the fault counted (by kind).
         self.faults, self.env_remade = {kind: 0 for kind in FAULTS}, 0
-        self.env.action_space.seed(self.streams.action_seed)
-        self.obs = self.reset_env(seed=self.streams.episode_seed(1))
-        self.first_row = True  # the next step is an episode's first (batches flag it: episode_starts)
-        self.inexact = ""  # why this slot is no longer the seed's (a failed rebuild): every batch says it
+        self.env.action_space.seed(streams.action_seed)
+        self.slot_state = SlotState(streams, self.reset_env(seed=streams.episode_seed(1)))  # worker_state.py
         # Exactly once: batches the learner has not yet checkpointed are kept, and resent to its next
         # incarnation or when one was lost in flight (kept.py; bounded by cfg.resend_rows).
         self.kept = KeptBatches(cfg.save_replay, cfg.resend_rows)
@@ -75,32 +75,13 @@ class Worker(GuardedSimulator):
         self.weights_held_max = 0  # the most versions held at once (reported: bounded by the lag, not the run)
         self.loaded: list[tuple[int, str] | None] = [None] * self.algo.actors  # (version, incarnation) in `actors`
         self.actor = slot_index % self.algo.actors
-        self.stats: LearnerStats | None = None
+        self.learner = LearnerWatch()  # its stats, and whether the slot is still this worker's
         self.batch_seq = self.sent_rows = 0
-        self.learner_incarnation: str | None = None
-        self.learner_seen_at = 0.0  # when that incarnation was first seen (and the kept batches resent to it)
-        self.stats_at = self.flushed_at = 0.0  # when the last stats arrived, when the last batch was put
-        self.synced_with = ""  # the learner incarnation this slot's position was taken from (out_of_step)
-        self.newest_learner = (0, "")  # role.learner_order of the newest learner seen: an older one is stale
-        self.owned = False  # the learner's stats have named this incarnation its slot's owner
-        self.lost_to = ""  # the "worker/incarnation" that took the slot over since (this one then leaves)
+        self.flushed_at = 0.0  # when the last batch was put
         self.waits = ""  # what its next iteration waits for (weights, an allocation), "" while it steps
         self.last_note = 0.0
-        self.episode_return = 0.0
-        self.finished_returns: list[float] = []
         self.stop_requested = False
-        self._reset_pending()
-
-    def _reset_pending(self) -> None:
-        n, o, a = self.cfg.send_batch, self.spec.obs_dim, self.spec.act_dim
-        self.p_obs, self.p_action, self.p_next = np.empty((n, o), np.float32), np.empty((n, a), np.float32), \
-            np.empty((n, o), np.float32)
-        self.p_reward, self.p_term = np.empty(n, np.float32), np.empty(n, np.bool_)
-        self.p_n, self.p_actor, self.p_version = 0, -1, -1
-        self.p_iteration = -1  # the iteration of the first pending row
-        self.p_starts: list[int] = []  # pending rows that begin an episode
-        self.p_from = self.p_digest = ""  # the learner incarnation of the pending rows' weights, their digest
-        self.p_started = time.monotonic()
+        self.pending = PendingBatch.empty(cfg.send_batch, self.spec.obs_dim, self.spec.act_dim)
 
     # -- the loop -----------------------------------------------------------------------------
     def serve(self) -> None:
@@ -123,7 +104,7 @@ class Worker(GuardedSimulator):
         try:
             self._loop()
         finally:
-            if not self.lost_to:  # a stale owner's rows would be refused: none go
+            if not self.learner.lost_to:  # a stale owner's rows would be refused: none go
                 self.flush()
             self.publish_report(force=True)
             self.write_report()
@@ -150,27 +131,30 @@ class Worker(GuardedSimulator):
                 log.info("run is done after %d transitions from this worker", self.sent_rows)
                 return
             self.refresh(decisions, index)
-            if self.lost_to:  # a stale owner (takeover.follow_owner): it leaves
-                self.p_n = 0
+            lr = self.learner
+            if lr.lost_to:  # a stale owner (takeover.follow_owner): it leaves
+                self.pending.rows = 0
                 return
             if index is not None:
                 self.resend_lost(index)
-            if index is not None and takeover.out_of_step(self, index, waiting_since):
+            if index is not None and takeover.out_of_step(lr, self.slot, index, waiting_since, self.pending.rows,
+                                                          self.flushed_at, self.kept):
+                need = lr.stats.slots_next[self.slot]
                 log.info("iteration %d: the restarted learner needs iteration %d of slot %d next; rebuilding the "
-                         "slot there", index, self.stats.slots_next[self.slot], self.slot)
-                self.synced_with = self.stats.incarnation
-                self.kept.forget_from(self.stats.slots_next[self.slot])
-                index, waiting_since = takeover.take_over(self, self.stats.slots_next[self.slot]), time.monotonic()
+                         "slot there", index, need, self.slot)
+                lr.synced_with = lr.stats.incarnation
+                self.kept.forget_from(need)
+                index, waiting_since = self.take_over(need), time.monotonic()
             if index is None:  # where the run stands: the learner's stats
-                if self.stats is None:
+                if lr.stats is None:
                     self.stats_sub.wait_fresh(timeout=0.1)
                     continue
-                st = self.stats
+                st = lr.stats
                 index = st.slots_next[self.slot] if self.slot < len(st.slots_next) else st.iteration + 1
-                self.synced_with = st.incarnation
+                lr.synced_with = st.incarnation
                 if index > 1:
                     log.info("taking slot %d over at iteration %d", self.slot, index)
-                    index = takeover.take_over(self, index)
+                    index = self.take_over(index)
             it = plan.iteration(index) if index <= plan.iterations else None
             if it is None or self.slot not in it.slots:
                 self.flush()  # this slot's part of the run is over (the survivor runs slot 0 after C)
@@ -195,6 +179,16 @@ class Worker(GuardedSimulator):
             self.step(index, it.random, actor, version)
             index += 1
 
+    def take_over(self, index: int) -> int:
+        """Rebuild the slot where the learner needs it next, iteration `index` (takeover.py); that iteration."""
+        episode = takeover.ask_episode(self.session, self.cfg.run, self.slot, self.spec, self.done, self.rejects,
+                                       lambda: self.stop_requested)
+        if episode is None:
+            return index
+        self.slot_state = takeover.rebuild(self, episode, self.plan, self.algo.seed, self.slot,
+                                           self.slot_state.inexact)
+        return episode.next
+
     def take_weights(self, item: bus.Received | None, index: int | None) -> None:
         """Keep the versions this slot may still act with (none below iteration `index`'s)."""
         items = ([item] if item is not None else []) + self.weights.drain()
@@ -202,15 +196,16 @@ class Worker(GuardedSimulator):
             self.history.clear()  # (slots 1..M-1 after the paper schedule's C: else it kept all, >10 GiB)
             return
         oldest = self.plan.version_for(index) if index is not None and index <= self.plan.iterations else 0
-        current = self.stats.incarnation if self.stats is not None else ""
+        stats = self.learner.stats
+        current = stats.incarnation if stats is not None else ""
         for item in items:
             try:
                 w = Weights.from_bytes(item.payload, self.shapes, self.algo.actors)
             except MessageError as e:
                 self.rejects.reject(keys.parse_last(item.key), e)
                 continue
-            if w.version >= oldest and role.plausible_version(w, self.stats) and \
-                    role.learner_order(w.incarnation) >= self.newest_learner:  # not a stale learner's
+            if w.version >= oldest and role.plausible_version(w, stats) and \
+                    role.learner_order(w.incarnation) >= self.learner.newest:  # not a stale learner's
                 self.history.add(w.actor, w.version, w.params, w.incarnation, prefer=current)
         self.history.forget_below(oldest)
         self.weights_held_max = max(self.weights_held_max, self.history.held())
@@ -218,9 +213,9 @@ class Worker(GuardedSimulator):
     def refresh(self, decisions: dict[int, dict[str, int]], index: int | None) -> None:
         """Weights, the referee's decisions (with the one before: none is missed), the learner's stats."""
         st = role.fresh_learner_stats(self.stats_sub, self.cfg.run, self.rejects)
-        if st is not None and role.learner_order(st.incarnation) >= self.newest_learner:  # else a stale learner's
-            self.newest_learner = role.learner_order(st.incarnation)
-            self.stats, self.stats_at = st, time.monotonic()
+        if st is not None and role.learner_order(st.incarnation) >= self.learner.newest:  # else a stale learner's
+            self.learner.newest = role.learner_order(st.incarnation)
+            self.learner.stats, self.learner.stats_at = st, time.monotonic()
             self.on_stats(st)
         self.take_weights(None, index)
         item = self.allocation.fresh().get(keys.allocation(self.cfg.run))
@@ -259,15 +254,16 @@ class Worker(GuardedSimulator):
         """Drop what the learner has checkpointed; on a new learner incarnation resend the rest;
         see whether another worker has taken this one's slot over (the slot's owner in the stats
         was this incarnation, and is another now: this one is stale)."""
-        takeover.follow_owner(self, st)
+        lr = self.learner
+        takeover.follow_owner(lr, st, self.slot, self.id, self.incarnation)
         self.trim_acked(st)
-        if st.incarnation != self.learner_incarnation:
-            first = self.learner_incarnation is None
-            self.learner_incarnation, self.learner_seen_at = st.incarnation, time.monotonic()
+        if st.incarnation != lr.incarnation:
+            first = lr.incarnation is None
+            lr.incarnation, lr.seen_at = st.incarnation, time.monotonic()
             if not first:
                 self.kept.resend(self.pub, "the new learner")
                 self.lost_checked = time.monotonic()
-            log.info("learner %s is up at iteration %d", self.learner_incarnation or "?", st.iteration)
+            log.info("learner %s is up at iteration %d", lr.incarnation or "?", st.iteration)
 
     def trim_acked(self, st: LearnerStats) -> None:
         mine = st.per_worker.get(self.id)
@@ -279,71 +275,61 @@ class Worker(GuardedSimulator):
         """The learner (the same incarnation) still waits for an iteration of this slot that a kept
         batch holds, in stats newer by LOST_AFTER_S than when the batch went: it was lost in
         flight; the kept batches from it on go again (kept.py)."""
-        st, now = self.stats, time.monotonic()
-        if st is None or st.incarnation != self.learner_incarnation or self.slot not in st.awaiting or \
+        st, now = self.learner.stats, time.monotonic()
+        if st is None or st.incarnation != self.learner.incarnation or self.slot not in st.awaiting or \
                 self.slot >= len(st.slots_next):
             return
         need, since = st.slots_next[self.slot], max(self.flushed_at, self.lost_checked)
-        if need < index and self.stats_at - since > LOST_AFTER_S and self.kept.holds(need):
+        if need < index and self.learner.stats_at - since > LOST_AFTER_S and self.kept.holds(need):
             self.lost_checked = now
             self.kept.resend(self.pub, f"the learner, which waits for iteration {need:,} of slot {self.slot}", need)
 
     def step(self, index: int, random_phase: bool, actor: int, version: int) -> None:
         """Iteration `index` of this slot: one transition (a simulator fault: counted, the env
         reset, the step retried; the run is then not the seed's, and the learner says so)."""
-        self.actor = actor
+        self.actor, state, pending = actor, self.slot_state, self.pending
         policy_from = digest = ""
         if version >= 0:
             policy_from, digest = self.history.source(actor, version), self.history.digest(actor, version)
             if self.loaded[actor] != (version, policy_from):
                 self.actors.load_member(actor, self.history.get(actor, version))
                 self.loaded[actor] = (version, policy_from)
-        if self.p_n and (actor != self.p_actor or version != self.p_version or policy_from != self.p_from):
+        if pending.acted_otherwise(actor, version, policy_from):
             self.flush()  # a batch carries one actor and one policy version (of one learner incarnation)
         while True:
             action = uniform(self.env) if random_phase else \
-                act(self.policies[actor], self.obs, self.streams.noise, self.algo, self.max_action)
+                act(self.policies[actor], state.obs, state.streams.noise, self.algo, self.max_action)
             try:
                 next_obs, reward, terminated, truncated = self.env_step(action)
                 break
             except EnvFault as fault:
                 self.count_fault(fault)
-                self.episode_return, self.first_row = 0.0, True
-                self.obs = self.reset_env()
-        i = self.p_n
-        if i == 0:
-            self.p_iteration, self.p_started = index, time.monotonic()
-        self.p_obs[i] = self.obs
-        if self.first_row:
-            self.p_starts.append(i)
-            self.first_row = False
-        self.p_action[i] = action
-        self.p_reward[i] = reward
-        self.p_next[i] = next_obs
-        self.p_term[i] = terminated  # truncation is not terminal: the target still bootstraps
-        self.p_actor, self.p_version, self.p_from, self.p_digest = actor, version, policy_from, digest
-        self.p_n += 1
-        self.episode_return += reward
+                state.episode_return, state.first_row = 0.0, True
+                state.obs = self.reset_env()
+        pending.add(index, state.obs, action, reward, next_obs, terminated, episode_start=state.first_row,
+                    actor=actor, version=version, policy_from=policy_from, digest=digest)
+        state.first_row = False
+        state.episode_return += reward
         if terminated or truncated:
-            self.finished_returns.append(self.episode_return)
-            self.episode_return, self.first_row = 0.0, True
-            self.obs = self.reset_env(seed=self.streams.episode_seed(index + 1))  # the next episode's own seed
+            pending.returns.append(state.episode_return)
+            state.episode_return, state.first_row = 0.0, True
+            state.obs = self.reset_env(seed=state.streams.episode_seed(index + 1))  # the next episode's own seed
         else:
-            self.obs = next_obs
-        if self.p_n >= self.cfg.send_batch or time.monotonic() - self.p_started > MAX_BATCH_AGE_S:
+            state.obs = next_obs
+        if pending.rows >= self.cfg.send_batch or time.monotonic() - pending.started > MAX_BATCH_AGE_S:
             self.flush()
 
     def flush(self) -> None:
-        if self.p_n == 0:
+        p = self.pending
+        if p.rows == 0:
             return
-        n = self.p_n
-        rows = (self.p_obs[:n], self.p_action[:n], self.p_reward[:n], self.p_next[:n], self.p_term[:n])
-        if self.kept.keep:  # kept for a resend: the pending arrays are reused
-            rows = tuple(a.copy() for a in rows)
-        batch = TransitionBatch(self.id, self.incarnation, self.batch_seq, self.p_actor, self.p_version,
-                                *rows, tuple(self.finished_returns) or None, iteration=self.p_iteration,
-                                slot=self.slot, policy_from=self.p_from, env_faults=sum(self.faults.values()),
-                                episode_starts=tuple(self.p_starts), inexact=self.inexact, policy_digest=self.p_digest)
+        n = p.rows
+        batch = TransitionBatch(self.id, self.incarnation, self.batch_seq, p.actor, p.version,
+                                *p.arrays(copy=self.kept.keep),  # kept for a resend: the arrays are reused
+                                tuple(p.returns) or None, iteration=p.iteration, slot=self.slot,
+                                policy_from=p.policy_from, env_faults=sum(self.faults.values()),
+                                episode_starts=tuple(p.starts), inexact=self.slot_state.inexact,
+                                policy_digest=p.digest)
         if self.batch_log is not None:
             self.batch_log.write(f"{self.batch_seq} {n}\n")
         self.pub.put(batch.to_bytes())
@@ -351,8 +337,7 @@ class Worker(GuardedSimulator):
         self.kept.add(batch)
         self.batch_seq += 1
         self.sent_rows += n
-        self.finished_returns = []
-        self.p_n, self.p_starts = 0, []
+        p.sent()
 
 
 def main(run: str, conf: Any, worker_id: str, slot_index: int = 0, run_dir: Path | None = None) -> None:
