@@ -62,12 +62,14 @@ def single_process_td3(env_id: str, steps: int, start_steps: int, sizes: BenchSi
 
 
 def _watch_learner(endpoint: str, run: str, until: Callable[[Any, float], bool], timeout: float,
-                   procs: list[subprocess.Popen]) -> None:
-    """Follow the run's learner stats as a client until `until(stats, t_received)` is true."""
+                   procs: list[subprocess.Popen], run_dir: Path | None = None) -> None:
+    """Follow the run's learner stats as a client until `until(stats, t_received)` is true
+    (a `mam run` in `run_dir` admits a client that presents its secret: services/run/secret.py)."""
     from services.messaging import bus, keys
     from services.messaging.codec import LearnerStats, MessageError
+    from services.run import secret
 
-    conf = bus.make_config(connect=[endpoint])
+    conf = bus.make_config(connect=[endpoint], auth_file=secret.of_run(run_dir))
     deadline = time.monotonic() + timeout
     with bus.session_scope(conf, retry_for=min(60.0, timeout)) as session:
         latest = bus.Latest.subscribe(session, keys.learner_stats(run))
@@ -130,7 +132,7 @@ def distributed_run(env_id: str, steps: int, start_steps: int, sizes: BenchSizes
                 return True
             return False
 
-        _watch_learner(endpoint, run, until, sizes.timeout_s, [proc])
+        _watch_learner(endpoint, run, until, sizes.timeout_s, [proc], run_dir)
         proc.wait(timeout=sizes.timeout_s)
     finally:
         _stop([proc])

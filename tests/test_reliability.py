@@ -206,11 +206,12 @@ def test_a_full_disk_stops_the_run_naming_the_path_and_free_space(tmp_path: Path
     try:
         wait_until(lambda: learner_steps(run_dir) > 300 and len(generations(run_dir)) == 2, 180, "2 generations",
                    proc)
-        with open(tmpfs / "ballast", "wb") as b:  # the disk fills up
+        # The disk fills up. Unbuffered: a buffered file keeps the tail of a write the full disk cut
+        # short and raises ENOSPC again when the `with` closes it.
+        with open(tmpfs / "ballast", "wb", buffering=0) as b:
             try:
                 while True:
                     b.write(b"\0" * (1 << 16))
-                    b.flush()
             except OSError:
                 pass
         proc.wait(120)
