@@ -32,6 +32,7 @@ from services.messaging.codec import LearnerStats
 from services.run import codecheck, preflight, registry, rundir, runlock, secret
 from services.run.audit import audit_transport
 from services.run.config import RunConfig, budget_warnings
+from services.run.errors import Interrupted, RoleKeepsDying, RunStalled, RunStopped, describe_exit
 from services.run.progress import budget_text, command_name, done_text, follow, outcome_text, waited_on
 from services.run.rundir import disk_free, free_bytes, last_line, write_json
 
@@ -72,14 +73,6 @@ def _child_setup(role: str) -> Callable[[], None]:
     return setup
 
 
-class Interrupted(Exception):
-    """SIGTERM / SIGINT reached the launcher."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
-
-
 def _raise_interrupted(signum: int, _frame: Any) -> None:
     raise Interrupted(signum)
 
@@ -101,34 +94,6 @@ class RestartPolicy:
     def __post_init__(self) -> None:
         if self.max_restarts < 0 or self.window_s <= 0:
             raise ValueError("max_restarts must be >= 0 and the restart window > 0")
-
-
-class RunStopped(Exception):
-    """The launcher stops the run (exit status 1) and says why."""
-
-
-class RunStalled(RunStopped):
-    """No progress for `stall_timeout` seconds, and restarting the stuck child did not help."""
-
-
-class RoleKeepsDying(RunStopped):
-    """A child died more often than the restart policy allows."""
-
-    def __init__(self, child: "Child", restarts: int, window_s: float) -> None:
-        super().__init__(f"{child.role} keeps dying: exited with {describe_exit(child.proc.returncode)}, "
-                         f"{restarts} restarts within {window_s:.0f} s; see {child.log}")
-        self.child = child
-
-
-def describe_exit(rc: int | None) -> str:
-    if rc is None:
-        return "nothing (running)"
-    if rc < 0:
-        try:
-            return f"{rc} ({signal.Signals(-rc).name})"
-        except ValueError:
-            return str(rc)
-    return str(rc)
 
 
 @dataclass
@@ -364,14 +329,20 @@ class LocalCluster:
         return not self.running()
 
     def stop(self, grace: float = STOP_GRACE_S) -> None:
-        """SIGTERM (the learner checkpoints), then SIGKILL what is still up after `grace`.
+        """SIGTERM the learner, the others once it has left (it checkpoints, and the rows of updates
+        it made ahead come from the workers), then SIGKILL what is still up after `grace`.
         Nothing is restarted from now on."""
         self.stopping = True
         for role in self.pending:  # waiting out their backoff when the run ended
             self.cancelled[role] = self.cancelled.get(role, 0) + 1
         self.pending.clear()
-        for c in self.running():
-            c.proc.send_signal(signal.SIGTERM)
+        for first in (True, False):
+            for c in self.running():
+                if (c.role == "learner") == first:
+                    c.proc.send_signal(signal.SIGTERM)
+            deadline = time.monotonic() + grace
+            while first and any(c.role == "learner" for c in self.running()) and time.monotonic() < deadline:
+                time.sleep(0.05)
         if not self.wait(grace):
             for c in self.running():
                 c.proc.kill()
@@ -389,7 +360,7 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
     console = console or Console()
     arithmetic.for_children(cfg.arithmetic)  # the children pin their kernels, or not, as they start
     try:  # one run per directory: refused before anything is written (services/run/runlock.py)
-        lock = runlock.lock_run(run_dir, cfg.run)
+        lock = runlock.lock_run(run_dir, cfg.run, waiting=lambda line: console.print(line, highlight=False))
     except runlock.RunInUse as e:
         console.print(f"[red]{e}[/]")
         if outcome is not None:

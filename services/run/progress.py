@@ -18,6 +18,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from mam_core.envs.apple_collect import best_apple_return
 from services.roles.monitor_view import MonitorState, message_body
 from services.run import rundir
+from services.run.errors import RunStopped
 
 if TYPE_CHECKING:
     from services.run.launcher import LocalCluster
@@ -290,8 +291,6 @@ def supervised_session(conf: Any, cluster: LocalCluster, timeout: float = 120.0)
         except zenoh.ZError as e:
             if time.monotonic() > deadline:
                 restarts = len(cluster.restarts.get("learner", []))
-                from services.run.launcher import RunStopped
-
                 raise RunStopped(f"no connection to the learner at {cluster.endpoint} within {timeout:.0f} s "
                                  f"({restarts} restarts of it meanwhile; {e}); see "
                                  f"{cluster.run_dir / rundir.role_log('learner')}") from e

@@ -35,13 +35,14 @@ import socket
 import time
 import uuid
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 RUN_LOCK = "run.lock"
 EXPERIMENT_LOCK = "experiment.lock"
 LOCK_ENV = "MAM_RUN_LOCK"  # the launcher's token, in its children's environment
 EXIT_REFUSED = 73  # a role refused to start (its run directory or run name is in use)
 LEASE_S = 12.0  # how long a learner token may linger after its process froze (Zenoh's lease is 10 s)
+ORPHAN_WAIT_S = 60.0  # how long `mam run` waits for the children of a dead `mam run` of its directory to stop
 
 
 class RunInUse(Exception):
@@ -117,10 +118,12 @@ def describe(info: dict[str, Any]) -> str:
            f"{info.get('host', '?')}, since {since})"
 
 
-def _info(role: str, run: str, token: str = "") -> dict[str, Any]:
+def _info(role: str, run: str, token: str = "", launcher: str = "") -> dict[str, Any]:
     info = {"role": role, "run": run, "pid": os.getpid(), "host": socket.gethostname(), "started": time.time()}
     if token:
         info["token"] = token
+    if launcher:  # the token of the `mam run` that started this learner or referee
+        info["launcher"] = launcher
     return info
 
 
@@ -135,15 +138,25 @@ def _held(path: Path) -> bool:
     return False
 
 
-def lock_run(run_dir: Path, run: str) -> DirLock:
+def lock_run(run_dir: Path, run: str, orphan_wait_s: float = ORPHAN_WAIT_S,
+             waiting: Callable[[str], None] | None = None) -> DirLock:
     """`mam run`'s lock on RUN_DIR (run.lock, with a token for its children); RunInUse if a
-    `mam run`, a learner or a referee already lives there."""
+    `mam run`, a learner or a referee already lives there. A learner or referee started by a
+    `mam run` that has died (killed: its children got SIGTERM and are checkpointing) is waited
+    for, up to `orphan_wait_s`, and `waiting` told whom once."""
     run_dir.mkdir(parents=True, exist_ok=True)
     path = run_dir / RUN_LOCK
     lock = _try_lock(path)
     if lock is None:
         raise RunInUse(f"run directory {run_dir} is in use by {describe(holder(path))}: refusing to start "
                        "(one run per directory; pass another --run-dir or --run)")
+    deadline = time.monotonic() + orphan_wait_s
+    while (orphans := [n for n in ROLE_LOCKS if _held(run_dir / n) and holder(run_dir / n).get("launcher")]) \
+            and time.monotonic() < deadline:
+        if waiting is not None:
+            waiting(f"waiting for the stopping {describe(holder(run_dir / orphans[0]))} (its `mam run` was killed)")
+            waiting = None
+        time.sleep(0.2)
     who = in_use(run_dir, ROLE_LOCKS)
     if who is not None:
         lock.release()
@@ -192,7 +205,7 @@ def lock_role(run_dir: Path, role: str, run: str) -> DirLock:
             lock.release()
             raise RunInUse(f"run directory {run_dir} is owned by {describe(owner)}: refusing to start a {role} "
                            "there (use another --run-dir)")
-    lock.write(_info(role, run))
+    lock.write(_info(role, run, launcher=os.environ.get(LOCK_ENV, "")))
     return lock
 
 
