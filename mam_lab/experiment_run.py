@@ -54,7 +54,7 @@ def main(argv: list[str]) -> int:
     stops: tuple[type[BaseException], ...] = (KeyboardInterrupt, _Stop)
     try:
         spec = json.loads((run_dir / LAUNCH_FILE).read_text())
-        from services.run.launcher import LEARNER_CPUS_ENV
+        from services.run.cluster import LEARNER_CPUS_ENV
 
         cores = spec.get("cores")
         if cores:  # the learner, where a run spends its CPU, gets the run's cores; the rest float
@@ -64,7 +64,8 @@ def main(argv: list[str]) -> int:
         from rich.console import Console
 
         from services.run.config import RunConfig
-        from services.run.launcher import Interrupted, run_local
+        from services.run.errors import Interrupted
+        from services.run.launcher import run_local
 
         stops = (*stops, Interrupted)  # a signal while the launcher starts its processes
 

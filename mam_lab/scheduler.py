@@ -83,7 +83,7 @@ def start_run_process(job: Launch) -> subprocess.Popen:
 
     Its own session (the terminal's Ctrl-C reaches the grid, which stops each run with SIGTERM) and
     SIGTERM when the grid dies; the grid's code first on PYTHONPATH, so every run runs it."""
-    from services.run.launcher import die_with_parent
+    from services.run.cluster import die_with_parent
 
     write_json(job.run_dir / rundir.LAUNCH, {"config": job.cfg.to_dict(), "cores": list(job.cores) or None,
                                            "plot": job.plot, "code": job.code})

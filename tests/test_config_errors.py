@@ -75,7 +75,7 @@ def test_the_launcher_does_not_restart_a_child_that_exits_with_a_configuration_e
     run_dir = tmp_path / "run"
     script = (
         "import sys\n"
-        "from services.run.launcher import RestartPolicy, run_local\n"
+        "from services.run.launcher import run_local\n"
         "from services.run.options import build_run_config\n"
         f"cfg = build_run_config({{'env': 'AppleCollect-v1', 'steps': 300, 'hidden': '16,16', 'device': 'cuda', "
         f"'run': {unique_run('cfg')!r}}}, None)\n"

@@ -202,7 +202,7 @@ def test_experiment_run_exit_status_and_pinning(tmp_path):
 
 def test_only_the_learner_of_a_parallel_run_is_pinned(monkeypatch):
     """`mam experiment --parallel`: the run's cores go to its learner; referee and workers float."""
-    from services.run.launcher import LEARNER_CPUS_ENV, _child_setup
+    from services.run.cluster import LEARNER_CPUS_ENV, _child_setup
 
     every = sorted(os.sched_getaffinity(0))
     monkeypatch.setenv(LEARNER_CPUS_ENV, str(every[0]))

@@ -27,8 +27,8 @@ from services.messaging import bus, keys
 from services.messaging.codec import SlotEpisode, TransitionBatch
 from services.run import secret
 from services.run.chaos import children_of
+from services.run.cluster import LocalCluster
 from services.run.config import RunConfig
-from services.run.launcher import LocalCluster
 from tests.e2e import ROOT, processes_of, stop, unique_run
 from tests.test_exact import APPLE, APPLE_STEPS, _equals_reference, _record, apple_args
 

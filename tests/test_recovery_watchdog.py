@@ -5,7 +5,7 @@ referee (real child processes, as in tests/test_reliability_watchdog.py)."""
 
 from __future__ import annotations
 
-from services.run.launcher import LocalCluster
+from services.run.cluster import LocalCluster
 from tests.test_reliability_watchdog import cluster, killed, stats  # noqa: F401 (the fixture)
 
 

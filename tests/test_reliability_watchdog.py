@@ -14,8 +14,9 @@ from rich.console import Console
 
 from mam_core.config import resolve
 from services.messaging.codec import LearnerStats
+from services.run.cluster import STARTUP_GRACE_S, Child, LocalCluster
 from services.run.config import RunConfig
-from services.run.launcher import STARTUP_GRACE_S, Child, LocalCluster, RunStalled
+from services.run.errors import RunStalled
 
 ROLES = ("learner", "referee", "worker-0", "worker-1")
 
@@ -114,8 +115,8 @@ def test_no_connection_to_the_learner_stops_the_run_naming_the_endpoint_and_its_
     over as it starts, seen with `mam chaos --kill-every 1,2`) stops the run with a sentence, not a
     ZError traceback."""
     from services.messaging import bus
-    from services.run.launcher import RunStopped
-    from services.run.progress import supervised_session
+    from services.run.errors import RunStopped
+    from services.run.launcher import supervised_session
 
     cfg = RunConfig(run="nc", env_id="AppleCollect-v0", steps=2000, algo=resolve("ma-ddpg", actors=2, workers=2))
     endpoint = bus.loopback_endpoint(bus.free_tcp_port())  # nothing listens there

@@ -17,8 +17,8 @@ from rich.console import Console
 
 from mam_core.config import resolve
 from services.run import runlock
+from services.run.cluster import Child, LocalCluster
 from services.run.config import RunConfig
-from services.run.launcher import Child, LocalCluster
 from tests.e2e import ROOT
 
 # A child that writes when SIGTERM reached it, and leaves `linger` seconds later.

@@ -40,7 +40,8 @@ def run(
                                           rich_help_panel=options.RUN_PANEL),
 ) -> None:
     """Train on this box: learner + referee + M workers over an embedded loopback Zenoh."""
-    from services.run.launcher import RestartPolicy, run_local
+    from services.run.cluster import RestartPolicy
+    from services.run.launcher import run_local
 
     logging.basicConfig(level=logging.WARNING)
     from mam_lab.provenance import run_code

@@ -23,7 +23,7 @@ class RunStalled(RunStopped):
 
 
 class RoleKeepsDying(RunStopped):
-    """A child (launcher.Child) died more often than the restart policy allows."""
+    """A child (cluster.Child) died more often than the restart policy allows."""
 
     def __init__(self, child: Any, restarts: int, window_s: float) -> None:
         super().__init__(f"{child.role} keeps dying: exited with {describe_exit(child.proc.returncode)}, "

@@ -1,44 +1,37 @@
-"""What `mam run` shows while a run goes and when it ends: the progress bar with the allocation, the
-done line and the outcome line (`follow`, `done_text`, `outcome_text`)."""
+"""What `mam run` shows while a run goes and when it ends: the progress bar's columns and text
+(`bar_columns`, `bar_info`), the allocation lines, the done line and the outcome line (`done_text`,
+`outcome_text`). View only: functions of the run's config, what is known of the run (`mam watch`'s
+`MonitorState`, services/roles/monitor_view.py) and its summary, to text; the launcher's loop
+(launcher.py) feeds them and prints what they return."""
 
 from __future__ import annotations
 
-import contextlib
 import os
 import shutil
 import sys
-import time
-from collections.abc import Iterator
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-import zenoh
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, MofNCompleteColumn, ProgressColumn, TextColumn, TimeRemainingColumn
 
 from mam_core.envs.apple_collect import best_apple_return
-from services.roles.monitor_view import MonitorState, message_body
-from services.run import rundir
-from services.run.errors import RunStopped
-
-if TYPE_CHECKING:
-    from services.run.launcher import LocalCluster
 from mam_core.schedule import Schedule
-from services.messaging import bus, keys
-from services.messaging.codec import Allocation, Eval, LearnerStats, MessageError, decode
+from services.messaging.codec import Allocation
+from services.roles.monitor_view import MonitorState
 from services.run.config import RunConfig
 
 
-def done_text(cfg: RunConfig, summary: dict[str, Any], cluster: LocalCluster) -> str:
-    """The done line: wall time (and when the budget was reached: the progress bar's last time),
-    the final returns, the survivor or "no elimination in this budget". A resumed run's wall time
-    counts every part; the bar's clock only the last, and the line says so."""
+def done_text(cfg: RunConfig, summary: dict[str, Any], reached_s: float | None) -> str:
+    """The done line: wall time (and when the budget was reached, `reached_s` after the launcher
+    started: the progress bar's last time), the final returns, the survivor or "no elimination in
+    this budget". A resumed run's wall time counts every part; the bar's clock only the last, and
+    the line says so."""
     wall, parts = summary["launcher_wall_time_s"], int(summary.get("parts") or 1)
     text = f"[bold green]done[/] in {wall:.0f} s"
-    if cluster.done_at is not None and parts > 1:  # the wall time counts every part, the bar's clock this one
-        text += (f" over {parts} parts (this part reached the budget {clock_text(cluster.done_at - cluster.started_at)}"
+    if reached_s is not None and parts > 1:  # the wall time counts every part, the bar's clock this one
+        text += (f" over {parts} parts (this part reached the budget {clock_text(reached_s)}"
                  " after it started, then the final evaluation)")
-    elif cluster.done_at is not None:
-        text += f" (budget reached at {clock_text(cluster.done_at - cluster.started_at)}, then the final evaluation)"
+    elif reached_s is not None:
+        text += f" (budget reached at {clock_text(reached_s)}, then the final evaluation)"
     returns = ", ".join("—" if r is None else f"{r:.2f}" for r in summary.get("final_returns") or [])
     text += f": final returns [{returns}]"
     if isinstance(summary.get("survivor"), int) and cfg.algo.actors > 1:
@@ -97,6 +90,32 @@ def progress_text(cfg: RunConfig, transitions: int, updates: int, rates: tuple[f
     if rates is not None:
         text += f" {rates[0]:,.0f} transitions/s {rates[1]:,.0f} upd/s"
     return text
+
+
+def bar_columns() -> tuple[ProgressColumn, ...]:
+    """The progress bar: transitions done of the budget, the clock (from the launcher's start; it
+    stops when the budget is reached, as the done line says), the time left, `bar_info`'s text."""
+    return (TextColumn("[bold]transitions"), BarColumn(bar_width=16), MofNCompleteColumn(),
+            TextColumn("[yellow]{task.fields[clock]}"), TimeRemainingColumn(), TextColumn("{task.fields[info]}"))
+
+
+def bar_info(cfg: RunConfig, state: MonitorState) -> str:
+    """The progress bar's text from what is known of the run: progress and rates (`progress_text`)
+    and the last evaluation's returns R=[...]; once the learner's stats say the budget is reached,
+    its progress then and "budget reached: final evaluation". (I_k: on the allocation lines.)"""
+    stats = state.stats or {}
+    transitions, updates = int(stats.get("env_steps") or 0), int(stats.get("updates") or 0)
+    if stats.get("done"):
+        return f"{progress_text(cfg, transitions, updates, None)}  budget reached: final evaluation"
+    rates = None if state.steps_per_s is None else (state.steps_per_s, state.updates_per_s or 0.0)
+    last_eval = "" if not state.last_mean else "R=[" + " ".join(
+        "—" if m is None else f"{m:.2f}" for m in state.last_mean) + "]"
+    return f"{progress_text(cfg, transitions, updates, rates)}  {last_eval}"
+
+
+def allocation_line(cfg: RunConfig, alloc: Allocation) -> str:
+    """The line printed above the bar for a new allocation: why it was made, when, and what."""
+    return f"[magenta]{alloc.reason}[/] at {at_text(cfg, alloc.env_steps)}: {describe_allocation(alloc)}"
 
 
 def tied_best(alloc: Allocation) -> list[int]:
@@ -163,139 +182,3 @@ def outcome_text(cfg: RunConfig, summary: dict[str, Any]) -> str:
     if abs(r + 1.0) < 1e-6:
         return f"{who} reaches no apple (100 steps without one, or it leaves the square): {of}"
     return f"{who}'s mean return: {of}"
-
-
-def waited_on(stuck: list[Any], waits: dict[str, str], learner: Any, referee: Any) -> tuple[str, list[Any]]:
-    """What the workers of the awaited slots say they wait for (their reports' `waits`), as text
-    for the stall diagnosis, and the children to restart for it: the learner when each waits for
-    weights (a version the learner does not publish; restarted, it publishes the versions its
-    checkpoint keeps), the referee when each waits for an allocation, else none (the workers)."""
-    said = [(c.role, waits[c.role]) for c in stuck if waits.get(c.role)]
-    if not stuck or len(said) < len(stuck):
-        return "", []
-    text = "; " + ", ".join(f"{role} waits for {what}" for role, what in said)
-    for child, what, why in ((learner, "actor ", "the learner does not publish it"),
-                             (referee, "the allocation", "the referee has not decided it")):
-        if child is not None and child.proc.poll() is None and all(w.startswith(what) for _, w in said):
-            return f"{text} ({why})", [child]
-    return text, []
-
-
-def note_waits(cluster: LocalCluster, reports: bus.Latest) -> None:
-    """What each worker's latest report says it waits for, by role (worker-<slot>)."""
-    for item in reports.fresh().values():
-        try:
-            body = decode(item.payload)
-            slot, waits = body.get("slot"), body.get("waits", "")
-        except MessageError:
-            continue
-        if isinstance(slot, int) and not isinstance(slot, bool) and isinstance(waits, str):
-            cluster.waits[f"worker-{slot}"] = waits[:200]
-
-
-def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Console) -> bool:
-    """Progress bar and supervision until the learner has finished the run (True).
-
-    Children that die meanwhile are restarted (`LocalCluster.supervise`, which raises
-    RoleKeepsDying when one dies too often).
-    """
-    conf = bus.make_config(connect=[endpoint], auth_file=cluster.secret_file)  # the run's secret, if any
-    with supervised_session(conf, cluster) as session:  # a learner that dies before we connect is restarted
-        stats = bus.Latest.subscribe(session, keys.learner_stats(cfg.run))
-        allocation = bus.Latest.subscribe(session, keys.allocation(cfg.run))
-        evals = bus.Latest.subscribe(session, keys.eval(cfg.run))
-        roles = bus.watch_alive(session, cfg.run)
-        reports = bus.Latest(late_join=False).subscribe(session, keys.role_stats_all(cfg.run, "worker"))
-        with console.status("starting learner and referee"):
-            while not {"learner", "referee"} <= {role for role, _ in roles.members()}:
-                cluster.supervise()
-                time.sleep(0.1)
-        roles.close()
-        cluster.start_workers()
-        # What is known of the run: `mam watch`'s own state (services/roles/monitor_view.py), fed the same messages
-        state = MonitorState(run=cfg.run, env_id=cfg.env_id, algo=cfg.algo.algo, steps=cfg.steps)
-        state.on_config(cfg.to_dict() | {"algo": cfg.algo.algo, "algo_config": cfg.algo.to_dict()})
-        # the clock counts from the launcher's start and stops when the budget is reached, as the done line says
-        columns = (TextColumn("[bold]transitions"), BarColumn(bar_width=16), MofNCompleteColumn(),
-                   TextColumn("[yellow]{task.fields[clock]}"), TimeRemainingColumn(), TextColumn("{task.fields[info]}"))
-        try:
-            with Progress(*columns, console=console, transient=False) as progress:
-                cluster.console = progress.console
-                budget = Schedule.for_run(cfg.algo, cfg.steps).budget  # in transitions, what the bar counts
-                task = progress.add_task("train", total=budget, info="starting",
-                                         clock=clock_text(time.monotonic() - cluster.started_at))
-                while True:
-                    note_waits(cluster, reports)  # for the stall watchdog's diagnosis
-                    cluster.supervise()
-                    if cluster.finished():
-                        progress.update(task, info="done")
-                        return True
-                    if cluster.done_at is None:
-                        progress.update(task, clock=clock_text(time.monotonic() - cluster.started_at))
-                    item = allocation.fresh().get(keys.allocation(cfg.run))
-                    if item is not None:
-                        try:
-                            new = Allocation.from_bytes(item.payload, cfg.algo.actors)
-                            if state.last_allocation is None or (new.round, new.survivor) != (state.round,
-                                                                                               state.survivor):
-                                progress.console.print(f"[magenta]{new.reason}[/] at {at_text(cfg, new.env_steps)}: "
-                                                       f"{describe_allocation(new)}", highlight=False)
-                            state.on_allocation(message_body(new))
-                        except MessageError:
-                            pass
-                    item = evals.fresh().get(keys.eval(cfg.run))
-                    if item is not None:
-                        try:
-                            state.on_eval(message_body(Eval.from_bytes(item.payload, cfg.algo.actors)))
-                        except MessageError:
-                            pass
-                    item = stats.fresh().get(keys.learner_stats(cfg.run))
-                    if item is not None:
-                        try:
-                            st = LearnerStats.from_bytes(item.payload)
-                            cluster.observe(st)  # the stall watchdog (supervise -> check_stall)
-                            state.on_stats(message_body(st))
-                            rates = None if state.steps_per_s is None else (state.steps_per_s,
-                                                                             state.updates_per_s or 0.0)
-                            if st.done and not cluster.done:  # the budget is reached: the bar's last line
-                                cluster.done, cluster.done_at = True, time.monotonic()
-                                progress.update(task, completed=min(st.env_steps, budget),
-                                                clock=clock_text(cluster.done_at - cluster.started_at),
-                                                info=f"{progress_text(cfg, st.env_steps, st.updates, None)}  "
-                                                     "budget reached: final evaluation")
-                            elif not cluster.done:  # after done the rates only fall to 0: not shown
-                                last_eval = "" if not state.last_mean else "R=[" + " ".join(
-                                    "—" if m is None else f"{m:.2f}" for m in state.last_mean) + "]"
-                                info = (f"{progress_text(cfg, st.env_steps, st.updates, rates)}  "
-                                        f"{last_eval}")  # I_k: on the allocation lines above
-                                progress.update(task, completed=min(st.env_steps, budget), info=info)
-                        except MessageError:
-                            pass
-                    time.sleep(0.2)
-        finally:
-            cluster.console = console
-            for sub in (stats, allocation, evals, reports):
-                sub.close()
-
-
-@contextlib.contextmanager
-def supervised_session(conf: Any, cluster: LocalCluster, timeout: float = 120.0) -> Iterator[Any]:
-    """The launcher's session to its learner, opened while supervising: a learner killed before the
-    launcher could connect (before its first checkpoint) is restarted meanwhile, not waited for."""
-    deadline = time.monotonic() + timeout
-    while True:
-        cluster.supervise()
-        try:
-            session = bus.open_session(conf)
-            break
-        except zenoh.ZError as e:
-            if time.monotonic() > deadline:
-                restarts = len(cluster.restarts.get("learner", []))
-                raise RunStopped(f"no connection to the learner at {cluster.endpoint} within {timeout:.0f} s "
-                                 f"({restarts} restarts of it meanwhile; {e}); see "
-                                 f"{cluster.run_dir / rundir.role_log('learner')}") from e
-            time.sleep(0.2)
-    try:
-        yield session
-    finally:
-        session.close()
