@@ -1,5 +1,5 @@
 """The return of a uniform random policy on the MuJoCo tasks: the floor `mam run` prints a
-MuJoCo outcome beside (services/run/launcher.py, RANDOM_POLICY_RETURNS; docs/RESULTS.md).
+MuJoCo outcome beside (services/run/progress.py, RANDOM_POLICY_RETURNS; docs/RESULTS.md).
 
 Each episode draws every action uniformly from the env's action box with a generator seeded by
 (seed, episode), from `env.reset(seed=episode)`, until the env terminates or truncates (the
