@@ -14,6 +14,7 @@ import numpy as np
 from mam_core.replay import ReplayBuffer
 from services.messaging import bus, keys
 from services.messaging.codec import MessageError, TransitionBatch, TransitionSpec, WorkerCounters
+from services.run.binding import SlotBinding
 
 log = logging.getLogger("mam.learner")
 
@@ -51,8 +52,10 @@ class Intake:
     """Transition batches into the replay buffer, each exactly once (per worker incarnation and
     batch seq; resends after a learner restart fill gaps or are dropped as redundant)."""
 
-    def __init__(self, buffer: ReplayBuffer, spec: TransitionSpec, max_message: int) -> None:
+    def __init__(self, buffer: ReplayBuffer, spec: TransitionSpec, max_message: int,
+                 binding: SlotBinding | None = None) -> None:
         self.buffer = buffer
+        self.binding = binding or SlotBinding(None)  # the run's slot_binding (services/run/binding.py)
         self.spec = spec
         self.max_message = max_message
         self.tracker = bus.SequenceTracker()
@@ -77,7 +80,9 @@ class Intake:
         rows tagged with this learner's incarnation (or untagged) must not carry a version it
         has not reached. Rows acted with a learned version must say which weights they were
         acted with (`policy_digest`, checked against the published ones): without it they are
-        refused, not trusted."""
+        refused, not trusted. With a slot binding, a worker (the id its key names, which the router's
+        access control ties to a certificate) that claims a slot its binding does not allow is
+        refused (`unbound_slot`): it cannot take another worker's slot over."""
         sender = keys.parse_last(item.key)
         try:
             batch = TransitionBatch.from_bytes(item.payload, self.spec, max_bytes=self.max_message)
@@ -87,6 +92,9 @@ class Intake:
         try:
             if batch.worker != sender:
                 raise MessageError("sender_mismatch", f"key says {sender}, message says {batch.worker}")
+            if not self.binding.allows(batch.worker, batch.slot):
+                raise MessageError("unbound_slot", f"{batch.worker} claims slot {batch.slot}; the run's slot binding "
+                                   f"allows it {self.binding.describe(batch.worker)}")
             if batch.version >= 0 and not batch.policy_digest:  # a worker of this run always says which weights
                 raise MessageError("no_digest", f"rows acted with actor {batch.actor}'s version {batch.version} "
                                    "carry no weights digest")
@@ -95,8 +103,8 @@ class Intake:
                 raise MessageError("future_version", f"version {batch.version} > {versions[batch.actor]}")
         except MessageError as e:
             self.rejects.reject(sender, e)
-            if e.reason != "sender_mismatch":
-                self._tally(batch).rejected_rows += batch.rows
+            if e.reason not in ("sender_mismatch", "unbound_slot"):  # (those are no worker's own rows: a worker
+                self._tally(batch).rejected_rows += batch.rows  # refuses to start on a slot it may not claim)
             return None
         return batch
 

@@ -42,6 +42,7 @@ from services.roles.learner_state import LearnerState, LogRates
 from services.roles.lockstep import SlotStage
 from services.roles.outbox import Outbox, Watches
 from services.run import announce, cpu, options, rundir, runlock
+from services.run.binding import SlotBinding
 from services.run.config import RunConfig
 from services.run.rundir import JsonlWriter, write_json
 
@@ -72,7 +73,7 @@ class Learner:
         spec = TransitionSpec(self.spec.obs_dim, self.spec.act_dim, self.algo.actors, max_rows=4096,
                               max_action=max(self.spec.max_action))
         max_message = spec.max_rows * (2 * self.spec.obs_dim + self.spec.act_dim + 2) * 4 + (1 << 16)
-        intake = Intake(buffer, spec, max_message)
+        intake = Intake(buffer, spec, max_message, SlotBinding(cfg.slot_binding))
         intake.incarnation = self.incarnation
         replay_log = ReplayLog(replay_dir(run_dir)) if cfg.save_replay else None
         checkpoints = CheckpointRule(cfg.checkpoint_every, cfg.checkpoint_rows, cfg.checkpoint_seconds)

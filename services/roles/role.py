@@ -34,6 +34,21 @@ def setup_logging(verbose: bool = False) -> None:
     bus.init_zenoh_log()
 
 
+def refuse_unbound(cfg: RunConfig, worker_id: str, slots: list[int], what: str, log: logging.Logger) -> None:
+    """A worker or spare that the run's slot binding (services/run/binding.py) lets claim none of
+    `slots`: one line, exit EXIT_CONFIG (78, which `mam run` never restarts); the learner would
+    refuse every batch it sent."""
+    from services.run.binding import SlotBinding
+    from services.run.preflight import EXIT_CONFIG
+
+    bound = SlotBinding(cfg.slot_binding)
+    if not any(bound.allows(worker_id, s) for s in slots):
+        log.error("worker %s may not take %s of run %s: the run's slot binding allows it %s (the learner refuses "
+                  "a batch claiming any other slot; --slot-binding, docs/DEPLOY.md, section 6)", worker_id, what,
+                  cfg.run, bound.describe(worker_id))
+        raise SystemExit(EXIT_CONFIG)
+
+
 def client_config(connect: list[str] | None, listen: list[str] | None = None,
                   zenoh_config: Path | None = None, auth_file: Path | None = None) -> Any:
     """The Zenoh config of a client role: `--connect`, else the config file, else DEFAULT_ENDPOINT;

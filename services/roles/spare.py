@@ -39,6 +39,7 @@ import typer
 from services.messaging import bus, keys
 from services.messaging.codec import MessageError, decode
 from services.roles import role
+from services.run.binding import SlotBinding
 from services.run.config import RunConfig
 
 log = logging.getLogger("mam.spare")
@@ -116,6 +117,7 @@ class Spare:
                  run_dir: Path | None, worker: Callable[..., Any]) -> None:
         self.cfg, self.session, self.id, self.run_dir, self.make_worker = cfg, session, spare_id, run_dir, worker
         self.limit = take_over_limit(cfg, take_over_after)
+        self.binding = SlotBinding(cfg.slot_binding)  # it watches only the slots its binding allows
         self.rejects = bus.RejectLog(log, "message")
         self.slots: dict[str, int] = {}  # worker id -> the slot of its last report
         self.awaiting: tuple[int, ...] = ()
@@ -125,6 +127,7 @@ class Spare:
         self.stop_requested = False
 
     def serve(self) -> None:
+        role.refuse_unbound(self.cfg, self.id, list(range(self.cfg.algo.workers)), "any slot as a spare", log)
         slot, gone = self.wait()
         if slot is None:
             return
@@ -191,7 +194,8 @@ class Spare:
         """The learner's awaited slots (of this run's M slots), and each worker's slot from its report."""
         st = role.fresh_learner_stats(stats, self.cfg.run, self.rejects)
         if st is not None:
-            self.awaiting = tuple(a for a in st.awaiting if a < self.cfg.algo.workers)
+            self.awaiting = tuple(a for a in st.awaiting
+                                  if a < self.cfg.algo.workers and self.binding.allows(self.id, a))
         for item in reports.fresh().values():
             try:
                 body = decode(item.payload)

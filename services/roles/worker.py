@@ -47,6 +47,7 @@ class Worker(GuardedSimulator):
     def __init__(self, cfg: RunConfig, session: Any, worker_id: str, slot_index: int = 0,
                  run_dir: Path | None = None) -> None:
         self.run_dir, self.cfg, self.algo, self.session, self.id = run_dir, cfg, cfg.algo, session, worker_id
+        role.refuse_unbound(cfg, worker_id, [slot_index], f"slot {slot_index}", log)
         self.incarnation = uuid.uuid4().hex[:12]
         self.rejects = bus.RejectLog(log, "message")
         self.env = make_env(cfg.env_id, cfg.env_kwargs)

@@ -25,6 +25,10 @@ def announce_learner(cfg: RunConfig, listen: list[str] | None, connect: list[str
     log.info("%s", learner_banner(cfg, listen, connect))
     for line in budget_warnings(cfg):
         log.warning("note: %s", line)
+    if cfg.slot_binding:  # services/run/binding.py: batches claiming another slot are refused (unbound_slot)
+        log.info("slot binding: %s; a worker no entry matches may claim no slot",
+                 ", ".join(f"{wid}={slots if slots == '*' else ','.join(map(str, slots))}"
+                           for wid, slots in cfg.slot_binding.items()))
 
 
 class WorkerCount:

@@ -18,6 +18,7 @@ from mam_core import arithmetic as _arithmetic
 from mam_core import schedule as _schedule
 from mam_core.config import AlgoConfig
 from services.messaging import keys
+from services.run import binding as _binding
 
 BIAS_HORIZONS = ("critic", "episode")
 
@@ -50,6 +51,9 @@ class RunConfig:
     # portable: pinned kernels, the same run on any x86-64 CPU with AVX2; native: machine-bound
     # (mam_core/arithmetic.py). Default: what this process was started with (MAM_ARITHMETIC).
     arithmetic: str = field(default_factory=lambda: os.environ.get(_arithmetic.ARITHMETIC_ENV) or "portable")
+    # worker id (or id prefix*) -> the slots it may claim, "*" or [slots]; {}: any worker any slot
+    # (services/run/binding.py; the learner's intake refuses the rest, reason `unbound_slot`)
+    slot_binding: dict[str, Any] = field(default_factory=dict)
 
     @property
     def resend_rows(self) -> int:
@@ -75,6 +79,7 @@ class RunConfig:
             raise ValueError(f"unknown run config keys: {sorted(unknown)}")
         d["algo"] = AlgoConfig.from_dict(d["algo"])
         d["env_kwargs"] = check_env_kwargs(d.get("env_kwargs") or {})
+        d["slot_binding"] = _binding.parse(d.get("slot_binding"), d["algo"].workers)
         cfg = cls(**d)
         check_run_name(cfg.run)
         if cfg.steps < 1:

@@ -26,6 +26,7 @@ from typer.core import TyperCommand
 
 from mam_core.config import AFTER_ELIMINATION, ALGOS, SCHEDULES, AlgoConfig, defaults_for, resolve
 from mam_core.family import builtin_families, family_for
+from services.run import binding
 from services.run.config import RETIRED_KEYS, RunConfig, check_env_kwargs, check_run_name
 
 # -- the run options: one table -----------------------------------------------------------------
@@ -149,6 +150,10 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
     _opt("checkpoint_seconds", float, "... or N seconds, whichever comes first", target=RUN),
     _opt("stall_timeout", float, "seconds without a new transition or update before the run counts as stalled: "
          "`mam run` logs what each side waits for and restarts the stuck child (0: no watchdog)", target=RUN),
+    _opt("slot_binding", str, "which slots each worker id may claim, e.g. b0=0,b1=1,spare-a=* or b-*=0-3 (an id "
+         "prefix ending in *; slots: I, I-J, several comma-separated, or * for any): the learner refuses a batch "
+         "claiming another slot, and a worker with no entry may claim none (in TOML also a table; default: any "
+         "worker any slot; docs/DEPLOY.md, section 6)", target=RUN, panel=DISTRIBUTION_PANEL),
     # TOML only: knobs of the algorithm and the services that no command line needs
     _opt("send_batch", int, "transitions per message from a worker", target=RUN, cli=False),
     _opt("learner_threads", int, "the learner's threads: portable arithmetic spreads its GEMMs over them (0: every "
@@ -341,7 +346,8 @@ def _canonical(key: str, where: str) -> str:
 
 def load_toml(path: Path | None) -> dict[str, Any]:
     """A TOML file's run options by table name (`eliminate-at` == `eliminate_at`). Sections
-    (e.g. [obsolescence]) only group options; `env_kwargs` is a table of gym.make arguments."""
+    (e.g. [obsolescence]) only group options; `env_kwargs` is a table of gym.make arguments,
+    `slot_binding` one of worker ids and their slots."""
     if path is None:
         return {}
     if not path.is_file():
@@ -352,7 +358,7 @@ def load_toml(path: Path | None) -> dict[str, Any]:
         raise typer.BadParameter(f"{path}: {e}") from e
     flat: dict[str, Any] = {}
     for key, value in data.items():
-        if isinstance(value, dict) and key.replace("-", "_") != "env_kwargs":
+        if isinstance(value, dict) and key.replace("-", "_") not in ("env_kwargs", "slot_binding"):
             flat.update({_canonical(k, str(path)): v for k, v in value.items()})
         else:
             flat[_canonical(key, str(path))] = value
@@ -432,6 +438,11 @@ def resume_config(run_dir: Path, cli: dict[str, Any], config_file: Path | None,
     given.update({_canonical(k, "command line"): v for k, v in cli.items() if v is not None})
     have = {**cfg.to_dict(), **cfg.algo.to_dict(), "env": cfg.env_id}
     for name, value in given.items():
+        if name == "slot_binding":
+            try:
+                value = binding.parse(value, cfg.algo.workers)
+            except ValueError as e:
+                raise typer.BadParameter(f"--slot-binding: {e}") from None
         if isinstance(value, str) and isinstance(have.get(name), (list, tuple)):
             value = [int(h) for h in value.split(",") if h.strip()]
         if name not in have or _same(have[name], value):
