@@ -17,11 +17,17 @@ pinned so that the kernel, its blocking and its path are fixed (mam_core/arithme
   a product as (Bᵀ·Aᵀ)ᵀ, T·T, without a copy.
 
 The second core: the members of an ensemble (K actors, n·K critics) are independent products. They
-are always cut the same way, one member a call, and the calls spread over `threads()` Python
-threads (NumPy drops the GIL in BLAS). A product of one member (TD3's actor) is always cut into
-two calls on the two halves of its output's columns, whatever the thread count (a cut changes a
-product's bits, so it depends on the shapes alone). Which thread computes a call does not change
-its bits, so the learner's thread count is free (`set_threads`, `learner_threads`).
+are always cut the same way, one member a call. A product of one member (TD3's actor) is always
+cut into two calls on the two halves of its output's columns, whatever the thread count (a cut
+changes a product's bits, so it depends on the shapes alone). The calls of one `bmm` spread over
+`threads()` threads in one call of OpenBLAS's `sgemm_batch` (`_Batch`): it hands each product
+whole to one of its own threads, which runs the single-threaded driver that `sgemm` runs with one
+thread, with the same arguments NumPy's matmul would pass (so the same bits), and its threads
+wait spinning, not sleeping, between calls (a thread woken by the kernel took 20-100 µs a call on
+a virtual machine, which ate the second core's gain). Where that entry point is missing, the
+calls spread over Python threads instead (NumPy drops the GIL in BLAS). Which thread computes a
+call does not change its bits, so the learner's thread count is free (`set_threads`,
+`learner_threads`).
 
 `tests/test_gemm.py` checks the products against float64, the bits against every thread count, and
 that no call takes the row-major N·N form.
@@ -29,6 +35,7 @@ that no call takes the row-major N·N form.
 
 from __future__ import annotations
 
+import ctypes
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -36,9 +43,10 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import torch
 
-_PARALLEL_MIN_FLOPS = 1 << 20  # below this a product runs in the calling thread (threads cost ~20 µs)
+_PARALLEL_MIN_FLOPS = 1 << 20  # a one-member product this big is cut in two; smaller ones run in this thread
 _MIN_HALF = 32  # a one-member product is cut in two column halves of at least this many columns
 THREADS_ENV = "MAM_GEMM_THREADS"  # the threads a process starts with (default 1; `set_threads` changes it)
+BATCH_ENV = "MAM_GEMM_BATCH"  # 0: spread over Python threads, not OpenBLAS's `sgemm_batch` (the same bits)
 _pool: ThreadPoolExecutor | None = None
 _threads = 1
 _lock = threading.Lock()
@@ -54,7 +62,7 @@ def set_threads(n: int) -> None:
             return
         if _pool is not None:
             _pool.shutdown(wait=True)
-        _pool = ThreadPoolExecutor(n - 1, thread_name_prefix="mam-gemm") if n > 1 else None
+        _pool = ThreadPoolExecutor(n - 1, thread_name_prefix="mam-gemm") if n > 1 and _batch() is None else None
         _threads = n
 
 
@@ -149,7 +157,11 @@ def bmm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def _run(pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> None:
-    """The products of `pieces`, the first in this thread, the others on the pool (if any)."""
+    """The products of `pieces`: in one `sgemm_batch` call over `threads()` threads, or the first
+    in this thread and the others on the pool (if any)."""
+    batch = _batch() if _threads > 1 and len(pieces) > 1 else None
+    if batch is not None and batch.run(pieces, _threads):
+        return
     pool = _pool
     if pool is None or len(pieces) == 1:
         for piece in pieces:
@@ -159,6 +171,103 @@ def _run(pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> None:
     _mm(*pieces[0])
     for f in futures:
         f.result()
+
+
+class _Batch:
+    """OpenBLAS's `cblas_sgemm_batch`, in the library NumPy's matmul calls (its pins apply), for
+    the products NumPy would hand to `cblas_sgemm`, with the arguments it would pass.
+
+    In `sgemm_batch` each product of the batch runs whole in one thread, in the same
+    single-threaded driver that `sgemm` runs on one thread (OpenBLAS `driver/level3/
+    gemm_batch_thread.c`): the same bits as NumPy's call, for any thread count and any thread.
+    OpenBLAS's thread count is raised to `threads` for the call only (its products elsewhere
+    must stay on one thread: a product split over threads is cut another way)."""
+
+    ROW_MAJOR, NO_TRANS, TRANS = 101, 111, 112
+    # Up to this m·n·k `interface/gemm_batch.c` sends a product to the small-matrix kernels,
+    # unasked (`sgemm` asks the core's permit first), and in a DYNAMIC_ARCH build calls them
+    # through an unresolved table offset (a crash, found here with 0.3.31): never at or below it.
+    SMALL = 100 ** 3
+
+    def __init__(self, lib: ctypes.CDLL, batch: str, set_threads: str) -> None:
+        self.int = ctypes.c_int64 if batch.endswith("64_") else ctypes.c_int
+        self.fn = getattr(lib, batch)
+        self.fn.restype = None
+        self.set_threads = getattr(lib, set_threads)
+        self.set_threads.argtypes, self.set_threads.restype = [ctypes.c_int], None
+        self.lock = threading.Lock()
+
+    @staticmethod
+    def _form(x: np.ndarray, rows: int, cols: int) -> tuple[int, int] | None:
+        """(transpose, leading dimension) of a 2-D operand as NumPy's matmul passes it, or None
+        if NumPy would not pass it to BLAS."""
+        s1, s2 = x.strides
+        if _blasable(s1, s2, cols):
+            return _Batch.NO_TRANS, s1 // 4
+        if _blasable(s2, s1, rows):
+            return _Batch.TRANS, s2 // 4
+        return None
+
+    def run(self, pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]], threads: int) -> bool:
+        """Compute the products of `pieces` (3-D operands, one product a member) if every one of
+        them is one NumPy would compute with `sgemm`; False (nothing computed) if not."""
+        calls = []
+        for a3, b3, c3 in pieces:
+            for a, b, c in zip(a3, b3, c3):
+                (m, k), n = a.shape, b.shape[1]
+                fa, fb = self._form(a, m, k), self._form(b, k, n)
+                if min(m, n, k) < 2 or fa is None or fb is None or not _blasable(c.strides[0], c.strides[1], n):
+                    return False  # NumPy takes dot, gemv or its own loop there
+                if m * n * k <= self.SMALL:
+                    return False  # `sgemm_batch` takes its small-matrix kernels there (`sgemm` may not)
+                if a.ctypes.data == b.ctypes.data and m == n and a.strides == b.strides[::-1] and fa[0] != fb[0]:
+                    return False  # NumPy takes syrk for a matrix times its transpose
+                calls.append((fa, fb, m, n, k, a.ctypes.data, b.ctypes.data, c.ctypes.data, c.strides[0] // 4))
+        g = len(calls)
+        ints, ptrs = self.int * g, ctypes.c_void_p * g
+        enums, floats = ctypes.c_int * g, ctypes.c_float * g
+        with self.lock:  # OpenBLAS's thread count is one per process
+            self.set_threads(threads)
+            try:
+                self.fn(ctypes.c_int(self.ROW_MAJOR), enums(*(c[0][0] for c in calls)),
+                        enums(*(c[1][0] for c in calls)), ints(*(c[2] for c in calls)),
+                        ints(*(c[3] for c in calls)), ints(*(c[4] for c in calls)),
+                        floats(*([1.0] * g)), ptrs(*(c[5] for c in calls)), ints(*(c[0][1] for c in calls)),
+                        ptrs(*(c[6] for c in calls)), ints(*(c[1][1] for c in calls)), floats(*([0.0] * g)),
+                        ptrs(*(c[7] for c in calls)), ints(*(c[8] for c in calls)), self.int(g), ints(*([1] * g)))
+            finally:
+                self.set_threads(1)
+        return True
+
+
+_BATCH: list[_Batch | None] = []
+
+
+def _batch() -> _Batch | None:
+    """NumPy's OpenBLAS's batch entry point (found once), or None: another BLAS, an OpenBLAS
+    without `sgemm_batch`, or BATCH_ENV=0."""
+    if not _BATCH:
+        _BATCH.append(_find_batch() if os.environ.get(BATCH_ENV, "1") != "0" else None)
+    return _BATCH[0]
+
+
+def _find_batch() -> _Batch | None:
+    try:
+        with open("/proc/self/maps") as maps:  # the very library NumPy loaded (not another copy)
+            paths = {line.split()[-1] for line in maps if "openblas" in line.rsplit("/", 1)[-1].lower()}
+    except OSError:
+        return None
+    for path in sorted(paths):
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for batch, set_threads in (("scipy_cblas_sgemm_batch64_", "scipy_openblas_set_num_threads64_"),
+                                   ("scipy_cblas_sgemm_batch", "scipy_openblas_set_num_threads"),
+                                   ("cblas_sgemm_batch", "openblas_set_num_threads")):
+            if hasattr(lib, batch) and hasattr(lib, set_threads):
+                return _Batch(lib, batch, set_threads)
+    return None
 
 
 class _Baddbmm(torch.autograd.Function):

@@ -6,7 +6,8 @@
   shapes, one torch thread, one process per arithmetic (each library reads its pins when it
   loads): `native` (nothing pinned, the machine's own kernels), `portable` (mam's default: the
   pins of `mam_core.arithmetic.PINS`, the GEMMs in `mam_core.gemm`), `portable-threads` (the same
-  with the GEMMs over 2 threads: the same bits), `portable-mkl` (the pins with the GEMMs in MKL's
+  with the GEMMs over 2 threads in OpenBLAS's `sgemm_batch`: the same bits),
+  `portable-threads-python` (over 2 Python threads instead), `portable-mkl` (the pins with the GEMMs in MKL's
   COMPATIBLE branch: the fallback, and the default before `mam_core.gemm`). The processes take
   turns in rounds whose order rotates; a ratio is the median over rounds of the within-round ratio.
 * **actor** — the workers' and referee's forward pass (HalfCheetah shapes, 256x256): `dense`
@@ -34,6 +35,7 @@ LEARNER_ARITHMETICS: dict[str, tuple[str, dict[str, str]]] = {
     "native": ("native", {}),
     "portable": ("portable", {}),
     "portable-threads": ("portable", {GEMM_THREADS_ENV: "2"}),
+    "portable-threads-python": ("portable", {GEMM_THREADS_ENV: "2", "MAM_GEMM_BATCH": "0"}),
     "portable-mkl": ("portable", {arithmetic.GEMM_ENV: "mkl"}),
 }
 

@@ -82,6 +82,34 @@ def test_the_same_bits_for_every_thread_count(algo: str) -> None:
         assert np.array_equal(one[name], two[name]) and np.array_equal(one[name], three[name]), name
 
 
+def test_the_batch_call_gives_numpy_s_bits() -> None:
+    """OpenBLAS's `sgemm_batch` over two threads (`gemm._Batch`) against NumPy's matmul, one
+    product a call, in every layout the layers make: the same bits above its small-matrix bound,
+    refused (nothing computed) at or below it."""
+    batch = gemm._batch()
+    if batch is None:
+        pytest.skip("this NumPy's BLAS has no sgemm_batch")
+    rng = np.random.default_rng(2)
+    for e, m, k, n in [(2, 256, 23, 256), (4, 128, 128, 128), (3, 256, 256, 64), (2, 100, 100, 100), (2, 96, 17, 64)]:
+        for a, b in layouts(e, m, k, n, rng):
+            an, bn = a.expand(e, -1, -1).numpy(), b.expand(e, -1, -1).numpy()
+            want = np.stack([np.matmul(an[i], bn[i]) for i in range(e)])
+            got = np.full((e, m, n), np.nan, np.float32)
+            used = batch.run([(an[i:i + 1], bn[i:i + 1], got[i:i + 1]) for i in range(e)], 2)
+            assert used == (m * n * k > batch.SMALL), (e, m, k, n)
+            assert np.array_equal(got, want) if used else np.isnan(got).all()
+    # OpenBLAS is back on one thread: a product it would split now runs whole
+    x = rng.standard_normal((512, 512), dtype=np.float32)
+    assert np.array_equal(x @ x.T.copy(), gemm_one_thread(x))
+
+
+def gemm_one_thread(x: np.ndarray) -> np.ndarray:
+    code = ("import sys, numpy as np, mam_core; x = np.frombuffer(sys.stdin.buffer.read(), np.float32)"
+            ".reshape(512, 512); sys.stdout.buffer.write((x @ x.T.copy()).tobytes())")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, input=x.tobytes(), capture_output=True, timeout=60)
+    return np.frombuffer(out.stdout, np.float32).reshape(512, 512)
+
+
 def test_no_product_is_a_row_major_nn_call(monkeypatch: pytest.MonkeyPatch) -> None:
     """Every operand pair an update hands to BLAS: at least one is transposed in BLAS's terms
     (OpenBLAS would run row-major N·N products in its AVX-512 kernel on AVX-512 CPUs)."""
