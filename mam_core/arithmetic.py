@@ -51,6 +51,10 @@ PINS: dict[str, str] = {
     "OPENBLAS_NUM_THREADS": "1",
     "OPENBLAS_L2_SIZE": "1024",
 }
+# Not a pin (no bits depend on it), set unless the environment sets it: how long OpenBLAS's
+# threads spin for the next call before they sleep, 2^16 cycles (mam_core/gemm.py, `_Batch`:
+# the learner's GEMMs over its threads; a longer spin burns the core the workers need).
+SPEED = {"OPENBLAS_THREAD_TIMEOUT": "16"}
 
 _status: dict[str, Any] = {}
 _before: dict[str, str | None] = {}  # the pinned variables as they were before pin() set them
@@ -86,8 +90,10 @@ def pin() -> dict[str, Any]:
     elif not cpu_has_avx2():
         why = f"not an x86-64 CPU with AVX2 and FMA ({platform.machine()}): nothing pinned"
     else:
-        _before.update({k: os.environ.get(k) for k in (*PINS, "NPY_ENABLE_CPU_FEATURES")})
+        _before.update({k: os.environ.get(k) for k in (*PINS, *SPEED, "NPY_ENABLE_CPU_FEATURES")})
         os.environ.update(PINS)
+        for k, v in SPEED.items():
+            os.environ.setdefault(k, v)
         os.environ.pop("NPY_ENABLE_CPU_FEATURES", None)  # NumPy refuses to start with both set
         if late:
             why = (f"{' and '.join(late)} imported before mam pinned the arithmetic: this process keeps the "

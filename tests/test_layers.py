@@ -7,7 +7,7 @@ From the ground up (docs/ARCHITECTURE.md):
 1. `mam_core`: the algorithm, pure (no Zenoh, no services).
 2. `services/messaging`: key expressions, codecs, the bus.
 3. What every process of a run shares: its config, option table, directory, lock, secret,
-   announcement, CPU and device checks (`services/run/` less the supervision).
+   announcement, slot binding, CPU and device checks (`services/run/` less the supervision).
 4. `services/roles`: the learner, workers, referee, monitor, router and their parts.
 5. Run supervision: the launcher, its children (cluster), its progress view, the chaos runner, the
    run's figures.
@@ -22,7 +22,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_RUN = {"config", "rundir", "runlock", "announce", "cpu", "preflight", "registry", "options", "codecheck",
-              "secret"}
+              "secret", "binding"}
 TOP = {"services.cli.app", "services.cli.__main__"}
 
 # A circle listed here is known; any other fails. None is left: the roles' circles went with issue
