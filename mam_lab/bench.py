@@ -47,7 +47,7 @@ from mam_lab.bench_runs import bench_collection, bench_e2e
 from mam_lab.bench_sizes import SHAPES, BenchSizes
 from mam_lab.bench_transport import bench_transport, bench_weights, profile_worker_step
 from mam_lab.provenance import versions
-from services.cli import options
+from services.run import options
 
 # The pieces: mam_lab.bench_learner (learner, its profile, replay checkpoints), mam_lab.bench_runs
 # (end to end, collection) and mam_lab.bench_transport (transport, weights, the worker's profile).

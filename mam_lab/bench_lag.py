@@ -26,7 +26,7 @@ import uuid
 from pathlib import Path
 from typing import Any, Callable
 
-from mam_lab.bench_sizes import ROOT, BenchSizes, _child_env, _stop
+from mam_lab.bench_sizes import ROOT, BenchSizes, child_env, stop_children
 
 LAGS = (0, 2)
 # name: (key prefix, workers, hidden (None: the bench's), batch (None: the bench's), evaluation episodes,
@@ -87,12 +87,12 @@ def wait_share(rows: list[dict[str, Any]], field: str = "exact_wait_s") -> float
 def timed(cmd: list[str], out: Path, timeout: float) -> float:
     t0 = time.monotonic()
     with open(out, "wb") as f:
-        proc = subprocess.Popen(cmd, cwd=ROOT, env=_child_env(), stdout=f, stderr=subprocess.STDOUT,
+        proc = subprocess.Popen(cmd, cwd=ROOT, env=child_env(), stdout=f, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, start_new_session=True)
     try:
         proc.wait(timeout=timeout)
     finally:
-        _stop([proc])
+        stop_children([proc])
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd[:4])} exited {proc.returncode}: {out.read_text()[-2000:]}")
     return time.monotonic() - t0

@@ -13,7 +13,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from mam_lab.bench_sizes import ROOT, SHAPES, BenchSizes, _median
+from mam_lab.bench_sizes import ROOT, SHAPES, BenchSizes, median
 
 
 def random_replay(obs_dim: int, act_dim: int, max_action: float, rows: int, device: str, seed: int = 0):
@@ -108,9 +108,9 @@ def bench_sac(sizes: BenchSizes, device: str, log: Callable[[str], None], seed: 
         log(f"learner: {shape} shapes, {', '.join(steps)} ({sizes.learner_rounds} rounds x "
             f"{sizes.learner_updates} updates, interleaved)")
         wall = interleaved_rates(steps, sizes.learner_rounds, sizes.learner_updates, sync=sync)["wall"]
-        out[f"learner_{shape}_sac_updates_per_s"] = _median(wall["sac"])
+        out[f"learner_{shape}_sac_updates_per_s"] = median(wall["sac"])
         for name in ("sac_k1", "sac_k2"):
-            out[f"learner_{shape}_{name}_updates_per_s"] = _median(wall[name])
+            out[f"learner_{shape}_{name}_updates_per_s"] = median(wall[name])
             out[f"learner_{shape}_{name}_vs_sac"] = ratio_of_medians_per_round(wall[name], wall["sac"])
     first = sizes.learner_shapes[0]
     out["learner_sac_k1_vs_sac"] = out[f"learner_{first}_sac_k1_vs_sac"]
@@ -247,7 +247,7 @@ def device_ms_per_update(step: Callable[[], Any], device: str, updates: int = 20
 
 def ratio_of_medians_per_round(a: list[float], b: list[float]) -> float:
     """Median over rounds of a[r] / b[r] (same round: same machine conditions)."""
-    return _median([x / y for x, y in zip(a, b)])
+    return median([x / y for x, y in zip(a, b)])
 
 
 def bench_learner(sizes: BenchSizes, device: str = "cpu", threads: int = 1, log: Callable[[str], None] = print,
@@ -271,9 +271,9 @@ def bench_learner(sizes: BenchSizes, device: str = "cpu", threads: int = 1, log:
             f"{sizes.learner_updates} updates, interleaved)")
         rates = interleaved_rates(steps, sizes.learner_rounds, sizes.learner_updates, sync=sync)
         wall, cpu = rates["wall"], rates["cpu"]
-        out[f"learner_{shape}_td3_updates_per_s"] = _median(wall["td3"])
+        out[f"learner_{shape}_td3_updates_per_s"] = median(wall["td3"])
         for name in (n for n in steps if n != "td3"):
-            out[f"learner_{shape}_{name}_updates_per_s"] = _median(wall[name])
+            out[f"learner_{shape}_{name}_updates_per_s"] = median(wall[name])
             out[f"learner_{shape}_{name}_vs_td3"] = ratio_of_medians_per_round(wall[name], wall["td3"])
             if "_" not in name:
                 out[f"learner_{shape}_{name}_vs_td3_cpu_time"] = ratio_of_medians_per_round(cpu[name], cpu["td3"])

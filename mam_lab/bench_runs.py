@@ -16,7 +16,7 @@ from typing import Any, Callable
 import numpy as np
 
 from mam_lab.bench_learner import reference_td3
-from mam_lab.bench_sizes import ROOT, BenchSizes, _child_env, _stop
+from mam_lab.bench_sizes import ROOT, BenchSizes, child_env, stop_children
 from services.run import cpu, rundir
 
 
@@ -112,7 +112,7 @@ def distributed_run(env_id: str, steps: int, start_steps: int, sizes: BenchSizes
     log_path = work_dir / f"{run}.out"
     with open(log_path, "wb") as out:
         # bf16 is measured even on a CPU without native bf16, where `mam run` refuses it by default
-        env = _child_env(**({cpu.ALLOW_SLOW_BF16: "1"} if precision == "bf16" else {}))
+        env = child_env(**({cpu.ALLOW_SLOW_BF16: "1"} if precision == "bf16" else {}))
         proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, start_new_session=True)
     marks: dict[str, float] = {}
@@ -135,7 +135,7 @@ def distributed_run(env_id: str, steps: int, start_steps: int, sizes: BenchSizes
         _watch_learner(endpoint, run, until, sizes.timeout_s, [proc], run_dir)
         proc.wait(timeout=sizes.timeout_s)
     finally:
-        _stop([proc])
+        stop_children([proc])
     if proc.returncode != 0:
         raise RuntimeError(f"mam run exited {proc.returncode}: {log_path.read_text()[-2000:]}")
     t_end = time.monotonic()
@@ -195,7 +195,7 @@ def collection_rate(workers: int, sizes: BenchSizes, work_dir: Path, seed: int =
                  "--slot", str(j)] for j in range(workers)]):
             out = open(run_dir / f"proc{i}.log", "wb")
             logs.append(out)
-            procs.append(subprocess.Popen(cmd, cwd=ROOT, env=_child_env(), stdout=out, stderr=subprocess.STDOUT,
+            procs.append(subprocess.Popen(cmd, cwd=ROOT, env=child_env(), stdout=out, stderr=subprocess.STDOUT,
                                           stdin=subprocess.DEVNULL, start_new_session=True))
         warm = sizes.collection_start_steps + 200 * workers  # past the random phase: the policy runs
         marks: list[tuple[float, int]] = []
@@ -208,7 +208,7 @@ def collection_rate(workers: int, sizes: BenchSizes, work_dir: Path, seed: int =
 
         _watch_learner(endpoint, run, until, sizes.timeout_s, procs)
     finally:
-        _stop(procs)
+        stop_children(procs)
         for f in logs:
             f.close()
     (t0, s0), (t1, s1) = marks[0], marks[-1]

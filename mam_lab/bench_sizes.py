@@ -70,19 +70,19 @@ class BenchSizes:
                    collection_workers=(4,), collection_window_s=0.5, collection_start_steps=64, timeout_s=120.0)
 
 
-def _median(xs: list[float]) -> float:
+def median(xs: list[float]) -> float:
     return float(statistics.median(xs)) if xs else float("nan")
 
 
-def _percentile(xs: list[float], q: float) -> float:
+def percentile(xs: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(xs), q)) if xs else float("nan")
 
 
-def _child_env(**extra: str) -> dict[str, str]:
+def child_env(**extra: str) -> dict[str, str]:
     return dict(os.environ, PYTHONWARNINGS="ignore", COLUMNS="160", **extra)
 
 
-def _stop(procs: list[subprocess.Popen], grace: float = 10.0) -> None:
+def stop_children(procs: list[subprocess.Popen], grace: float = 10.0) -> None:
     """SIGTERM the processes this bench started, then SIGKILL what is left after `grace`."""
     for p in procs:
         if p.poll() is None:
@@ -96,5 +96,5 @@ def _stop(procs: list[subprocess.Popen], grace: float = 10.0) -> None:
             p.wait(5)
 
 
-def _python_c(code: str, *args: str) -> list[str]:
+def python_c(code: str, *args: str) -> list[str]:
     return [sys.executable, "-c", code, *args]

@@ -15,7 +15,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from mam_lab.bench_sizes import ROOT, SHAPES, BenchSizes, _child_env, _median, _percentile, _python_c, _stop
+from mam_lab.bench_sizes import ROOT, SHAPES, BenchSizes, child_env, median, percentile, python_c, stop_children
 
 WEIGHTS_WARMUP = 3  # broadcasts not counted in the latency figures
 
@@ -72,8 +72,8 @@ def bench_transport(sizes: BenchSizes, log: Callable[[str], None] = print,
         try:
             for i in range(m):
                 procs.append(subprocess.Popen(
-                    _python_c(code, endpoint, run, f"p{i}", str(per), str(rows), str(obs_dim), str(act_dim)),
-                    cwd=ROOT, env=_child_env(), stdin=subprocess.DEVNULL, start_new_session=True))
+                    python_c(code, endpoint, run, f"p{i}", str(per), str(rows), str(obs_dim), str(act_dim)),
+                    cwd=ROOT, env=child_env(), stdin=subprocess.DEVNULL, start_new_session=True))
             idle_deadline = time.monotonic() + sizes.timeout_s
             while received < expected and time.monotonic() < idle_deadline:
                 items = inbox.drain(256)
@@ -99,7 +99,7 @@ def bench_transport(sizes: BenchSizes, log: Callable[[str], None] = print,
         finally:
             dropped = inbox.dropped
             inbox.close()
-            _stop(procs)
+            stop_children(procs)
     if received == 0:
         raise RuntimeError("no transition arrived")
     span = max(t_last - t_first, 1e-9)
@@ -177,10 +177,10 @@ def bench_weights(sizes: BenchSizes, log: Callable[[str], None] = print) -> dict
         with bus.session_scope(bus.make_config(listen=[endpoint])) as session:
             pub = bus.declare_latest_publisher(session, keys.weights(run, 0))
             alive = bus.watch_alive(session, run, "worker")
-            proc = subprocess.Popen(_python_c(code, endpoint, run, str(obs_dim), str(act_dim),
+            proc = subprocess.Popen(python_c(code, endpoint, run, str(obs_dim), str(act_dim),
                                               ",".join(map(str, hidden)), str(sizes.weights_messages),
                                               str(WEIGHTS_WARMUP)),
-                                    cwd=ROOT, env=_child_env(), stdout=subprocess.PIPE, stdin=subprocess.DEVNULL,
+                                    cwd=ROOT, env=child_env(), stdout=subprocess.PIPE, stdin=subprocess.DEVNULL,
                                     start_new_session=True)
             try:
                 if not alive.wait_for(lambda ids: "latency" in ids, timeout=60.0):
@@ -199,13 +199,13 @@ def bench_weights(sizes: BenchSizes, log: Callable[[str], None] = print) -> dict
                 stdout, _ = proc.communicate(timeout=60.0)
             finally:
                 alive.close()
-                _stop([proc])
+                stop_children([proc])
         lat = json.loads(stdout.decode().strip().splitlines()[-1])["latencies_ms"]
         if not lat:
             raise RuntimeError(f"no weights latency measured for {shape}")
-        out[f"weights_{shape}_p50_ms"] = _percentile(lat, 50)
-        out[f"weights_{shape}_p99_ms"] = _percentile(lat, 99)
-        out[f"weights_{shape}_encode_ms"] = _median(encode_ms)
+        out[f"weights_{shape}_p50_ms"] = percentile(lat, 50)
+        out[f"weights_{shape}_p99_ms"] = percentile(lat, 99)
+        out[f"weights_{shape}_encode_ms"] = median(encode_ms)
         out[f"weights_{shape}_bytes"] = size
         out[f"weights_{shape}_samples"] = len(lat)
     out["weights_latency_p50_ms"] = max(out["weights_halfcheetah_p50_ms"], out["weights_humanoid_p50_ms"])
