@@ -29,6 +29,15 @@ calls spread over Python threads instead (NumPy drops the GIL in BLAS). Which th
 call does not change its bits, so the learner's thread count is free (`set_threads`,
 `learner_threads`).
 
+A warm-up before a thread's first product (`_warm`). On a 2-core AMD EPYC of family 23 (Zen 1,
+AVX2 without AVX-512) OpenBLAS's Haswell `sgemm` ran a 256x256x256 product in ~3,450 µs in a
+thread until that thread had computed one product whose output has 384 or more columns, and in
+~900-1,000 µs from then on (the machine's peak; MKL takes ~1,000 µs): TD3's portable learner took
+55 ms an update, not 24 (docs/PERFORMANCE.md, "A slow first state"). Why is not known (no
+hardware counters on that virtual machine; no allocation happens in between). The bits are the
+same cold or warm (tests/test_gemm.py), so every thread that computes the learner's products
+first computes one 64x512x1024 product (~5 ms cold), once; `WARM_ENV=0` leaves it out.
+
 `tests/test_gemm.py` checks the products against float64, the bits against every thread count, and
 that no call takes the row-major N·N form.
 """
@@ -47,6 +56,10 @@ _PARALLEL_MIN_FLOPS = 1 << 20  # a one-member product this big is cut in two; sm
 _MIN_HALF = 32  # a one-member product is cut in two column halves of at least this many columns
 THREADS_ENV = "MAM_GEMM_THREADS"  # the threads a process starts with (default 1; `set_threads` changes it)
 BATCH_ENV = "MAM_GEMM_BATCH"  # 0: spread over Python threads, not OpenBLAS's `sgemm_batch` (the same bits)
+WARM_ENV = "MAM_GEMM_WARM"  # 0: no warm-up product before a thread's first (the same bits; slower where it matters)
+_WARM_SHAPE = (64, 512, 1024)  # m, k, n of the warm-up product: n >= 384 output columns
+_warm_thread = threading.local()  # .done: this thread computed the warm-up
+_warm_batch = [0]  # the most `sgemm_batch` threads warmed so far
 _pool: ThreadPoolExecutor | None = None
 _threads = 1
 _lock = threading.Lock()
@@ -121,7 +134,28 @@ def col_major(x: np.ndarray) -> bool:
 
 
 def _mm(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    if not getattr(_warm_thread, "done", False):
+        _warm_thread.done = True
+        _warm([_warm_operands(1)])
     np.matmul(a, b, out=out)
+
+
+def _warm_operands(e: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`e` warm-up products, both operands transposed (T·T, as `bmm` passes row-major ones)."""
+    m, k, n = _WARM_SHAPE
+    a, b = np.ones((e, k, m), np.float32), np.ones((e, n, k), np.float32)
+    return a.transpose(0, 2, 1), b.transpose(0, 2, 1), np.empty((e, m, n), np.float32)
+
+
+def _warm(pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]], batch: _Batch | None = None) -> None:
+    """The warm-up products (module docstring): in this thread, or one in each of `batch`'s threads."""
+    if os.environ.get(WARM_ENV, "1") == "0":
+        return
+    if batch is not None:
+        batch.run(pieces, len(pieces[0][0]))
+    else:
+        for a, b, out in pieces:
+            np.matmul(a, b, out=out)
 
 
 def bmm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -160,6 +194,9 @@ def _run(pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> None:
     """The products of `pieces`: in one `sgemm_batch` call over `threads()` threads, or the first
     in this thread and the others on the pool (if any)."""
     batch = _batch() if _threads > 1 and len(pieces) > 1 else None
+    if batch is not None and _warm_batch[0] < _threads:
+        _warm_batch[0] = _threads
+        _warm([_warm_operands(_threads)], batch)
     if batch is not None and batch.run(pieces, _threads):
         return
     pool = _pool

@@ -162,3 +162,19 @@ def test_a_run_whose_learner_uses_other_threads_equals_the_reference(tmp_path) -
     assert got["summary"]["exact"] is True and got["summary"]["survivor"] == ref.survivor
     assert got["evals"] == [(e["iterations"], e["purpose"], e["returns"]) for e in ref.evaluations]
     assert _same_params(got["params"], ref.policy)
+
+
+def test_the_warm_up_changes_no_bits() -> None:
+    """Each process cold (its threads' first products): TD3 updates with and without the
+    warm-up product (`MAM_GEMM_WARM`), on one and on two threads, give the same parameters."""
+    code = ("import sys, hashlib, mam_core, numpy as np; from tests.test_gemm import trained; "
+            "p = trained(int(sys.argv[1]), 'td3', updates=3); "
+            "print(hashlib.sha256(b''.join(p[k].tobytes() for k in sorted(p))).hexdigest())")
+    digests = set()
+    for warm in ("0", "1"):
+        for threads in ("1", "2"):
+            out = subprocess.run([sys.executable, "-c", code, threads], cwd=ROOT, capture_output=True, text=True,
+                                 timeout=120, env=dict(os.environ, **{gemm.WARM_ENV: warm}))
+            assert out.returncode == 0, out.stderr[-2000:]
+            digests.add(out.stdout.split()[-1])
+    assert len(digests) == 1, digests
