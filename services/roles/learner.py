@@ -191,7 +191,8 @@ class Learner:
             if self.inbox.qsize() > INBOX_STAGE_AHEAD:  # a resend of thousands of batches: staged before the
                 self.receive(stage, timeout=0.0, max_items=self.inbox.qsize())  # inbox sheds any of it
         # Stopped by a signal: keep a usable checkpoint (of the last whole iteration); the run is not done.
-        learner_files.write_log(self.state, self.log_writer)
+        if not self.mid_iteration:  # (a row's counts are those of whole iterations)
+            learner_files.write_log(self.state, self.log_writer)
         if not self.mid_iteration and not p.ahead:  # (a checkpoint would hold updates without their rows)
             self.checkpoint()
 
@@ -201,9 +202,11 @@ class Learner:
     def sample(self) -> Any:  # `agent.sampler`: on a GPU, indices staged for the CUDA graphs
         return self.agent.sampler(self.buffer, self.algo.batch_size)()
 
-    def idle_duties(self, awaited: str, since: float) -> None:
+    def idle_duties(self, awaited: str, since: float, between_iterations: bool = True) -> None:
         """While the loop waits: stats, config and log rows; after HEARTBEAT_S, what a role may
-        have missed once more; every `stall_timeout`, a line saying what is awaited."""
+        have missed once more; every `stall_timeout`, a line saying what is awaited. Inside an
+        iteration (its rows in, its updates not all made) no learner.jsonl row: a row's counts
+        are those of whole iterations."""
         now = time.monotonic()
         if self.stats_due.due(now, STATS_PERIOD_S / 4):
             self.out.stats()
@@ -212,7 +215,7 @@ class Learner:
             learner_files.fence(self.rivals, self.incarnation, self.cfg.run)
             if time.perf_counter() - since > HEARTBEAT_S:  # late: something may be lost
                 self.out.resend()
-        if self.log_row.due(now):
+        if between_iterations and self.log_row.due(now):
             learner_files.write_log(self.state, self.log_writer, now)
         limit, waited = self.cfg.stall_timeout, time.perf_counter() - since
         if limit > 0 and waited > limit and now - getattr(self, "_stall_note", 0.0) > limit:
@@ -255,7 +258,7 @@ class Learner:
         p.awaiting = (-1,)
         while p.decided_survivor is None and not self.stop_requested:
             self.follow_allocation()
-            self.idle_duties("the referee's elimination", since)
+            self.idle_duties("the referee's elimination", since, between_iterations=False)
             self.allocation.wait_fresh(timeout=0.05)
         p.awaiting = ()
         if p.decided_survivor is None:
