@@ -67,7 +67,7 @@ class BenchSizes:
         return cls(learner_rounds=2, learner_updates=3, learner_ks=(1, 2), learner_shapes=("halfcheetah",),
                    hidden=(32, 32), batch_size=32, e2e_steps=150, e2e_start_steps=64,
                    transport_publishers=1, transport_batches=60, weights_messages=5, weights_interval_s=0.01,
-                   collection_workers=(4,), collection_window_s=0.5, collection_start_steps=64, timeout_s=120.0)
+                   collection_workers=(4,), collection_window_s=0.5, collection_start_steps=64, timeout_s=240.0)
 
 
 def median(xs: list[float]) -> float:

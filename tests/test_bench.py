@@ -62,7 +62,7 @@ def test_learner_transport_and_weights_pieces() -> None:
 
 @pytest.mark.slow  # three runs start torch and MuJoCo: ~35 s, past the fast suite's budget
 def test_end_to_end_and_collection_pieces() -> None:
-    result = bench_json(start_bench("--only", "e2e,collection"), timeout=300)  # three runs start torch and MuJoCo
+    result = bench_json(start_bench("--only", "e2e,collection"), timeout=600)  # three runs start torch and MuJoCo
     assert_positive(result, ["e2e_vs_single_process", "e2e_bf16_vs_single_process", "e2e_single_process_s",
                              "e2e_mam_run_to_done_s", "e2e_mam_run_wall_s", "collection_steps_per_s_m4"])
     assert result["e2e_mam_run_startup_s"] <= result["e2e_mam_run_to_done_s"] <= result["e2e_mam_run_wall_s"]
