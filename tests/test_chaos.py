@@ -15,9 +15,9 @@ pytestmark = pytest.mark.slow
 
 @pytest.mark.timeout(1500)
 def test_chaos_run_reaches_its_budget_with_every_transition_exactly_once(tmp_path: Path) -> None:
-    run = unique_run("chaos")
+    run, steps = unique_run("chaos"), 10_000
     args = ["--env", "InvertedPendulum-v5", "--algo", "ma-td3", "--schedule", "equal-data", "--actors", "2",
-            "--workers", "3", "--steps", "10000", "--hidden", "32,32", "--batch-size", "32", "--start-steps", "1000",
+            "--workers", "3", "--steps", str(steps), "--hidden", "32,32", "--batch-size", "32", "--start-steps", "1000",
             "--compete-every", "1500", "--eliminate-at", "6000", "--eval-episodes", "3", "--seed", "3",
             "--checkpoint-seconds", "5", "--max-restarts", "30", "--run", run]
     # Kills every 6–12 s (the documented command uses 20–40 s), each once every child is back and the
@@ -33,7 +33,7 @@ def test_chaos_run_reaches_its_budget_with_every_transition_exactly_once(tmp_pat
     lost_only = {f"{figures['lost_rows']} rows lost, 0 duplicated",
                  "rows sent (less those skipped), rows in the replay and env_steps differ"}
     assert [p for p in figures["problems"] if p not in lost_only] == [], figures
-    assert figures["exit_status"] == 0 and figures["env_steps"] >= 10000
+    assert figures["exit_status"] == 0 and figures["env_steps"] >= steps
     # Through every kill the run stayed the seed's: the final policy equals the fault-free run's.
     assert figures["exact"] is True and figures["equal_to_fault_free"] is True, figures
     # Every kill is restarted, unless the run finished while the child waited out its backoff (counted
