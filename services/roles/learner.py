@@ -10,10 +10,12 @@ and the snapshots the referee judges, stats a few times a second, checkpoint
 
 from __future__ import annotations
 
+import importlib
 import json
 import logging
 import os
 import socket
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -98,8 +100,14 @@ class Learner:
 
     def serve(self) -> None:
         run, s = self.cfg.run, self.session
+        # torch imports its compiler stack at an optimizer's first step (~2 s on a slow CPU): here it
+        # comes in on a thread of its own while the loop waits for the first rows
+        threading.Thread(target=importlib.import_module, args=("torch._dynamo",), name="preload", daemon=True).start()
         self.token = bus.declare_alive(s, run, "learner", self.id)
-        workers, referees = bus.watch_alive(s, run, "worker"), bus.watch_alive(s, run, "referee")
+        # A worker or referee that comes up (a start, a restart) gets what it may have missed as soon as
+        # the loop waits, not a heartbeat later: it subscribes before it declares its token.
+        self.joined = threading.Event()
+        workers, referees = (bus.watch_alive(s, run, r, on_change=self.on_role_change) for r in ("worker", "referee"))
         self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
         self.watches = Watches(workers, referees, bus.Latest(late_join=False).subscribe(
             s, keys.role_stats_all(run, "referee")))  # the referee's `events` and `final`
@@ -199,6 +207,11 @@ class Learner:
     def checkpoint(self) -> None:
         learner_files.checkpoint(self.state, self.cfg, self.run_dir, self.out.kept())
 
+    def on_role_change(self, _role: str, _id: str, alive: bool) -> None:
+        """(On Zenoh's thread.) A role came up: `idle_duties` resends."""
+        if alive:
+            self.joined.set()
+
     def sample(self) -> Any:  # `agent.sampler`: on a GPU, indices staged for the CUDA graphs
         return self.agent.sampler(self.buffer, self.algo.batch_size)()
 
@@ -210,6 +223,9 @@ class Learner:
         now = time.monotonic()
         if self.stats_due.due(now, STATS_PERIOD_S / 4):
             self.out.stats()
+        if self.joined.is_set():
+            self.joined.clear()
+            self.out.resend()
         if self.heartbeat.due(now):
             self.out.config()
             learner_files.fence(self.rivals, self.incarnation, self.cfg.run)

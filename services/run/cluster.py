@@ -146,14 +146,13 @@ class LocalCluster:
             return ["--resume", rd]
         return ["--run-config", str(self.run_dir / rundir.CONFIG), "--listen", self.endpoint, "--run-dir", rd]
 
-    def start_learner_and_referee(self) -> None:
+    def start(self) -> None:
+        """Every role at once: a worker imports its modules and makes its env while the learner
+        imports torch, then connects as soon as the learner listens. Nothing is stepped early: a
+        worker steps an iteration only once the referee's allocation covers it (lock-step)."""
         run, rd = self.cfg.run, str(self.run_dir)
         self.spawn("learner", self.learner_args())
         self.spawn("referee", ["--run", run, "--connect", self.endpoint, "--run-dir", rd])
-
-    def start_workers(self) -> None:
-        """After the referee is up, so the first allocation round is a barrier from step 0."""
-        run, rd = self.cfg.run, str(self.run_dir)
         for i in range(self.cfg.algo.workers):
             self.spawn(f"worker-{i}", ["--run", run, "--connect", self.endpoint, "--id", f"w{i}", "--slot", str(i),
                                          "--run-dir", rd])

@@ -105,7 +105,7 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
     gave_up: RunStopped | None = None
     previous = {sig: signal.signal(sig, _raise_interrupted) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
-        cluster.start_learner_and_referee()
+        cluster.start()
         try:
             if follow(cfg, endpoint, cluster, console):
                 cluster.wait(60.0, supervise=True)  # referee (final evaluation) and workers exit on their own
@@ -192,7 +192,6 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                 cluster.supervise()
                 time.sleep(0.1)
         roles.close()
-        cluster.start_workers()
         # What is known of the run: `mam watch`'s own state (services/roles/monitor_view.py), fed the same messages
         state = MonitorState(run=cfg.run, env_id=cfg.env_id, algo=cfg.algo.algo, steps=cfg.steps)
         state.on_config(cfg.to_dict() | {"algo": cfg.algo.algo, "algo_config": cfg.algo.to_dict()})
