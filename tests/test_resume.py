@@ -67,6 +67,10 @@ def test_a_killed_mam_run_continues_with_resume_to_its_budget(tmp_path: Path) ->
     assert not (run_dir / "summary.json").exists()
     part1 = json.loads((run_dir / "launcher.json").read_text())
     assert part1["parts"] == 1 and part1["wall_s"] > 0  # the killed part's time counts
+    # A new run in its directory would resume its learner under the old name, the other roles under
+    # the new one (they never met: a 300 s stall): refused, pointing at --resume
+    got = mam_run(*ARGS, "--run-dir", str(run_dir))
+    assert got.returncode == 2 and f"holds {run}'s checkpoint" in got.stderr and "--resume" in got.stderr, got.stderr
     got = mam_run("--resume", str(run_dir), "--seed", "5")  # contradicts the run's seed 4
     assert got.returncode == 2 and "--seed 5 contradicts the run's 4" in got.stderr, got.stderr
     got = mam_run("--resume", str(run_dir), "--seed", "4")  # agreeing flags are fine
@@ -82,6 +86,8 @@ def test_a_killed_mam_run_continues_with_resume_to_its_budget(tmp_path: Path) ->
     assert [a["iterations"] for a in elimination] == [900]  # exactly at C, across the two parts
     got = mam_run("--resume", str(run_dir))
     assert got.returncode == 2 and "the run finished" in got.stderr
+    got = mam_run(*ARGS, "--run-dir", str(run_dir))
+    assert got.returncode == 2 and f"holds {run}, finished" in got.stderr, got.stderr
     assert processes_of(run) == []
     # The resumed run is the uninterrupted one: the one-process reference, bit for bit.
     cfg = resolve("ma-ddpg", workers=3, actors=2, start_steps=200, compete_every=300, eliminate_at=900,

@@ -63,6 +63,8 @@ def run(
         preflight.check_run_dir(run_dir)
     except preflight.ConfigError as e:
         raise typer.BadParameter(str(e)) from None
+    if resume is None and (held := preflight.held_run(run_dir)):  # another run's checkpoint: --resume, not this
+        raise typer.BadParameter(held)
     if resume is None and no_updates(cfg) and not allow_no_updates:  # a random policy's return, said as a result
         if made:
             run_dir.rmdir()  # the check above made it; nothing else is there

@@ -14,12 +14,15 @@ devices, and only when --device names CUDA.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import re
 import subprocess
 import sys
 from pathlib import Path
+
+from services.run import rundir
 
 EXIT_CONFIG = 78  # a role's exit status on a configuration error (EX_CONFIG of sysexits.h)
 CONFIG_ERROR = "configuration error:"  # the log line's prefix the launcher looks for
@@ -96,3 +99,18 @@ def check_run_dir(run_dir: Path) -> None:
             from None
     if not os.access(run_dir, os.W_OK | os.X_OK):
         raise ConfigError(f"cannot write to run directory {run_dir} (permission denied); pass another --run-dir")
+
+
+def held_run(run_dir: Path) -> str:
+    """Why a new run cannot start in `run_dir` ("" if it can): a run's checkpoint is there (`mam run`
+    would resume that run's learner under its own name and start the other roles under the new one)."""
+    if not rundir.has_checkpoint(run_dir):
+        return ""
+    try:
+        name = json.loads((run_dir / rundir.CONFIG).read_text())["run"]
+    except (OSError, ValueError, KeyError, TypeError):
+        name = "another run"
+    if (run_dir / rundir.SUMMARY).is_file():
+        return f"run directory {run_dir} holds {name}, finished: pass another --run-dir for a new run"
+    return (f"run directory {run_dir} holds {name}'s checkpoint: continue that run with "
+            f"`mam run --resume {run_dir}`, or pass another --run-dir for a new one")
