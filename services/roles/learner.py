@@ -10,7 +10,6 @@ and the snapshots the referee judges, stats a few times a second, checkpoint
 
 from __future__ import annotations
 
-import importlib
 import json
 import logging
 import os
@@ -100,9 +99,6 @@ class Learner:
 
     def serve(self) -> None:
         run, s = self.cfg.run, self.session
-        # torch imports its compiler stack at an optimizer's first step (~2 s on a slow CPU): here it
-        # comes in on a thread of its own while the loop waits for the first rows
-        threading.Thread(target=importlib.import_module, args=("torch._dynamo",), name="preload", daemon=True).start()
         self.token = bus.declare_alive(s, run, "learner", self.id)
         # A worker or referee that comes up (a start, a restart) gets what it may have missed as soon as
         # the loop waits, not a heartbeat later: it subscribes before it declares its token.
