@@ -22,7 +22,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from services.run import rundir
+from services.run import rundir, runlock
 
 EXIT_CONFIG = 78  # a role's exit status on a configuration error (EX_CONFIG of sysexits.h)
 CONFIG_ERROR = "configuration error:"  # the log line's prefix the launcher looks for
@@ -103,8 +103,9 @@ def check_run_dir(run_dir: Path) -> None:
 
 def held_run(run_dir: Path) -> str:
     """Why a new run cannot start in `run_dir` ("" if it can): a run's checkpoint is there (`mam run`
-    would resume that run's learner under its own name and start the other roles under the new one)."""
-    if not rundir.has_checkpoint(run_dir):
+    would resume that run's learner under its own name and start the other roles under the new one).
+    A run still live there is left to the run lock, which names who holds it."""
+    if not rundir.has_checkpoint(run_dir) or runlock.in_use(run_dir) is not None:
         return ""
     try:
         name = json.loads((run_dir / rundir.CONFIG).read_text())["run"]
