@@ -4,12 +4,14 @@ restarted referee stands where its predecessor stood."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
 from mam_core.obsolescence import competition_returns, initial_allocation
 from services.messaging.codec import Allocation
 from services.roles.referee import STATE_FILE, Referee
+from services.run import rundir
 from services.run.options import build_run_config
 
 FLAGS = {"env": "Pendulum-v1", "algo": "ma-td3", "steps": 40, "workers": 3, "actors": 2, "start_steps": 4,
@@ -67,3 +69,32 @@ def test_a_competition_applies_lag_plus_one_iterations_later_and_survives_a_rest
     (tmp_path / STATE_FILE).write_text("{not json")  # unreadable: the evaluations start again
     fresh, _, _ = referee(tmp_path)
     assert not fresh.resumed and fresh.state.events_done == 0 and fresh.state.decision is None
+
+
+def test_a_restarted_referee_drops_the_rows_it_logs_again(tmp_path: Path):
+    """A referee killed after it logged an evaluation but before it saved its state: its
+    successor logs that evaluation (and, with no state saved at all, the initial allocation)
+    again, so the predecessor's rows past the saved state go."""
+    def rows(name: str) -> list[dict[str, Any]]:
+        return rundir.read_jsonl(tmp_path / name)
+
+    def log(name: str, *tags: str) -> None:
+        (tmp_path / name).write_text("".join(json.dumps({"tag": t}) + "\n" for t in tags))
+
+    # Killed after its first round's eval row, before any state was saved: every row is done again.
+    log(rundir.ALLOCATION, "initial")
+    log(rundir.EVAL, "round 1")
+    r, _, _ = referee(tmp_path)
+    assert not r.resumed
+    r.drop_rows_done_again()
+    assert rows(rundir.EVAL) == [] and rows(rundir.ALLOCATION) == []
+    # State saved after the first competition; killed after the next one's eval row: that row goes.
+    r.state.events_done = 1
+    r.state.save(tmp_path / STATE_FILE, wall=1.0)
+    log(rundir.ALLOCATION, "initial", "round 1", "round 2")
+    log(rundir.EVAL, "round 1", "round 2")
+    again, _, _ = referee(tmp_path)
+    assert again.resumed and again.plan.competitions_among(1) == 1
+    again.drop_rows_done_again()
+    assert [row["tag"] for row in rows(rundir.EVAL)] == ["round 1"]
+    assert [row["tag"] for row in rows(rundir.ALLOCATION)] == ["initial", "round 1"]

@@ -117,6 +117,15 @@ class Referee:
     def wall(self) -> float:
         return self.state.wall_before + time.monotonic() - self.started
 
+    def drop_rows_done_again(self) -> None:
+        """Drop the eval.jsonl and allocation.jsonl rows a predecessor logged past the state this
+        referee starts from, which it logs again: those of an evaluation the predecessor did not
+        finish, or, with no state saved (killed before its first evaluation was saved), all of them,
+        the initial allocation's row included (a fresh referee logs it again)."""
+        keep_logs(self.run_dir / rundir.EVAL, self.state.events_done)
+        keep_logs(self.run_dir / rundir.ALLOCATION,
+                  1 + self.plan.competitions_among(self.state.events_done) if self.resumed else 0)
+
     # -- wiring -------------------------------------------------------------------------------
     def serve(self) -> None:
         run, s = self.cfg.run, self.session
@@ -131,9 +140,7 @@ class Referee:
         self.token = bus.declare_alive(s, run, "referee", self.id)
         self.report = role.RoleReport(s, run, "referee", self.id)
         self.board = tb.RunBoard(self.run_dir, "referee")  # RUN_DIR/tb/referee: the JSONL rows' scalars
-        if self.resumed:  # rows of an evaluation the predecessor logged but did not finish are done again
-            keep_logs(self.run_dir / rundir.EVAL, self.state.events_done)
-            keep_logs(self.run_dir / rundir.ALLOCATION, 1 + self.plan.competitions_among(self.state.events_done))
+        self.drop_rows_done_again()
         self.alloc_log = self.board.tee(JsonlWriter(self.run_dir / rundir.ALLOCATION), tb.allocation_scalars)
         self.eval_log = self.board.tee(JsonlWriter(self.run_dir / rundir.EVAL), tb.eval_scalars)
         try:
