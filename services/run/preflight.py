@@ -104,8 +104,10 @@ def check_run_dir(run_dir: Path) -> None:
 def held_run(run_dir: Path) -> str:
     """Why a new run cannot start in `run_dir` ("" if it can): a run's checkpoint is there (`mam run`
     would resume that run's learner under its own name and start the other roles under the new one).
-    A run still live there is left to the run lock, which names who holds it."""
-    if not rundir.has_checkpoint(run_dir) or runlock.in_use(run_dir) is not None:
+    A live `mam run` there is left to its run lock, which names it; a learner or referee still
+    stopping after its `mam run` was killed is not (the launcher would wait for it, then start
+    the new run on its checkpoint)."""
+    if not rundir.has_checkpoint(run_dir) or runlock.in_use(run_dir, (runlock.RUN_LOCK,)) is not None:
         return ""
     try:
         name = json.loads((run_dir / rundir.CONFIG).read_text())["run"]
