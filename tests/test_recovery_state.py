@@ -179,7 +179,7 @@ def test_an_episode_query_answered_differently_by_another_process_is_not_taken()
     forged = SlotEpisode(1, 5, 7, rows, rows[:, :2] * 0, rows + 1)
     hub = bus.open_session(bus.make_config(listen=[endpoint]))
     sessions = [bus.open_session(bus.make_config(connect=[endpoint]), retry_for=10) for _ in range(3)]
-    stop = threading.Event()
+    stop, thread = threading.Event(), None
     try:
         learner = bus.Answers(sessions[0], keys.episode_all(run))
         intruder = bus.Answers(sessions[1], keys.episode_all(run))
@@ -211,6 +211,8 @@ def test_an_episode_query_answered_differently_by_another_process_is_not_taken()
         assert got is not None and np.array_equal(got.action, mine.action)
     finally:
         stop.set()
+        if thread is not None:  # it polls the sessions' queryables: done before they close
+            thread.join(5)
         for s in (*sessions, hub):
             s.close()
 
