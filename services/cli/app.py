@@ -63,8 +63,6 @@ def run(
         preflight.check_run_dir(run_dir)
     except preflight.ConfigError as e:
         raise typer.BadParameter(str(e)) from None
-    if resume is None and (held := preflight.held_run(run_dir)):  # another run's checkpoint: --resume, not this
-        raise typer.BadParameter(held)
     if resume is None and no_updates(cfg) and not allow_no_updates:  # a random policy's return, said as a result
         if made:
             run_dir.rmdir()  # the check above made it; nothing else is there
@@ -72,9 +70,12 @@ def run(
     if resume is None and curve_points(cfg):
         typer.echo(f"note: {curve_points(cfg)}", err=True)
     outcome: dict[str, Any] = {}
-    summary = run_local(cfg, run_dir, plot=not no_plot, outcome=outcome,
-                        policy=RestartPolicy(max_restarts=max_restarts, window_s=restart_window), code=code,
-                        forced_code=forced)
+    try:  # a new run refuses a directory holding another run's checkpoint (checked under the run lock)
+        summary = run_local(cfg, run_dir, plot=not no_plot, outcome=outcome,
+                            policy=RestartPolicy(max_restarts=max_restarts, window_s=restart_window), code=code,
+                            forced_code=forced, new_run=resume is None)
+    except preflight.ConfigError as e:
+        raise typer.BadParameter(str(e)) from None
     if not summary:  # 130 / 143 when SIGINT / SIGTERM stopped it (128 + the signal), else 1
         raise typer.Exit(128 + int(outcome["signal"]) if outcome.get("signal") else 1)
 

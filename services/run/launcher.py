@@ -28,7 +28,7 @@ from mam_core.schedule import Schedule
 from services.messaging import bus, keys
 from services.messaging.codec import Allocation, Eval, LearnerStats, MessageError, decode
 from services.roles.monitor_view import MonitorState, message_body
-from services.run import codecheck, registry, rundir, runlock, secret
+from services.run import codecheck, preflight, registry, rundir, runlock, secret
 from services.run.audit import audit_transport
 from services.run.cluster import LocalCluster, RestartPolicy
 from services.run.config import RunConfig, budget_warnings
@@ -52,10 +52,13 @@ def _raise_interrupted(signum: int, _frame: Any) -> None:
 
 def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plot: bool = True,
               outcome: dict[str, Any] | None = None, policy: RestartPolicy | None = None,
-              code: dict[str, Any] | None = None, forced_code: list[str] | None = None) -> dict[str, Any]:
+              code: dict[str, Any] | None = None, forced_code: list[str] | None = None,
+              new_run: bool = False) -> dict[str, Any]:
     """Train `cfg` on this box; returns summary.json's content (empty if the run was stopped
     or did not finish). Children that die are restarted (`policy`). `code`, `forced_code`: what
-    RUN_DIR/code.json records (services/run/codecheck.py: `record_part`).
+    RUN_DIR/code.json records (services/run/codecheck.py: `record_part`). `new_run`: `run_dir`
+    must not hold another run's checkpoint (preflight.ConfigError, checked once the run lock
+    is held, so that no run can start there between the check and the lock).
 
     `outcome`, when given, gets "interrupted": whether SIGINT / SIGTERM stopped the run."""
     console = console or Console()
@@ -68,6 +71,8 @@ def run_local(cfg: RunConfig, run_dir: Path, console: Console | None = None, plo
             outcome["interrupted"] = False
         return {}
     try:
+        if new_run and (held := preflight.held_run(run_dir)):
+            raise preflight.ConfigError(held)
         return _run_locked(cfg, run_dir, console, plot, outcome, policy, lock, code, forced_code or [])
     finally:
         lock.release()

@@ -22,7 +22,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from services.run import rundir, runlock
+from services.run import rundir
 
 EXIT_CONFIG = 78  # a role's exit status on a configuration error (EX_CONFIG of sysexits.h)
 CONFIG_ERROR = "configuration error:"  # the log line's prefix the launcher looks for
@@ -104,10 +104,10 @@ def check_run_dir(run_dir: Path) -> None:
 def held_run(run_dir: Path) -> str:
     """Why a new run cannot start in `run_dir` ("" if it can): a run's checkpoint is there (`mam run`
     would resume that run's learner under its own name and start the other roles under the new one).
-    A live `mam run` there is left to its run lock, which names it; a learner or referee still
-    stopping after its `mam run` was killed is not (the launcher would wait for it, then start
-    the new run on its checkpoint)."""
-    if not rundir.has_checkpoint(run_dir) or runlock.in_use(run_dir, (runlock.RUN_LOCK,)) is not None:
+    The caller holds the directory's run lock (services/run/launcher.py: `run_local`), so no other
+    `mam run` lives there, and a learner or referee still stopping after its `mam run` was killed
+    has been waited for."""
+    if not rundir.has_checkpoint(run_dir):
         return ""
     try:
         name = json.loads((run_dir / rundir.CONFIG).read_text())["run"]
