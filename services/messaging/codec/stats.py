@@ -57,7 +57,12 @@ class WorkerCounters(Mapping):
         return {**{k: v for k, v in out.items() if v is not None}, **self.extra}
 
     def __getitem__(self, key: str) -> Any:
-        return self.to_dict()[key]
+        if key in self.extra:  # (as `to_dict`, without building it: the stats read these often)
+            return self.extra[key]
+        value = getattr(self, key) if key in _COUNTER_FIELDS else None
+        if value is None:
+            raise KeyError(key)
+        return value
 
     def __iter__(self) -> Iterator[str]:
         return iter(self.to_dict())
@@ -87,6 +92,8 @@ class WorkerCounters(Mapping):
         known = {f.name for f in fields(cls)}
         return cls(**values, extra={k: v for k, v in d.items() if k not in known})
 
+
+_COUNTER_FIELDS = frozenset(f.name for f in fields(WorkerCounters) if f.name != "extra")
 
 @dataclass(frozen=True)
 class LearnerStats:
@@ -132,7 +139,8 @@ class LearnerStats:
             "losses": {str(k): float(v) for k, v in self.losses.items()},
             "q_means": [float(q) for q in self.q_means],
             "versions": [int(v) for v in self.versions],
-            "per_worker": {str(w): dict(d.items()) for w, d in self.per_worker.items()},
+            "per_worker": {str(w): d.to_dict() if isinstance(d, WorkerCounters) else dict(d)
+                           for w, d in self.per_worker.items()},
             "rejected": {str(r): int(n) for r, n in self.rejected.items()},
             "done": bool(self.done),
             "live": [bool(x) for x in self.live],
