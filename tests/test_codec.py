@@ -114,6 +114,24 @@ def test_envelope_round_trip():
     np.testing.assert_array_equal(msg["arr"], np.arange(6).reshape(2, 3))
 
 
+def test_encode_packs_the_bytes_of_packb_and_a_failed_message_leaves_nothing_behind():
+    """`encode` reuses one msgpack packer a thread (its grown buffer): a large message, a small
+    one after it and one after a refused message are the bytes `msgpack.packb` gives."""
+    from services.messaging.codec.wire import pack_default
+
+    big = {"w": np.arange(300 * 300, dtype=np.float32).reshape(300, 300), "n": 3}
+    small = {"x": [1, 2.5, "a"], "b": np.array([True, False])}
+    for kind, body in (("big", big), ("small", small), ("big", big)):
+        sent = encode(kind, body, sender="s", seq=7)
+        t = decode(sent)["t"]
+        head = {"v": SCHEMA_VERSION, "kind": kind, "sender": "s", "seq": 7, "t": t}
+        assert sent == msgpack.packb({**head, **body}, default=pack_default, use_bin_type=True, strict_types=False)
+    with pytest.raises(TypeError):  # refused midway, after a large array went into the buffer
+        encode("k", {"a": big["w"], "z": np.zeros(2, np.complex64)}, sender="s", seq=0)
+    assert decode(encode("small", small, sender="s", seq=8))["x"] == [1, 2.5, "a"]
+    assert len(encode("small", small, sender="s", seq=8)) < 200
+
+
 def test_encode_refuses_reserved_keys_and_bad_dtypes():
     with pytest.raises(ValueError):
         encode("k", {"seq": 1}, sender="s", seq=0)
