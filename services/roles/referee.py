@@ -30,7 +30,7 @@ from mam_core.obsolescence import Obsolescence, best_actors, competition_returns
 from mam_core.policy import EnvSpec, NumpyActors
 from mam_core.seeding import evaluation_seed, stream
 from services.messaging import bus, keys
-from services.messaging.codec import Allocation, Eval, LearnerStats, MessageError, Weights
+from services.messaging.codec import Allocation, Eval, LearnerStats, MessageError
 from services.roles import role, tb
 from services.roles.lockstep import WeightsHistory
 from services.run import config, options, rundir
@@ -198,7 +198,7 @@ class Referee:
         current = self.stats.incarnation if self.stats is not None else ""
         for item in ([item] if item is not None else []) + self.snapshots.drain():
             try:
-                w = Weights.from_bytes(item.payload, self.shapes, self.algo.actors)
+                w = role.decoded_weights(item, self.shapes, self.algo.actors)
             except MessageError as e:
                 self.rejects.reject(keys.parse_last(item.key), e)
                 continue

@@ -200,20 +200,27 @@ def plausible_version(w: Weights, stats: LearnerStats | None) -> bool:
 
 
 def weights_screen(shapes: Mapping[str, tuple[int, ...]], n_actors: int,
-                   rejects: bus.RejectLog) -> Callable[[bus.Received], bool]:
+                   rejects: bus.RejectLog) -> Callable[[bus.Received], bus.Received | None]:
     """A weights subscription's screen (`bus.Inbox(screen=...)`), run in the callback: a message
     that does not decode as weights of the run's shapes is rejected and counted there, so a
-    flood of junk on a weights key never takes a queue slot or a valid message's place."""
+    flood of junk on a weights key never takes a queue slot or a valid message's place. What
+    it stores carries the decoded Weights (`Received.value`: `decoded_weights` reads it)."""
 
-    def admits(item: bus.Received) -> bool:
+    def admits(item: bus.Received) -> bus.Received | None:
         try:
-            Weights.from_bytes(item.payload, shapes, n_actors)
+            return item._replace(value=Weights.from_bytes(item.payload, shapes, n_actors))
         except MessageError as e:
             rejects.reject(keys.parse_last(item.key), e)
-            return False
-        return True
+            return None
 
     return admits
+
+
+def decoded_weights(item: bus.Received, shapes: Mapping[str, tuple[int, ...]], n_actors: int) -> Weights:
+    """`item`'s Weights: as its subscription's screen decoded them, else decoded now (MessageError)."""
+    if isinstance(item.value, Weights):
+        return item.value
+    return Weights.from_bytes(item.payload, shapes, n_actors)
 
 
 def learner_order(incarnation: str) -> tuple[int, str]:

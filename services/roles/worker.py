@@ -28,7 +28,7 @@ from mam_core.obsolescence import initial_allocation
 from mam_core.policy import EnvSpec, NumpyActors
 from mam_core.slot import SlotStreams, act, uniform
 from services.messaging import bus, keys
-from services.messaging.codec import Allocation, LearnerStats, MessageError, TransitionBatch, Weights
+from services.messaging.codec import Allocation, LearnerStats, MessageError, TransitionBatch
 from services.roles import role, takeover
 from services.roles.kept import KeptBatches
 from services.roles.lockstep import WeightsHistory
@@ -89,9 +89,7 @@ class Worker(GuardedSimulator):
         run, s = self.cfg.run, self.session
         self.pub = bus.declare_reliable_publisher(s, keys.transitions(run, self.id))
         self.report = role.RoleReport(s, run, "worker", self.id)
-        # Every version, in order (a slot acts with one of the last B+1): a queue, not the latest sample.
-        self.weights = bus.Inbox.subscribe(s, keys.weights_all(run), maxsize=1024,
-                                            screen=role.weights_screen(self.shapes, self.algo.actors, self.rejects))
+        self.weights = self.subscribe_weights()
         self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
         self.stats_sub = bus.Latest.subscribe(s, keys.learner_stats(run))
         self.done = bus.Latest.subscribe(s, keys.done(run))
@@ -180,8 +178,15 @@ class Worker(GuardedSimulator):
             self.step(index, it.random, actor, version)
             index += 1
 
+    def subscribe_weights(self) -> bus.Inbox:
+        """Every version, in order (a slot acts with one of the last B+1): a queue, not the latest sample."""
+        return bus.Inbox.subscribe(self.session, keys.weights_all(self.cfg.run), maxsize=1024,
+                                   screen=role.weights_screen(self.shapes, self.algo.actors, self.rejects))
+
     def take_over(self, index: int) -> int:
         """Rebuild the slot where the learner needs it next, iteration `index` (takeover.py); that iteration."""
+        if self.weights.closed:  # the slot had stepped its last; a restarted learner needs earlier iterations
+            self.weights = self.subscribe_weights()  # (the learner resends the versions it keeps)
         episode = takeover.ask_episode(self.session, self.cfg.run, self.slot, self.spec, self.done, self.rejects,
                                        lambda: self.stop_requested)
         if episode is None:
@@ -195,13 +200,14 @@ class Worker(GuardedSimulator):
         items = ([item] if item is not None else []) + self.weights.drain()
         if index is not None and index > self.plan.last_step(self.slot):  # stepped its last: needs no version
             self.history.clear()  # (slots 1..M-1 after the paper schedule's C: else it kept all, >10 GiB)
+            self.weights.close()  # and receives none: decoding every version took 6.5% of a core a worker
             return
         oldest = self.plan.version_for(index) if index is not None and index <= self.plan.iterations else 0
         stats = self.learner.stats
         current = stats.incarnation if stats is not None else ""
         for item in items:
             try:
-                w = Weights.from_bytes(item.payload, self.shapes, self.algo.actors)
+                w = role.decoded_weights(item, self.shapes, self.algo.actors)
             except MessageError as e:
                 self.rejects.reject(keys.parse_last(item.key), e)
                 continue

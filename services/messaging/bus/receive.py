@@ -11,14 +11,16 @@ import logging
 import queue
 import threading
 import time
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import zenoh
 from zenoh.ext import HistoryConfig, declare_advanced_subscriber
 
 log = logging.getLogger("services.messaging.bus")
 
-Screen = Callable[["Received"], bool]  # True: store the sample; False: drop it (the screen counts it)
+# What to store of a sample: the sample itself, or it with what the screen decoded in `value` (so the
+# reader does not decode it again); None: drop it (the screen counts it).
+Screen = Callable[["Received"], "Received | None"]
 
 
 # --------------------------------------------------------------------------- receiving
@@ -45,6 +47,7 @@ class Received(NamedTuple):
     payload: bytes
     attachment: bytes | None
     t: float  # time.monotonic() when it was received
+    value: Any = None  # the payload as the subscription's screen decoded it (None: not decoded)
 
 
 def _copy(sample: zenoh.Sample) -> Received:
@@ -100,7 +103,9 @@ class Inbox:
     def _on_sample(self, sample: zenoh.Sample) -> None:
         try:
             item = _copy(sample)
-            if self.screen is None or self.screen(item):
+            if self.screen is not None:
+                item = self.screen(item)
+            if item is not None:
                 self.push(item)
         except Exception:  # never let an exception escape into Zenoh's thread
             log.exception("inbox callback failed")
@@ -172,6 +177,10 @@ class Inbox:
             self._sub.undeclare()
             self._sub = None
 
+    @property
+    def closed(self) -> bool:
+        return self._closed.is_set()
+
     def __enter__(self) -> "Inbox":
         return self
 
@@ -219,7 +228,9 @@ class Latest:
         try:
             if sample.kind == zenoh.SampleKind.PUT:
                 item = _copy(sample)
-                if self.screen is None or self.screen(item):
+                if self.screen is not None:
+                    item = self.screen(item)
+                if item is not None:
                     self.put(item)
         except Exception:
             log.exception("latest callback failed")
