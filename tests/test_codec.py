@@ -130,6 +130,9 @@ def test_encode_packs_the_bytes_of_packb_and_a_failed_message_leaves_nothing_beh
         encode("k", {"a": big["w"], "z": np.zeros(2, np.complex64)}, sender="s", seq=0)
     assert decode(encode("small", small, sender="s", seq=8))["x"] == [1, 2.5, "a"]
     assert len(encode("small", small, sender="s", seq=8)) < 200
+    huge = {"w": np.ones((1100, 1000), np.float32)}  # 4.4 MB: packed, then its packer is not kept
+    assert decode(encode("huge", huge, sender="s", seq=9))["w"].shape == (1100, 1000)
+    assert decode(encode("small", small, sender="s", seq=10))["seq"] == 10
 
 
 def test_encode_refuses_reserved_keys_and_bad_dtypes():

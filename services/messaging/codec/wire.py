@@ -138,10 +138,14 @@ def encode(kind: str, body: Mapping[str, Any], *, sender: str, seq: int) -> byte
         raise ValueError(f"body uses reserved keys {sorted(clash)}")
     msg = {"v": SCHEMA_VERSION, "kind": kind, "sender": sender, "seq": int(seq), "t": time.time()}
     msg.update(body)
-    return _packer().pack(msg)
+    out = _packer().pack(msg)
+    if len(out) > _KEEP_BUFFER_BYTES:  # a takeover's episode, say: its buffer is not kept
+        _packers.packer = None
+    return out
 
 
 _packers = threading.local()
+_KEEP_BUFFER_BYTES = 4 << 20  # a thread's packer keeps a buffer this big at most (a Humanoid actor: 0.7 MB)
 
 
 def _packer() -> msgpack.Packer:
