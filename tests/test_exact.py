@@ -96,6 +96,10 @@ def test_mam_run_equals_the_reference_at_lag_0_and_2(tmp_path: Path) -> None:
                                                                           (first_dir / "workers").glob("*.json")))}
     assert sorted(held) == [f"w{i}" for i in range(5)]
     assert max(held.values()) <= APPLE["actors"] * 2, held
+    # ... and, once past its last step, receives none (it unsubscribes): fewer than w0, which steps to the end
+    got = {r["worker"]: r["weights_received"] for r in map(json.loads, map(Path.read_text,
+                                                                          (first_dir / "workers").glob("*.json")))}
+    assert all(got[f"w{i}"] < got["w0"] for i in range(1, 5)), got
 
     lagged = _record(_mam_run(tmp_path, "exact-lag2", 3, "--lag", "2"))
     ref2 = run_reference("AppleCollect-v1", resolve("ma-ddpg", seed=3, lag=2, **APPLE), APPLE_STEPS)

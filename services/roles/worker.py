@@ -74,6 +74,7 @@ class Worker(GuardedSimulator):
         self.policies = [self.actors.policy(k) for k in range(self.algo.actors)]
         self.history = WeightsHistory(self.algo.actors)  # the versions the next B+1 iterations act with
         self.weights_held_max = 0  # the most versions held at once (reported: bounded by the lag, not the run)
+        self.weights_received = 0  # weights messages received by closed subscriptions (reported with the open one's)
         self.loaded: list[tuple[int, str] | None] = [None] * self.algo.actors  # (version, incarnation) in `actors`
         self.actor = slot_index % self.algo.actors
         self.learner = LearnerWatch()  # its stats, and whether the slot is still this worker's
@@ -183,6 +184,11 @@ class Worker(GuardedSimulator):
         return bus.Inbox.subscribe(self.session, keys.weights_all(self.cfg.run), maxsize=1024,
                                    screen=role.weights_screen(self.shapes, self.algo.actors, self.rejects))
 
+    def close_weights(self) -> None:
+        if not self.weights.closed:
+            self.weights.close()
+            self.weights_received += self.weights.received
+
     def take_over(self, index: int) -> int:
         """Rebuild the slot where the learner needs it next, iteration `index` (takeover.py); that iteration."""
         if self.weights.closed:  # the slot had stepped its last; a restarted learner needs earlier iterations
@@ -200,7 +206,7 @@ class Worker(GuardedSimulator):
         items = ([item] if item is not None else []) + self.weights.drain()
         if index is not None and index > self.plan.last_step(self.slot):  # stepped its last: needs no version
             self.history.clear()  # (slots 1..M-1 after the paper schedule's C: else it kept all, >10 GiB)
-            self.weights.close()  # and receives none: decoding every version took 6.5% of a core a worker
+            self.close_weights()  # and receives none: decoding every version took 6.5% of a core a worker
             return
         oldest = self.plan.version_for(index) if index is not None and index <= self.plan.iterations else 0
         stats = self.learner.stats
@@ -251,6 +257,7 @@ class Worker(GuardedSimulator):
         write_json(self.run_dir / rundir.WORKERS / f"{self.id}-{self.incarnation}.json", {
             "worker": self.id, "incarnation": self.incarnation, "sent_rows": self.sent_rows,
             "batches": self.batch_seq, "rejected": self.rejects.counts(), "weights_held_max": self.weights_held_max,
+            "weights_received": self.weights_received + (0 if self.weights.closed else self.weights.received),
             **self.fault_counters()})
 
     def fault_counters(self) -> dict[str, Any]:
