@@ -89,11 +89,11 @@ class WorkerCounters(Mapping):
             values["incarnation"] = text_field(d, "incarnation")
         if d.get("rate") is not None:
             values["rate"] = float_field(d, "rate")
-        known = {f.name for f in fields(cls)}
-        return cls(**values, extra={k: v for k, v in d.items() if k not in known})
+        return cls(**values, extra={k: v for k, v in d.items() if k not in _COUNTER_FIELDS and k != "extra"})
 
 
 _COUNTER_FIELDS = frozenset(f.name for f in fields(WorkerCounters) if f.name != "extra")
+
 
 @dataclass(frozen=True)
 class LearnerStats:
