@@ -23,11 +23,12 @@ FEATURE_MAJOR_MIN_ROWS = 32
 
 
 def _products(x: torch.Tensor) -> tuple:
-    """(baddbmm, addmm) for float32 layers on x's device: on a CPU under portable arithmetic the
-    pinned kernels of `mam_core.gemm` (the same bits on every CPU), else torch's."""
+    """(baddbmm, addmm, relu_) for float32 layers on x's device: on a CPU under portable arithmetic
+    the pinned kernels of `mam_core.gemm` (the same bits on every CPU) and its ReLU, whose backward
+    minds their layouts; else torch's."""
     if x.device.type == "cpu" and x.dtype == torch.float32 and arithmetic.portable_gemm():
-        return gemm.baddbmm, gemm.addmm
-    return torch.baddbmm, torch.addmm
+        return gemm.baddbmm, gemm.addmm, gemm.relu_
+    return torch.baddbmm, torch.addmm, torch.relu_
 
 
 def run_layers(x: torch.Tensor, layers: Sequence[tuple[torch.Tensor, torch.Tensor]],
@@ -46,24 +47,24 @@ def run_layers(x: torch.Tensor, layers: Sequence[tuple[torch.Tensor, torch.Tenso
     which the CPU kernels run up to ~6x slower. A few rows stay row-major.
     """
     last = len(layers) - 1
-    baddbmm, _ = _products(x)
+    baddbmm, _, relu_ = _products(x)
     if x.shape[-2] >= FEATURE_MAJOR_MIN_ROWS:
         h = x.mT
         for i, (w, b) in enumerate(layers):
             if low is not None and i < last:
-                h = torch.baddbmm(b.mT.to(low), w.mT.to(low), h.to(low))
+                h = torch.relu_(torch.baddbmm(b.mT.to(low), w.mT.to(low), h.to(low)))
+            elif i < last:  # in place: baddbmm keeps its inputs for backward, not its output
+                h = relu_(baddbmm(b.mT, w.mT, h.to(w.dtype)))
             else:
                 h = baddbmm(b.mT, w.mT, h.to(w.dtype))
-            if i < last:
-                h = torch.relu_(h)  # in place: baddbmm keeps its inputs for backward, not its output
         return h.mT
     for i, (w, b) in enumerate(layers):
         if low is not None and i < last:
-            x = torch.baddbmm(b.to(low), x.to(low), w.to(low))
+            x = torch.relu_(torch.baddbmm(b.to(low), x.to(low), w.to(low)))
+        elif i < last:
+            x = relu_(baddbmm(b, x.to(w.dtype), w))
         else:
             x = baddbmm(b, x.to(w.dtype), w)
-        if i < last:
-            x = torch.relu_(x)
     return x
 
 
@@ -77,14 +78,14 @@ def run_member(x: torch.Tensor, weights: Sequence[torch.Tensor], biases: Sequenc
         x = x[0]
     h = x
     last = len(weights) - 1
-    _, addmm = _products(x)
+    _, addmm, relu_ = _products(x)
     for i, (w, b) in enumerate(zip(weights, biases)):
         if low is not None and i < last:  # mixed precision as in run_layers
-            h = torch.addmm(b[k].to(low), h.to(low), w[k].to(low))
+            h = torch.relu_(torch.addmm(b[k].to(low), h.to(low), w[k].to(low)))
+        elif i < last:  # in place: addmm keeps its inputs for backward, not its output
+            h = relu_(addmm(b[k], h.to(w.dtype), w[k]))
         else:
             h = addmm(b[k], h.to(w.dtype), w[k])
-        if i < last:
-            h = torch.relu_(h)  # in place: addmm keeps its inputs for backward, not its output
     return h.unsqueeze(0)
 
 

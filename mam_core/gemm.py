@@ -329,6 +329,43 @@ class _Baddbmm(torch.autograd.Function):
         return grad_bias, grad_a, grad_b
 
 
+class _ReLU(torch.autograd.Function):
+    """`torch.relu_` whose backward masks the gradient in its output's memory layout.
+
+    A product of `bmm` comes out row-major or transposed depending on its operands' layouts, so
+    a hidden layer's output (kept for the backward) and the gradient that reaches it are often
+    laid out transposed to each other; torch's `threshold_backward` then walks one of them
+    against its strides, 4-5x the time of a copy (docs/PERFORMANCE.md). Here the gradient is
+    copied into the output's layout first. The mask is exact (a gradient element is kept or
+    zeroed) and the result is laid out as torch's (which follows the output), so the products
+    after it keep their forms: the same bits (tests/test_gemm.py)."""
+
+    @staticmethod
+    def forward(ctx, h: torch.Tensor) -> torch.Tensor:  # noqa: ANN001
+        torch.relu_(h)
+        ctx.mark_dirty(h)
+        ctx.save_for_backward(h)
+        return h
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):  # noqa: ANN001, ANN205
+        (out,) = ctx.saved_tensors
+        if out.stride() != grad.stride() and _dense(out):
+            grad = torch.empty_like(out).copy_(grad)
+        return torch.ops.aten.threshold_backward(grad, out, 0)
+
+
+def _dense(x: torch.Tensor) -> bool:
+    """Does x cover its storage without gaps or overlaps in some order of its dims (so that
+    `empty_like` keeps its strides)?"""
+    return x.is_contiguous() or x.mT.is_contiguous()
+
+
+def relu_(h: torch.Tensor) -> torch.Tensor:
+    """`torch.relu_(h)`, its backward in the gradient's layout (`_ReLU`)."""
+    return _ReLU.apply(h)
+
+
 def baddbmm(bias: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """`torch.baddbmm(bias, a, b)` (β = α = 1) with its products in the pinned kernels."""
     return _Baddbmm.apply(bias, a, b)

@@ -60,6 +60,35 @@ def test_gradients_match_torch() -> None:
         torch.testing.assert_close(got.double(), want.double(), rtol=1e-5, atol=1e-4)
 
 
+def test_relu_backward_is_torch_s_in_every_layout() -> None:
+    """`gemm.relu_` against `torch.relu_`: the same output and, for an upstream gradient laid out
+    like the output or transposed to it, the same gradient, bit for bit, in the same layout."""
+    rng = np.random.default_rng(3)
+    for shape in [(2, 64, 48), (48, 64)]:
+        x = torch.from_numpy(rng.standard_normal(shape, dtype=np.float32))
+        up = torch.from_numpy(rng.standard_normal(shape, dtype=np.float32))
+        for xs in (x, x.mT.contiguous().mT):
+            for ups in (up, up.mT.contiguous().mT):
+                results = []
+                for relu in (gemm.relu_, torch.relu_):
+                    leaf = xs.clone().requires_grad_()
+                    out = relu(leaf * 1.0)  # relu_ acts in place on a non-leaf
+                    (grad,) = torch.autograd.grad(out, leaf, ups)
+                    results.append((out.detach(), grad))
+                (ours, our_grad), (theirs, their_grad) = results
+                assert torch.equal(ours, theirs) and torch.equal(our_grad, their_grad)
+                assert our_grad.stride() == their_grad.stride()
+
+
+@pytest.mark.parametrize("algo", ["td3", "ma-sac"])
+def test_updates_with_torch_s_relu_give_the_same_bits(algo: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    ours = trained(1, algo)
+    monkeypatch.setattr(gemm, "relu_", torch.relu_)
+    theirs = trained(1, algo)
+    for name in ours:
+        assert np.array_equal(ours[name], theirs[name]), name
+
+
 def trained(threads: int, algo: str = "ma-td3", updates: int = 6) -> dict[str, np.ndarray]:
     gemm.set_threads(threads)
     buf = random_replay(17, 6, 1.0, 2000, "cpu")
