@@ -175,6 +175,9 @@ def bmm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         an, bn = bn.transpose(0, 2, 1), an.transpose(0, 2, 1)
     m, k, n = an.shape[1], an.shape[2], bn.shape[2]
     out = np.empty((e, m, n), np.float32)
+    if k == 1:  # one term: every BLAS or NumPy path gives round(a·b) added to a zero, in any form
+        torch.mul(torch.from_numpy(an), torch.from_numpy(bn), out=torch.from_numpy(out)).add_(0.0)  # -0 to +0 as there
+        return torch.from_numpy(out.transpose(0, 2, 1) if swap else out)
     big = 2 * m * n * k >= _PARALLEL_MIN_FLOPS
     if e >= 2:  # one call a member, the members in chunks over the threads
         parts = min(_threads, e) if big else 1

@@ -60,6 +60,25 @@ def test_gradients_match_torch() -> None:
         torch.testing.assert_close(got.double(), want.double(), rtol=1e-5, atol=1e-4)
 
 
+def test_a_product_over_one_term_is_numpy_s_bit_for_bit() -> None:
+    """k = 1 (the critics' Q head in the backward) is a multiplication, not a BLAS call: the same
+    bits as NumPy's matmul, signed zeros and underflows included, in every layout."""
+    rng = np.random.default_rng(5)
+    for e, m, n in [(2, 256, 256), (1, 256, 64), (3, 1, 40), (2, 40, 1), (2, 17, 5)]:
+        a = rng.standard_normal((e, m, 1), dtype=np.float32)
+        b = rng.standard_normal((e, 1, n), dtype=np.float32)
+        a.flat[::3] = 0.0
+        b.flat[::4] *= np.float32(1e-30)  # products that underflow to a signed zero
+        a.flat[1::5] = np.float32(-1e-20)
+        b.flat[2::7] = -0.0
+        x0, y0 = torch.from_numpy(a), torch.from_numpy(b)
+        for x, y in [(x0, y0), (x0.mT.contiguous().mT, y0), (x0, y0.mT.contiguous().mT),
+                     (x0.mT.contiguous().mT, y0.mT.contiguous().mT)]:
+            want = np.matmul(x.numpy(), y.numpy())
+            got = gemm.bmm(x, y).numpy()
+            assert np.array_equal(got.view(np.int32), want.view(np.int32)), (e, m, n, x.stride(), y.stride())
+
+
 def test_relu_backward_is_torch_s_in_every_layout() -> None:
     """`gemm.relu_` against `torch.relu_`: the same output and, for an upstream gradient laid out
     like the output or transposed to it, the same gradient, bit for bit, in the same layout."""
