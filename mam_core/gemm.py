@@ -164,13 +164,9 @@ def bmm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     as (bᵀ·aᵀ)ᵀ, both transposed (T·T), and returned as a transposed view. The form depends on
     the operands' layouts only, which the code fixes, never on the machine."""
     e = max(a.shape[0], b.shape[0])
-    an = a.detach().expand(e, -1, -1).numpy()
-    bn = b.detach().expand(e, -1, -1).numpy()
-    if not (row_major(an) or col_major(an)):
-        an = np.ascontiguousarray(an)
-    if not (row_major(bn) or col_major(bn)):
-        bn = np.ascontiguousarray(bn)
-    swap = row_major(an) and row_major(bn)
+    an, a_rows = _operand(a, e)
+    bn, b_rows = _operand(b, e)
+    swap = a_rows and b_rows
     if swap:  # (N, N) -> (T, T)
         an, bn = bn.transpose(0, 2, 1), an.transpose(0, 2, 1)
     m, k, n = an.shape[1], an.shape[2], bn.shape[2]
@@ -191,6 +187,18 @@ def bmm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     _run(pieces)
     # from the transposed array itself: a tensor of its own (not a view, which relu_ could not modify)
     return torch.from_numpy(out.transpose(0, 2, 1) if swap else out)
+
+
+def _operand(x: torch.Tensor, e: int) -> tuple[np.ndarray, bool]:
+    """x [1 or e, r, c] as the [e, r, c] array BLAS is given (a copy only if neither row- nor
+    column-major), and whether it is row-major."""
+    xn = (x.detach() if x.shape[0] == e else x.detach().expand(e, -1, -1)).numpy()
+    if row_major(xn):
+        return xn, True
+    if not col_major(xn):
+        xn = np.ascontiguousarray(xn)
+        return xn, row_major(xn)
+    return xn, False
 
 
 def _run(pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> None:
@@ -326,9 +334,9 @@ class _Baddbmm(torch.autograd.Function):
         if ctx.needs_input_grad[0]:
             grad_bias = grad.sum_to_size(ctx.bias_shape)
         if ctx.needs_input_grad[1]:
-            grad_a = bmm(grad, b.transpose(1, 2)).sum_to_size(a.shape)
+            grad_a = _summed_to(bmm(grad, b.transpose(1, 2)), a.shape)
         if ctx.needs_input_grad[2]:
-            grad_b = bmm(a.transpose(1, 2), grad).sum_to_size(b.shape)
+            grad_b = _summed_to(bmm(a.transpose(1, 2), grad), b.shape)
         return grad_bias, grad_a, grad_b
 
 
@@ -365,13 +373,20 @@ def _dense(x: torch.Tensor) -> bool:
 
 
 def relu_(h: torch.Tensor) -> torch.Tensor:
-    """`torch.relu_(h)`, its backward in the gradient's layout (`_ReLU`)."""
-    return _ReLU.apply(h)
+    """`torch.relu_(h)`, its backward in the output's layout (`_ReLU`)."""
+    return _ReLU.apply(h) if h.requires_grad else torch.relu_(h)
+
+
+def _summed_to(grad: torch.Tensor, shape: torch.Size) -> torch.Tensor:
+    """The gradient of an operand that was expanded (a member axis shared by all): summed back."""
+    return grad if grad.shape == shape else grad.sum_to_size(shape)
 
 
 def baddbmm(bias: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """`torch.baddbmm(bias, a, b)` (β = α = 1) with its products in the pinned kernels."""
-    return _Baddbmm.apply(bias, a, b)
+    if torch.is_grad_enabled() and (bias.requires_grad or a.requires_grad or b.requires_grad):
+        return _Baddbmm.apply(bias, a, b)
+    return bmm(a, b).add_(bias)  # nothing to differentiate (target networks): no autograd node
 
 
 def addmm(bias: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
