@@ -139,7 +139,7 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
          symbol="B"),
     _opt("arithmetic", str, "portable (default): kernels pinned, so the run reruns from --seed on any x86-64 CPU "
          "with AVX2 (the learner at 0.75-1.15x its native updates/s on one or two threads, mam run --algo td3 "
-         "at 0.69-0.74x native's wall time: docs/PERFORMANCE.md); "
+         "at 0.57-0.74x native's wall time: docs/PERFORMANCE.md); "
          "native: the fastest kernels of this CPU, the run reruns only here (sets MAM_ARITHMETIC for the children; "
          "for roles started by hand export MAM_ARITHMETIC=native)", target=RUN),
     _opt("run", str, "run name: the key-expression namespace mam/<run>/...", target=RUN),
