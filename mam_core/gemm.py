@@ -391,7 +391,7 @@ def baddbmm(bias: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tenso
 
 def addmm(bias: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """`torch.addmm(bias, a, b)` for 2-D a, b, likewise."""
-    return _Baddbmm.apply(bias.unsqueeze(0), a.unsqueeze(0), b.unsqueeze(0)).squeeze(0)
+    return baddbmm(bias.unsqueeze(0), a.unsqueeze(0), b.unsqueeze(0)).squeeze(0)
 
 
 _from_environment()
