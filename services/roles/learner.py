@@ -23,7 +23,7 @@ from typing import Any
 import torch
 import typer
 
-from mam_core import gemm
+from mam_core import gemm, optim_start
 from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
 from mam_core.algorithm1 import Algorithm1
 from mam_core.pacing import CheckpointRule
@@ -67,6 +67,7 @@ class Learner:
         self.device = pick_device(self.algo.device)
         torch.manual_seed(self.algo.seed)
         gemm.use_learner_threads(cfg.learner_threads)  # mam_core/gemm.py
+        optim_start.defer_dynamo_import()  # building the agent imports nothing: its config goes out ~1 s sooner
         agent = MultiActorAgent(self.algo, self.spec, self.device)
         plan = Algorithm1.for_run(self.algo, cfg.steps)  # every "when" of the run
         buffer = ReplayBuffer(plan.replay_capacity(self.algo.buffer_size), self.spec.obs_dim, self.spec.act_dim,
@@ -154,6 +155,8 @@ class Learner:
                 self.receive(stage, timeout=0.002)
                 p.awaiting = tuple(stage.missing(index, it.slots))
                 self.idle_duties(f"iteration {index}'s rows from slots {list(p.awaiting)}", waited)
+                if it.random and not optim_start.dynamo_imported():  # the first step's import, while the
+                    optim_start.import_dynamo()  # workers step the random phase (mam_core/optim_start.py)
             p.awaiting = ()
             p.wait_s += time.perf_counter() - waited
             if not stage.ready(index, it.slots):  # stopped
