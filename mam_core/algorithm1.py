@@ -95,6 +95,15 @@ class Iteration:
 
 
 @dataclass(frozen=True)
+class Ahead:
+    """An iteration's updates begun before its rows are in (`Algorithm1.updates_ahead`)."""
+
+    made: int  # updates made (at least one)
+    metrics: dict[str, float]  # the last one's
+    rest: list[Any]  # the positions of the remaining updates' mini-batches, drawn (gathered once the rows are in)
+
+
+@dataclass(frozen=True)
 class Algorithm1:
     schedule: Schedule
     batch_size: int  # no update before the buffer holds a mini-batch
@@ -304,9 +313,15 @@ class Algorithm1:
         one `sample()`d mini-batch per update, critics then, when due, actors; at C
         `eliminate()` comes right before the first actor phase (or after the updates). `each`
         sees every update's metrics. The metrics of the last update."""
+        return self._updates(it, it.updates[1] - it.updates[0], agent, sample, eliminate, each)
+
+    def _updates(self, it: Iteration, n: int, agent: MultiActorAgent, sample: Callable[[], Any],
+                 eliminate: Callable[[], None], each: Callable[[dict[str, float]], None] | None = None
+                 ) -> dict[str, float]:
+        """The next `n` of iteration `it`'s updates (`run_updates`: all of them)."""
         at = self.elimination_update() if it.eliminate else None
         metrics: dict[str, float] = {}
-        for _ in range(it.updates[0], it.updates[1]):
+        for _ in range(n):
             batch = sample()
             metrics = agent.update_critics(batch)
             if agent.actor_phase_due:
@@ -320,23 +335,36 @@ class Algorithm1:
         return dict(metrics)  # read once per iteration (a graphed update's metrics stay on the device)
 
     def updates_ahead(self, it: Iteration, agent: MultiActorAgent, replay: Any,
-                      eliminate: Callable[[], None]) -> dict[str, float] | None:
-        """Iteration `it`'s updates made before its rows are in `replay`, where that gives the
-        same bits: none of their mini-batches samples a position the rows will take (the replay's
-        `draw_ahead`). Never for an iteration without updates or with the elimination, nor on a
-        device that samples otherwise (CUDA graphs). At lag 0 the learner's update then runs
-        while the workers act and step with the weights before it. The metrics, or None: nothing
-        done, the replay's stream untouched."""
+                      eliminate: Callable[[], None]) -> Ahead | None:
+        """Iteration `it`'s first updates, made before its rows are in `replay`, as many as give
+        the same bits: up to the first whose mini-batch samples a position the rows will take
+        (the replay's `draw_ahead`). Never for an iteration without updates or with the
+        elimination, nor on a device that samples otherwise (CUDA graphs). At lag 0 the learner's
+        updates then run while the workers act and step with the weights before them; `rest_of`
+        makes the others once the rows are in. None: nothing done, the replay's stream untouched."""
         n = it.updates[1] - it.updates[0]
         draw = getattr(replay, "draw_ahead", None)
         if n == 0 or it.eliminate or draw is None or agent.device.type != "cpu":
             return None
         size, groups = agent.cfg.batch_size, agent.batch_groups
-        drawn = draw(len(it.slots), [size * (groups or 1)] * n)
-        if drawn is None:
+        answer = draw(len(it.slots), [size * (groups or 1)] * n)
+        if answer is None:
             return None
-        pending = iter(drawn)
-        return self.run_updates(it, agent, lambda: replay.gather(next(pending), size, groups), eliminate)
+        drawn, clear = answer
+        pending = iter(drawn[:clear])
+        metrics = self._updates(it, clear, agent, lambda: replay.gather(next(pending), size, groups), eliminate)
+        return Ahead(clear, metrics, drawn[clear:])
+
+    def rest_of(self, it: Iteration, ahead: Ahead, agent: MultiActorAgent, replay: Any,
+                eliminate: Callable[[], None]) -> dict[str, float]:
+        """The updates of `it` that `ahead` left for after its rows, at the positions it drew
+        (the rows are in `replay` now). The metrics of the iteration's last update."""
+        if not ahead.rest:
+            return ahead.metrics
+        size, groups = agent.cfg.batch_size, agent.batch_groups
+        pending = iter(ahead.rest)
+        return self._updates(it, len(ahead.rest), agent, lambda: replay.gather(next(pending), size, groups),
+                             eliminate)
 
     # -- evaluations ------------------------------------------------------------------------------
     @cached_property

@@ -150,22 +150,25 @@ class ReplayBuffer:
             raise ValueError("cannot sample from an empty replay buffer")
         return self.rng.integers(0, self.size, size=batch_size)
 
-    def draw_ahead(self, incoming: int, draws: Sequence[int]) -> list[np.ndarray] | None:
+    def draw_ahead(self, incoming: int, draws: Sequence[int]) -> tuple[list[np.ndarray], int] | None:
         """The positions of the next `len(draws)` samples (`draws[j]` each) as `sample_indices`
-        would draw them once `incoming` more rows are in, drawn now: or None, the stream left as it
-        was, if any of them is a position those rows will take. Where it answers, the samples gather
-        rows the insertion does not touch, so an update can run before the rows arrive, with the
-        same bits (the learner's updates ahead of an iteration's rows)."""
+        would draw them once `incoming` more rows are in, drawn now, and how many of them, from the
+        first, hold none of the positions those rows will take (`clear`); or None, the stream left
+        as it was, if the first one does. The clear samples gather rows the insertion does not
+        touch, so their updates can run before the rows arrive, with the same bits (the learner's
+        updates ahead of an iteration's rows); the others gather once the rows are in, at the
+        positions drawn here (the stream has moved past all of them)."""
         size = min(self.size + incoming, self.capacity)
         if size == 0:
             return None
         state = self.rng.bit_generator.state
         drawn = [self.rng.integers(0, size, size=n) for n in draws]
         taken = (self.pos + np.arange(incoming)) % self.capacity
-        if any(np.isin(idx, taken).any() for idx in drawn):
+        clear = next((j for j, idx in enumerate(drawn) if np.isin(idx, taken).any()), len(drawn))
+        if clear == 0:
             self.rng.bit_generator.state = state
             return None
-        return drawn
+        return drawn, clear
 
     def _mirror_rows(self, rows: slice) -> None:
         if not self._mirror or rows.stop == rows.start:

@@ -148,7 +148,7 @@ class Learner:
             versions = list(self.agent.versions)  # before its updates (the intake's lag counters)
             early = None if stage.ready(index, it.slots) else plan.updates_ahead(it, self.agent, self.buffer,
                                                                                     self.apply_elimination)
-            p.ahead = it.updates[1] - it.updates[0] if early is not None else 0  # made before the rows are in
+            p.ahead = early.made if early is not None else 0  # made before the rows are in
             waited = time.perf_counter()
             while not stage.ready(index, it.slots) and not (  # line 9; a stop after updates ahead: STOP_GRACE_S
                     self.stop_requested and (not p.ahead or time.perf_counter() - waited > STOP_GRACE_S)):
@@ -172,8 +172,10 @@ class Learner:
                 if self.intake.admit(batch):
                     self.intake.count(batch, versions)
             if early is None:
-                early = plan.run_updates(it, self.agent, self.sample, self.apply_elimination)
-            p.metrics, p.ahead = early or p.metrics, 0
+                metrics = plan.run_updates(it, self.agent, self.sample, self.apply_elimination)
+            else:  # those that would sample the rows, now that they are in
+                metrics = plan.rest_of(it, early, self.agent, self.buffer, self.apply_elimination)
+            p.metrics, p.ahead = metrics or p.metrics, 0
             if it.eliminate and p.survivor is None:  # stopped in the elimination's wait: half an iteration
                 self.mid_iteration = True
                 break
