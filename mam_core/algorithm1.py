@@ -103,6 +103,12 @@ class Ahead:
     rest: list[Any]  # the positions of the remaining updates' mini-batches, drawn (gathered once the rows are in)
 
 
+def _gathering(replay: Any, agent: MultiActorAgent, positions: list[Any]) -> Callable[[], Any]:
+    """A `sample` for `_updates` that gathers the mini-batches at `positions` (drawn ahead), in order."""
+    pending, size, groups = iter(positions), agent.cfg.batch_size, agent.batch_groups
+    return lambda: replay.gather(next(pending), size, groups)
+
+
 @dataclass(frozen=True)
 class Algorithm1:
     schedule: Schedule
@@ -346,13 +352,11 @@ class Algorithm1:
         draw = getattr(replay, "draw_ahead", None)
         if n == 0 or it.eliminate or draw is None or agent.device.type != "cpu":
             return None
-        size, groups = agent.cfg.batch_size, agent.batch_groups
-        answer = draw(len(it.slots), [size * (groups or 1)] * n)
+        answer = draw(len(it.slots), [agent.cfg.batch_size * (agent.batch_groups or 1)] * n)
         if answer is None:
             return None
         drawn, clear = answer
-        pending = iter(drawn[:clear])
-        metrics = self._updates(it, clear, agent, lambda: replay.gather(next(pending), size, groups), eliminate)
+        metrics = self._updates(it, clear, agent, _gathering(replay, agent, drawn[:clear]), eliminate)
         return Ahead(clear, metrics, drawn[clear:])
 
     def rest_of(self, it: Iteration, ahead: Ahead, agent: MultiActorAgent, replay: Any,
@@ -361,10 +365,7 @@ class Algorithm1:
         (the rows are in `replay` now). The metrics of the iteration's last update."""
         if not ahead.rest:
             return ahead.metrics
-        size, groups = agent.cfg.batch_size, agent.batch_groups
-        pending = iter(ahead.rest)
-        return self._updates(it, len(ahead.rest), agent, lambda: replay.gather(next(pending), size, groups),
-                             eliminate)
+        return self._updates(it, len(ahead.rest), agent, _gathering(replay, agent, ahead.rest), eliminate)
 
     # -- evaluations ------------------------------------------------------------------------------
     @cached_property

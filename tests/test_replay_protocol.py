@@ -133,7 +133,6 @@ def test_an_iterations_updates_made_partly_ahead_of_its_rows_equal_those_made_af
         assert ma == mb, index
         assert ra.rng.bit_generator.state == rb.rng.bit_generator.state
     assert made_ahead >= 10 and split >= 5, (made_ahead, split)  # both paths taken
-    for (name, x), (_, y) in zip(a.state_dict()["actor"].items(), b.state_dict()["actor"].items()):
-        assert torch.equal(x, y), name
-    for (name, x), (_, y) in zip(a.state_dict()["critic"].items(), b.state_dict()["critic"].items()):
-        assert torch.equal(x, y), name
+    for net in ("actor", "critic"):
+        for (name, x), (_, y) in zip(a.state_dict()[net].items(), b.state_dict()[net].items()):
+            assert torch.equal(x, y), (net, name)
