@@ -101,10 +101,17 @@ def test_mam_run_equals_the_reference_at_lag_0_and_2(tmp_path: Path) -> None:
                                                                           (first_dir / "workers").glob("*.json")))}
     assert all(got[f"w{i}"] < got["w0"] for i in range(1, 5)), got
 
-    lagged = _record(_mam_run(tmp_path, "exact-lag2", 3, "--lag", "2"))
+    # At lag 2 the slots step ahead of the learner, two by two in one loop of a worker process
+    # (`--slots-per-worker 2`: slots 0-1, 2-3 and 4 in three processes): the same run as a process a slot
+    lagged_dir = _mam_run(tmp_path, "exact-lag2", 3, "--lag", "2", "--slots-per-worker", "2")
+    lagged = _record(lagged_dir)
     ref2 = run_reference("AppleCollect-v1", resolve("ma-ddpg", seed=3, lag=2, **APPLE), APPLE_STEPS)
     assert lagged["summary"]["exact"] is True and lagged["summary"]["lag"] == 2
     _equals_reference(lagged, ref2)
+    assert sorted(p.name for p in (lagged_dir / "logs").glob("worker-*.log")) == \
+        ["worker-0.log", "worker-2.log", "worker-4.log"]
+    assert sorted(json.loads(p.read_text())["worker"] for p in (lagged_dir / "workers").glob("*.json")) == \
+        [f"w{i}" for i in range(5)]  # each slot its own worker id and report
     assert not _same_params(lagged["params"], first["params"])
 
     other = run_reference("AppleCollect-v1", resolve("ma-ddpg", seed=4, **APPLE), APPLE_STEPS)
@@ -168,17 +175,18 @@ def test_hopper_at_lag_1_through_every_fault_equals_the_reference(tmp_path: Path
 
 @pytest.mark.slow
 def test_a_killed_worker_is_rebuilt_and_the_run_stays_exact(tmp_path: Path) -> None:
-    """`mam run` restarts a SIGKILLed worker; the new one rebuilds its slot from the slot's
-    current episode (services/roles/takeover.py): the run equals the reference."""
+    """`mam run` restarts a SIGKILLed worker process, here one stepping slots 0 and 1 in one loop
+    (`--slots-per-worker 2`); the new one rebuilds both slots from their current episodes
+    (services/roles/takeover.py): the run equals the reference."""
     run_dir, name = tmp_path / "killed", unique_run("killed")
     args = ["--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--steps", "3000", "--workers", "3", "--actors", "2",
             "--start-steps", "200", "--compete-every", "500", "--eliminate-at", "2000", "--eval-episodes", "2",
             "--eval-every", "500", "--hidden", "16,16", "--batch-size", "16", "--seed", "2", "--run", name,
-            "--run-dir", str(run_dir)]
+            "--run-dir", str(run_dir), "--slots-per-worker", "2"]
     proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", *args], cwd=ROOT, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:  # a worker whose rows are in the replay
-        signal_when(run_dir, f"services.roles.worker --run {name} .*--id w1 ", 300, signal.SIGKILL, proc)
+        signal_when(run_dir, f"services.roles.worker --run {name} .*--id w0,w1 --slot 0,1 ", 300, signal.SIGKILL, proc)
         out, _ = proc.communicate(timeout=300)
     finally:
         if proc.poll() is None:

@@ -1,4 +1,5 @@
 """`mam-worker`: one environment slot. Steps its slot's iterations of Algorithm 1, publishes transitions.
+(Several slots in one process, stepped by one loop: services/roles/worker_group.py.)
 
 The worker needs only `--run`, `--connect` and `--slot`: the env, K and the noise come from the
 learner's config topic. It steps iteration i once it holds the allocation and the actor version
@@ -12,10 +13,10 @@ policy version, and exits when the run is done. Its state is a few dataclasses i
 from __future__ import annotations
 
 import logging
-import os
-import socket
+import threading
 import time
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Optional
 
@@ -29,24 +30,26 @@ from mam_core.policy import EnvSpec, NumpyActors
 from mam_core.slot import SlotStreams, act, uniform
 from services.messaging import bus, keys
 from services.messaging.codec import Allocation, LearnerStats, MessageError, TransitionBatch
-from services.roles import role, takeover
+from services.roles import role, takeover, worker_group
 from services.roles.kept import KeptBatches
 from services.roles.lockstep import WeightsHistory
 from services.roles.simulator import FAULTS, EnvFault, GuardedSimulator
+from services.roles.worker_group import WaitFor, parse_slots, slot_ids
+from services.roles.worker_report import WorkerReports
 from services.roles.worker_state import LearnerWatch, PendingBatch, SlotState
 from services.run import config, options, rundir
 from services.run.config import RunConfig
-from services.run.rundir import write_json
 
 log = logging.getLogger("mam.worker")
 
 MAX_BATCH_AGE_S = 0.05  # a partial batch is sent after this long
 STATUS_EVERY_S = 10.0
 LOST_AFTER_S = 2.0  # the learner's stats still lack a row sent this long before them: the batch was lost
-class Worker(GuardedSimulator):
+class Worker(GuardedSimulator, WorkerReports):
     def __init__(self, cfg: RunConfig, session: Any, worker_id: str, slot_index: int = 0,
-                 run_dir: Path | None = None) -> None:
+                 run_dir: Path | None = None, wake: threading.Event | None = None) -> None:
         self.run_dir, self.cfg, self.algo, self.session, self.id = run_dir, cfg, cfg.algo, session, worker_id
+        self.wake = wake  # set by its subscriptions when a sample arrives (several slots in one loop: WorkerGroup)
         role.refuse_unbound(cfg, worker_id, [slot_index], f"slot {slot_index}", log)
         self.incarnation = uuid.uuid4().hex[:12]
         self.rejects = bus.RejectLog(log, "message")
@@ -87,13 +90,24 @@ class Worker(GuardedSimulator):
 
     # -- the loop -----------------------------------------------------------------------------
     def serve(self) -> None:
-        run, s = self.cfg.run, self.session
+        """This slot alone: its passes, each wait as the pass asks (blocking)."""
+        self.open()
+        try:
+            for wait in self.passes():
+                if wait is not None:
+                    wait()
+        finally:
+            self.close()
+
+    def open(self) -> None:
+        """Its publishers, subscriptions and liveliness token, and its batch log."""
+        run, s, wake = self.cfg.run, self.session, self.wake
         self.pub = bus.declare_reliable_publisher(s, keys.transitions(run, self.id))
         self.report = role.RoleReport(s, run, "worker", self.id)
         self.weights = self.subscribe_weights()
-        self.allocation = bus.Latest.subscribe(s, keys.allocation(run))
-        self.stats_sub = bus.Latest.subscribe(s, keys.learner_stats(run))
-        self.done = bus.Latest.subscribe(s, keys.done(run))
+        self.allocation = bus.Latest.subscribe(s, keys.allocation(run), wake=wake)
+        self.stats_sub = bus.Latest.subscribe(s, keys.learner_stats(run), wake=wake)
+        self.done = bus.Latest.subscribe(s, keys.done(run), wake=wake)
         self.token = bus.declare_alive(s, run, "worker", self.id)
         if self.run_dir is not None:  # one line per batch, before it is put: what a killed worker had sent
             path = self.run_dir / rundir.WORKERS / f"{self.id}-{self.incarnation}.batches"
@@ -101,23 +115,25 @@ class Worker(GuardedSimulator):
             self.batch_log = open(path, "a", buffering=1)
         log.info("worker %s (incarnation %s), slot %d, on %s, run %s", self.id, self.incarnation, self.slot,
                  self.cfg.env_id, run)
-        try:
-            self._loop()
-        finally:
-            if not self.learner.lost_to:  # a stale owner's rows would be refused: none go
-                self.flush()
-            self.publish_report(force=True)
-            self.write_report()
-            if self.batch_log is not None:
-                self.batch_log.close()
-            self.token.undeclare()
-            for sub in (self.weights, self.allocation, self.stats_sub, self.done):
-                sub.close()
 
-    def _loop(self) -> None:
+    def close(self) -> None:
+        """What it has not sent goes (unless the slot is another's now), its report, and its declarations."""
+        if not self.learner.lost_to:  # a stale owner's rows would be refused: none go
+            self.flush()
+        self.publish_report(force=True)
+        self.write_report()
+        if self.batch_log is not None:
+            self.batch_log.close()
+        self.token.undeclare()
+        for sub in (self.weights, self.allocation, self.stats_sub, self.done):
+            sub.close()
+
+    def passes(self) -> Iterator[WaitFor | None]:
         """The slot's iterations of the plan, each once it holds the allocation and the actor
         version that apply to it (mam_core/algorithm1.py), until the learner says done. The
-        first is the one after the learner's last: 1 in a fresh run, later for a replacement."""
+        first is the one after the learner's last: 1 in a fresh run, later for a replacement.
+        Yields None after each step, and what to wait on where the slot cannot step (`serve`
+        waits on it; a WorkerGroup waits for any of its slots' subscriptions instead)."""
         plan, name = self.plan, keys.slot_name(self.slot)
         # Iteration of a competition -> its slots. The initial allocation is the allocation stream's first
         # draw (the referee's too): computed here, so collection starts before the referee is up.
@@ -147,7 +163,7 @@ class Worker(GuardedSimulator):
                 index, waiting_since = self.take_over(need), time.monotonic()
             if index is None:  # where the run stands: the learner's stats
                 if lr.stats is None:
-                    self.stats_sub.wait_fresh(timeout=0.1)
+                    yield lambda: self.stats_sub.wait_fresh(timeout=0.1)
                     continue
                 st = lr.stats
                 index = st.slots_next[self.slot] if self.slot < len(st.slots_next) else st.iteration + 1
@@ -158,7 +174,7 @@ class Worker(GuardedSimulator):
             it = plan.iteration(index) if index <= plan.iterations else None
             if it is None or self.slot not in it.slots:
                 self.flush()  # this slot's part of the run is over (the survivor runs slot 0 after C)
-                self.done.wait_fresh(timeout=0.1)
+                yield lambda: self.done.wait_fresh(timeout=0.1)
                 continue
             slots = decisions.get(plan.decision_for(index))
             actor = None if slots is None else slots.get(name)
@@ -171,18 +187,20 @@ class Worker(GuardedSimulator):
                     log.info("iteration %d waits for %s", index, self.waits)
                     self.last_note = time.monotonic()
                 if actor is None:
-                    self.allocation.wait_fresh(timeout=0.05)
+                    yield lambda: self.allocation.wait_fresh(timeout=0.05)
                 else:
-                    self.take_weights(self.weights.get(timeout=0.05), index)
+                    yield lambda i=index: self.take_weights(self.weights.get(timeout=0.05), i)
                 continue
             waiting_since, self.waits = time.monotonic(), ""
             self.step(index, it.random, actor, version)
             index += 1
+            yield None
 
     def subscribe_weights(self) -> bus.Inbox:
         """Every version, in order (a slot acts with one of the last B+1): a queue, not the latest sample."""
         return bus.Inbox.subscribe(self.session, keys.weights_all(self.cfg.run), maxsize=1024,
-                                   screen=role.weights_screen(self.shapes, self.algo.actors, self.rejects))
+                                   screen=role.weights_screen(self.shapes, self.algo.actors, self.rejects),
+                                   wake=self.wake)
 
     def close_weights(self) -> None:
         if not self.weights.closed:
@@ -242,27 +260,6 @@ class Worker(GuardedSimulator):
                     decisions[alloc.iteration] = dict(alloc.slots)
                     if alloc.previous is not None:
                         decisions.setdefault(alloc.previous[0], dict(alloc.previous[1]))
-
-    def publish_report(self, force: bool = False) -> None:
-        """This worker's counters on mam/<run>/stats/worker-<id> (rejections are visible there)."""
-        self.report.publish({"incarnation": self.incarnation, "sent_rows": self.sent_rows, "batches": self.batch_seq,
-                             "actor": self.actor, "slot": self.slot, "rejected": self.rejects.counts(),
-                             "waits": self.waits,
-                             **self.fault_counters()}, seq=self.batch_seq, force=force)
-
-    def write_report(self) -> None:
-        """What this incarnation sent (compared with the learner's transport.json in tests)."""
-        if self.run_dir is None:
-            return
-        write_json(self.run_dir / rundir.WORKERS / f"{self.id}-{self.incarnation}.json", {
-            "worker": self.id, "incarnation": self.incarnation, "sent_rows": self.sent_rows,
-            "batches": self.batch_seq, "rejected": self.rejects.counts(), "weights_held_max": self.weights_held_max,
-            "weights_received": self.weights_received + (0 if self.weights.closed else self.weights.received),
-            **self.fault_counters()})
-
-    def fault_counters(self) -> dict[str, Any]:
-        """Simulator faults and resends (role_stats topic and workers/*.json)."""
-        return {"env_faults": dict(self.faults), "env_remade": self.env_remade, **self.kept.counters()}
 
     def on_stats(self, st: LearnerStats) -> None:
         """Drop what the learner has checkpointed; on a new learner incarnation resend the rest;
@@ -354,9 +351,10 @@ class Worker(GuardedSimulator):
         p.sent()
 
 
-def main(run: str, conf: Any, worker_id: str, slot_index: int = 0, run_dir: Path | None = None) -> None:
-    role.serve_role("worker", conf, lambda cfg, session: Worker(cfg, session, worker_id, slot_index, run_dir),
-                    run=run, log=log)
+def main(run: str, conf: Any, ids: list[str], slots: list[int], run_dir: Path | None = None) -> None:
+    """Serve `slots` as the workers `ids`: one `Worker`, or several in one loop (worker_group.py)."""
+    worker_group.serve(run, conf, ids, slots, lambda cfg, session, wid, slot, wake: Worker(
+        cfg, session, wid, slot, run_dir, wake))
 
 
 app = typer.Typer(add_completion=False, help=__doc__)
@@ -366,23 +364,28 @@ app = typer.Typer(add_completion=False, help=__doc__)
 def worker_command(
     run: options.Run = None, connect: options.Connect = None, listen: options.Listen = None,
     zenoh_config: options.ZenohConfig = None, spare: options.Spare = False, take_over_after: options.TakeOver = None,
-    id: str = typer.Option(None, "--id", help="worker id (slot name); default HOST-PID"),  # noqa: A002
-    slot: Optional[int] = typer.Option(None, help="slot index (0..M-1; default 0): the slot's random streams "
-                                       "(from --seed) and its place in each iteration"),
+    id: str = typer.Option(None, "--id", help="worker id (slot name); default HOST-PID; with several slots one "
+                           "id a slot, comma-separated (default HOST-PID-sI)"),  # noqa: A002
+    slot: Optional[str] = typer.Option(None, metavar="I[,J|I-J...]",
+                                       help="slot index (0..M-1; default 0): the slot's random streams (from --seed) "
+                                       "and its place in each iteration; several (0,1,2 or 0-2): this process steps "
+                                       "them all in one loop, cheaper than a process each"),
     run_dir: Optional[Path] = typer.Option(None, "--run-dir", help="the run directory for this worker's batch log "
                                            "(workers/ID-INCARNATION.batches) and report; default: none, neither is "
                                            "kept", rich_help_panel=options.RUN_PANEL),
     verbose: bool = typer.Option(False, "--verbose", "-v", help="debug logging"),
 ) -> None:
-    """Run one environment slot of a run (needs only --run and --connect)."""
+    """Run one environment slot of a run, or several in one loop (needs only --run and --connect)."""
     role.setup_logging(verbose)
     if not run:
         raise typer.BadParameter("--run NAME is required (the learner prints it and writes it to config.json)")
     config.check_run_name(run)
-    worker_id = keys.check_name(id or f"{socket.gethostname()}-{os.getpid()}", "worker id")
+    slots = parse_slots(slot) if slot is not None else [0]
+    ids = slot_ids(id, slots)
     from services.roles import spare as spares  # --spare: services/roles/spare.py (it refuses --slot)
-    if not spares.served(spare, slot, take_over_after, run, worker_id, run_dir, Worker, connect, listen, zenoh_config):
-        main(run, role.client_config(connect, listen, zenoh_config), worker_id, slot or 0, run_dir)
+    if not spares.served(spare, None if slot is None else slots[0], take_over_after, run, ids[0], run_dir, Worker,
+                         connect, listen, zenoh_config):
+        main(run, role.client_config(connect, listen, zenoh_config), ids, slots, run_dir)
 
 
 cli = app  # the `mam-worker` entry point

@@ -153,9 +153,16 @@ class LocalCluster:
         run, rd = self.cfg.run, str(self.run_dir)
         self.spawn("learner", self.learner_args())
         self.spawn("referee", ["--run", run, "--connect", self.endpoint, "--run-dir", rd])
-        for i in range(self.cfg.algo.workers):
-            self.spawn(f"worker-{i}", ["--run", run, "--connect", self.endpoint, "--id", f"w{i}", "--slot", str(i),
-                                         "--run-dir", rd])
+        m, n = self.cfg.algo.workers, self.cfg.slots_per_worker
+        for first in range(0, m, n):  # a process a slot, or `slots_per_worker` slots in one loop (worker.py)
+            slots = range(first, min(first + n, m))
+            self.spawn(self.slot_role(first), ["--run", run, "--connect", self.endpoint,
+                                               "--id", ",".join(f"w{i}" for i in slots),
+                                               "--slot", ",".join(map(str, slots)), "--run-dir", rd])
+
+    def slot_role(self, slot: int) -> str:
+        """The child that steps `slot`: worker-<its first slot>."""
+        return f"worker-{slot - slot % self.cfg.slots_per_worker}"
 
     def child(self, role: str) -> Child | None:
         return next((c for c in self.children if c.role == role), None)
@@ -287,7 +294,7 @@ class LocalCluster:
                     [referee] if referee is not None and referee.proc.poll() is None else [learner])
         if st.awaiting:
             slots = [a for a in st.awaiting if a >= 0]
-            stuck = [c for c in workers if c.role in {f"worker-{i}" for i in slots}]
+            stuck = [c for c in workers if c.role in {self.slot_role(i) for i in slots}]
             text, blamed = waited_on(stuck, self.waits, learner, referee)  # what their workers wait for
             return (f"{head}; {facts}: waiting for iteration {st.iteration + 1:,}'s transitions from slots {slots}"
                     f"{text}", blamed or stuck or workers)

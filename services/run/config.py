@@ -40,6 +40,7 @@ class RunConfig:
     checkpoint_seconds: float = 60.0  # ... or seconds, whichever comes first
     stall_timeout: float = 300.0  # no transition and no update for this long: stalled (0: no watchdog)
     send_batch: int = 32  # transitions per message from a worker
+    slots_per_worker: int = 1  # `mam run`: slots each local worker process steps in one loop (services/roles/worker.py)
     save_replay: bool = True  # the replay buffer as append-only chunks beside the checkpoint
     learner_threads: int = 0  # the learner's threads (mam_core/gemm.py): portable: its GEMMs over this many
     # (0: every CPU it may use; the same bits for any count); native: torch threads (0: one)
@@ -92,6 +93,8 @@ class RunConfig:
             raise ValueError(f"bias_horizon must be one of {', '.join(BIAS_HORIZONS)}")
         if cfg.checkpoint_every < 1 or cfg.checkpoint_rows < 1 or not cfg.checkpoint_seconds > 0:
             raise ValueError("checkpoint_every, checkpoint_rows and checkpoint_seconds must be positive")
+        if cfg.slots_per_worker < 1:
+            raise ValueError("slots_per_worker must be >= 1")
         return cfg
 
 

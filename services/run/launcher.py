@@ -276,7 +276,7 @@ def supervised_session(conf: Any, cluster: LocalCluster, timeout: float = 120.0)
 
 
 def note_waits(cluster: LocalCluster, reports: bus.Latest) -> None:
-    """What each worker's latest report says it waits for, by role (worker-<slot>)."""
+    """What each worker's latest report says it waits for, by the role that steps its slot."""
     for item in reports.fresh().values():
         try:
             body = decode(item.payload)
@@ -284,4 +284,4 @@ def note_waits(cluster: LocalCluster, reports: bus.Latest) -> None:
         except MessageError:
             continue
         if isinstance(slot, int) and not isinstance(slot, bool) and isinstance(waits, str):
-            cluster.waits[f"worker-{slot}"] = waits[:200]
+            cluster.waits[cluster.slot_role(slot)] = waits[:200]

@@ -156,6 +156,9 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
          "worker any slot; docs/DEPLOY.md, section 6)", target=RUN, panel=DISTRIBUTION_PANEL),
     # TOML only: knobs of the algorithm and the services that no command line needs
     _opt("send_batch", int, "transitions per message from a worker", target=RUN, cli=False),
+    _opt("slots_per_worker", int, "slots each local worker process steps, in one loop (`mam run`; default 1: a process "
+         "a slot): fewer processes waking for each weights version, cheaper where slots outnumber cores "
+         "(docs/PERFORMANCE.md); the same run, bit for bit", target=RUN, panel=DISTRIBUTION_PANEL),
     _opt("learner_threads", int, "the learner's threads: portable arithmetic spreads its GEMMs over them (0: every "
          "CPU it may use; the bits do not depend on it), native gives them to torch (0: one)",
          target=RUN, cli=False),

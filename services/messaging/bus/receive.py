@@ -79,9 +79,11 @@ class Inbox:
     keeps up (or a rate limiter upstream) never sees a drop.
     """
 
-    def __init__(self, maxsize: int = 4096, *, put_timeout: float = 1.0, screen: Screen | None = None) -> None:
+    def __init__(self, maxsize: int = 4096, *, put_timeout: float = 1.0, screen: Screen | None = None,
+                 wake: threading.Event | None = None) -> None:
         self._q: queue.Queue[Received] = queue.Queue(maxsize)
         self.screen = screen
+        self.wake = wake  # set whenever a sample is queued (a loop waiting on several subscriptions)
         self.put_timeout = put_timeout
         self._closed = threading.Event()
         self._lock = threading.Lock()
@@ -118,6 +120,8 @@ class Inbox:
             with self._lock:
                 self.received += 1
                 self._overflowing = False
+            if self.wake is not None:
+                self.wake.set()
             return True
         except queue.Full:
             pass
@@ -133,6 +137,8 @@ class Inbox:
                     self._q.put(item, timeout=min(0.05, left))
                     with self._lock:
                         self.received += 1
+                    if self.wake is not None:
+                        self.wake.set()
                     return True
                 except queue.Full:
                     continue
@@ -197,9 +203,11 @@ class Latest:
     (late joiner) and keeps following new ones.
     """
 
-    def __init__(self, *, late_join: bool = True, screen: Screen | None = None) -> None:
+    def __init__(self, *, late_join: bool = True, screen: Screen | None = None,
+                 wake: threading.Event | None = None) -> None:
         self.late_join = late_join
         self.screen = screen
+        self.wake = wake  # set whenever a sample arrives (a loop waiting on several subscriptions)
         self._cond = threading.Condition()
         self._items: dict[str, Received] = {}
         self._fresh: dict[str, Received] = {}
@@ -241,6 +249,8 @@ class Latest:
             self._fresh[item.key] = item
             self.received += 1
             self._cond.notify_all()
+        if self.wake is not None:
+            self.wake.set()
 
     def get(self, key: str) -> Received | None:
         with self._cond:
