@@ -66,6 +66,7 @@ TARGETS: dict[str, tuple[str, float]] = {
     "lag2_speed_vs_reference": ("ge", 1.0),  # learner-bound: little to overlap
     "collection_lag0_speed_vs_reference": ("ge", 1.0),
     "collection_lag2_speed_vs_reference": ("ge", 1.2),  # lag 2: workers and evaluations overlap the learner
+    "collection_lag2_packed_speed_vs_reference": ("ge", 1.2),  # ... with three slots a worker process
 }
 
 
@@ -223,6 +224,7 @@ ROWS: tuple[tuple[str, str], ...] = (
     ("lag_reference_update_share", "  its share in updates (the rest: stepping, acting, evaluating)"),
     ("collection_lag0_speed_vs_reference", "collection-heavy (M=6, 32x32): speed, lag 0"),
     ("collection_lag2_speed_vs_reference", "collection-heavy: speed, lag 2"),
+    ("collection_lag2_packed_speed_vs_reference", "collection-heavy: speed, lag 2, 3 slots a worker process"),
     ("collection_lag_reference_update_share", "  its reference's share in updates"),
     ("collection_steps_per_s_m1", "env steps/s, 1 worker"),
     ("collection_steps_per_s_m2", "env steps/s, 2 workers"),

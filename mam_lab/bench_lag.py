@@ -6,8 +6,9 @@ round, interleaved (the order rotates every round) so a shared machine slows all
 configurations (`CONFIGS`): **learner-bound** (M = 3, the bench's networks: the updates are nearly
 all of the reference's time) and **collection-heavy** (M = 6, 32×32 networks, batch 64, 4
 evaluation episodes a competition: stepping and evaluating take a third or more of it, so the
-lag has work to overlap). The reference reports the share of its wall time spent in updates
-(`reference_update_share`); the rest is stepping, acting and evaluating.
+lag has work to overlap), where a fourth side runs `--lag 2` with three slots a worker process
+(`--slots-per-worker 3`, services/roles/worker_group.py). The reference reports the share of its
+wall time spent in updates (`reference_update_share`); the rest is stepping, acting and evaluating.
 The figure of each lag is a *speed*: the reference's wall time ÷ `mam run`'s wall time (above 1:
 the distributed run is faster than one process computing the same run), the median over rounds.
 The learner's wait share (the time its loop waited for an iteration's rows, learner.jsonl's
@@ -31,13 +32,15 @@ from mam_lab.bench_sizes import ROOT, BenchSizes, child_env, stop_children
 LAGS = (0, 2)
 # name: (key prefix, workers, hidden (None: the bench's), batch (None: the bench's), evaluation episodes,
 # iterations (a multiple of the bench's: the collection-heavy run's iterations are short, and at 1x its
-# reference took 15 s, mostly `mam run`'s start-up on the other side))
-CONFIGS = {"learner-bound": ("", 3, None, None, 1, 1), "collection-heavy": ("collection_", 6, (32, 32), 64, 4, 4)}
+# reference took 15 s, mostly `mam run`'s start-up on the other side), slots a worker process steps in
+# a third side, `--lag 2 --slots-per-worker N` (None: no such side))
+CONFIGS = {"learner-bound": ("", 3, None, None, 1, 1, None),
+           "collection-heavy": ("collection_", 6, (32, 32), 64, 4, 4, 3)}
 
 
 def run_args(sizes: BenchSizes, iterations: int, seed: int, config: str = "learner-bound") -> list[str]:
     """The run's options (shared by `mam run` and the reference)."""
-    _, workers, hidden, batch, episodes, _ = CONFIGS[config]
+    _, workers, hidden, batch, episodes, *_ = CONFIGS[config]
     start, c = iterations // 4, iterations // 2
     return ["--env", "HalfCheetah-v5", "--algo", "ma-td3", "--workers", str(workers), "--steps", str(iterations),
             "--start-steps", str(start), "--compete-every", str(c // 2), "--eliminate-at", str(c),
@@ -109,10 +112,11 @@ def bench_lag(sizes: BenchSizes, log: Callable[[str], None] = print, rounds: int
 
 def _bench_config(sizes: BenchSizes, log: Callable[[str], None], rounds: int, iterations: int,
                   config: str) -> dict[str, Any]:
-    prefix, workers, iterations = *CONFIGS[config][:2], iterations * CONFIGS[config][5]
+    prefix, workers, iterations, packed = *CONFIGS[config][:2], iterations * CONFIGS[config][5], CONFIGS[config][6]
     log(f"lag ({config}): HalfCheetah-v5 ma-td3, K=2, M={workers}, paper schedule, {iterations} iterations: the "
-        f"one-process reference, mam run --lag {LAGS[0]} and --lag {LAGS[1]}, {rounds} interleaved rounds")
-    sides = ["reference", *(f"lag{b}" for b in LAGS)]
+        f"one-process reference, mam run --lag {LAGS[0]} and --lag {LAGS[1]}"
+        f"{f', and --lag 2 with {packed} slots a worker process' if packed else ''}, {rounds} interleaved rounds")
+    sides = ["reference", *(f"lag{b}" for b in LAGS), *(["lag2_packed"] if packed else [])]
     walls: dict[str, list[float]] = {side: [] for side in sides}
     waits: dict[str, list[float]] = {side: [] for side in sides[1:]}
     busy: dict[str, list[float]] = {side: [] for side in sides[1:]}
@@ -129,8 +133,10 @@ def _bench_config(sizes: BenchSizes, log: Callable[[str], None], rounds: int, it
                                   ["update_share"])
                     continue
                 run = f"bench-{side}-{uuid.uuid4().hex[:6]}"
-                cmd = [sys.executable, "-m", "services.cli", "run", *args, "--lag", side[3:], "--run", run,
-                       "--run-dir", str(work / run), "--no-plot"]
+                lag = side.removeprefix("lag").split("_")[0]
+                cmd = [sys.executable, "-m", "services.cli", "run", *args, "--lag", lag, "--run", run,
+                       "--run-dir", str(work / run), "--no-plot",
+                       *(["--slots-per-worker", str(packed)] if side.endswith("packed") else [])]
                 walls[side].append(timed(cmd, work / f"{run}.out", sizes.timeout_s * 4))
                 rows = [json.loads(line) for line in (work / run / "learner.jsonl").read_text().splitlines() if line]
                 waits[side].append(wait_share(rows))
@@ -140,8 +146,10 @@ def _bench_config(sizes: BenchSizes, log: Callable[[str], None], rounds: int, it
     out: dict[str, Any] = {f"{prefix}lag_reference_wall_s": med(walls["reference"]),
                            f"{prefix}lag_reference_update_share": med(shares), f"{prefix}lag_workers": workers,
                            f"{prefix}lag_config_iterations": iterations}
-    for b in LAGS:
-        side = f"lag{b}"
+    if packed:
+        out[f"{prefix}lag2_packed_slots_per_worker"] = packed
+    for side in sides[1:]:
+        b = side[3:]
         out[f"{prefix}lag{b}_speed_vs_reference"] = med(ref / w for ref, w in zip(walls["reference"], walls[side]))
         out[f"{prefix}lag{b}_wall_s"] = med(walls[side])
         out[f"{prefix}lag{b}_learner_wait_share"] = med(waits[side])
