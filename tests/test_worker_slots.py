@@ -10,6 +10,7 @@ import pytest
 import typer
 
 from services.roles.worker_group import parse_slots, slot_ids
+from services.run.cluster import slots_note
 from tests.e2e import ROOT
 
 
@@ -51,3 +52,13 @@ def test_a_run_refuses_fewer_than_one_slot_a_worker(tmp_path):
                          cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert out.returncode != 0 and "slots_per_worker must be >= 1" in out.stdout + out.stderr
     assert not (tmp_path / "r" / "logs").exists()  # refused before any process started
+
+
+def test_mam_run_suggests_several_slots_a_process_where_processes_outnumber_the_cores():
+    note = slots_note(6, 1, 2)
+    assert note is not None and note.startswith("6 worker processes on 2 core(s): --slots-per-worker 3 steps the 6 "
+                                                "slots in 2 ")
+    assert slots_note(5, 1, 2) is not None and "--slots-per-worker 3 steps the 5 slots in 2 " in slots_note(5, 1, 2)
+    assert slots_note(3, 1, 2) is None  # fewer than twice the cores: no note
+    assert slots_note(6, 3, 2) is None  # already packed
+    assert slots_note(16, 1, 16) is None

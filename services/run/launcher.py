@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import signal
 import time
 from collections.abc import Iterator
@@ -30,7 +31,7 @@ from services.messaging.codec import Allocation, Eval, LearnerStats, MessageErro
 from services.roles.monitor_view import MonitorState, message_body
 from services.run import codecheck, preflight, registry, rundir, runlock, secret
 from services.run.audit import audit_transport
-from services.run.cluster import LocalCluster, RestartPolicy
+from services.run.cluster import LocalCluster, RestartPolicy, slots_note
 from services.run.config import RunConfig, budget_warnings
 from services.run.errors import Interrupted, RunStopped, describe_exit
 from services.run.progress import (
@@ -98,6 +99,8 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
                   f"K={cfg.algo.actors} M={cfg.algo.workers}  budget {budget_text(cfg)}")
     for line in budget_warnings(cfg):  # no silent no-op: what the budget leaves out, and M < K
         console.print(f"[yellow]note:[/] {line}", highlight=False)
+    if note := slots_note(cfg.algo.workers, cfg.slots_per_worker, len(os.sched_getaffinity(0))):
+        console.print(f"[yellow]note:[/] {note}", highlight=False)
     registry.register(cfg.run, endpoint, run_dir)  # `mam watch --run NAME` finds it without --connect
     console.print(f"run dir {run_dir}   watch live: [cyan]{command_name()} watch --run {cfg.run}[/]")
     before = rundir.earlier_parts(run_dir)  # a resumed run: what its earlier parts took and restarted
