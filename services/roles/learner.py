@@ -377,6 +377,7 @@ def learner_command(
     announce.announce_learner(cfg, listen, connect, log)  # where it listens, what it waits for, budget notes
     directory = resume or run_dir or Path("runs") / cfg.run
     main(cfg, conf, directory, resume=resume is not None)
+    role.exit_finished()  # its files are closed: skip torch's teardown, which `mam run` would wait for
 
 
 cli = app  # the `mam-learner` entry point

@@ -137,6 +137,7 @@ class Referee:
         self.stats_sub = bus.Latest.subscribe(s, keys.learner_stats(run))
         self.done = bus.Latest.subscribe(s, keys.done(run))
         self.workers = bus.watch_alive(s, run, "worker")
+        self.learners = bus.watch_alive(s, run, "learner")  # at the end: gone once it has the final report
         self.token = bus.declare_alive(s, run, "referee", self.id)
         self.report = role.RoleReport(s, run, "referee", self.id)
         self.board = tb.RunBoard(self.run_dir, "referee")  # RUN_DIR/tb/referee: the JSONL rows' scalars
@@ -147,7 +148,7 @@ class Referee:
             self._loop()
         finally:
             self.token.undeclare()
-            for sub in (self.snapshots, self.stats_sub, self.done, self.workers):
+            for sub in (self.snapshots, self.stats_sub, self.done, self.workers, self.learners):
                 sub.close()
             self.alloc_log.close()
             self.eval_log.close()
@@ -306,10 +307,12 @@ class Referee:
             "wall_time_s": round(self.wall(), 2),
             "rounds": self.state.obsolescence.round, "probabilities": self.state.obsolescence.probabilities.tolist(),
             "rejected": self.rejects.counts()})
-        # The learner stays up until it sees this (a restarted referee still needs its caches).
-        for _ in range(3):  # the last put before close can be lost
+        # The learner stays up until it sees this (a restarted referee still needs its caches), and
+        # leaves when it has: repeat (the last put before close can be lost) until then, 3 times at most.
+        for _ in range(3):
             self.publish_report(final=True)
-            time.sleep(0.1)
+            if self.learners.wait_for(lambda live: not live, timeout=0.1):
+                break
 
     def _next_seq(self) -> int:
         self.seq += 1

@@ -212,9 +212,7 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                 while True:
                     note_waits(cluster, reports)  # for the stall watchdog's diagnosis
                     cluster.supervise()
-                    if cluster.finished():
-                        progress.update(task, info="done")
-                        return True
+                    finished = cluster.finished()  # asked first: what the roles sent before they left is read below
                     if cluster.done_at is None:
                         progress.update(task, clock=clock_text(time.monotonic() - cluster.started_at))
                     item = allocation.fresh().get(keys.allocation(cfg.run))
@@ -248,6 +246,9 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
                                 progress.update(task, completed=min(st.env_steps, budget), info=bar_info(cfg, state))
                         except MessageError:
                             pass
+                    if finished:
+                        progress.update(task, info="done")
+                        return True
                     time.sleep(0.2)
         finally:
             cluster.console = console
