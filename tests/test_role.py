@@ -142,3 +142,19 @@ def test_the_learner_does_import_torch():
             "except SystemExit:\n    pass\nprint('torch' in sys.modules)\n")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert out.stdout.strip().splitlines()[-1] == "True"
+
+
+def test_a_finished_role_exits_at_once_with_its_logs_and_output_flushed(tmp_path: Path):
+    """`role.exit_finished` skips the interpreter's teardown (os._exit): what the role logged to a
+    file and printed to a pipe (both buffered) is still there, and the status is the one given."""
+    log = tmp_path / "role.log"
+    code = ("import logging, sys; from services.roles import role; "
+            f"logging.basicConfig(filename={str(log)!r}, level=logging.INFO); "
+            "logging.getLogger('mam.test').info('the last line of work'); "
+            "sys.stdout.write('printed, not yet flushed'); "
+            "import atexit; atexit.register(lambda: print('an atexit handler ran')); "
+            "role.exit_finished(3)")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 3, out.stderr
+    assert out.stdout == "printed, not yet flushed"  # flushed, and no teardown ran after it
+    assert "the last line of work" in log.read_text()
