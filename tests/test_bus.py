@@ -560,3 +560,30 @@ def test_sequence_tracker_resends_fill_gaps_exactly_once():
     # A forged huge seq costs one interval, not memory per missing number.
     resumed.observe("w1", "i0", 2**62)
     assert resumed.per_sender()["w1"]["holes"] == [[0, 2**62]]
+
+
+def test_a_client_waits_quietly_for_an_endpoint_that_is_not_up_yet_then_connects():
+    """`mam run` starts every role at once: a client whose learner is still starting waits while the
+    port refuses (no Zenoh warning a try), and connects once it listens; a port that never listens
+    still ends in Zenoh's own error after `retry_for`."""
+    import subprocess
+    import sys
+
+    endpoint = bus.loopback_endpoint(bus.free_tcp_port())
+    assert bus.refused(make_config(connect=[endpoint]))
+    assert not bus.refused(make_config(connect=["udp/127.0.0.1:1"]))  # another transport: Zenoh's to try
+    code = ("import sys, time; from services.messaging import bus; bus.init_zenoh_log(); "
+            f"s = bus.open_session(bus.make_config(connect=[{endpoint!r}]), retry_for=20.0); "
+            "print('connected'); s.close()")
+    child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(1.5)  # ~15 tries of its own meanwhile
+        assert child.poll() is None
+        with open_session(make_config(listen=[endpoint])):
+            out, err = child.communicate(timeout=30)
+    finally:
+        child.kill()
+    assert child.returncode == 0 and "connected" in out, err
+    assert "Unable to connect" not in out + err, out + err  # (Zenoh's log: on stdout)
+    with pytest.raises(zenoh.ZError):
+        open_session(make_config(connect=[bus.loopback_endpoint(bus.free_tcp_port())]), retry_for=0.3)

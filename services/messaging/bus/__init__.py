@@ -59,6 +59,7 @@ from services.messaging.bus.session import (
                                      loopback_endpoint,
                                      make_config,
                                      open_session,
+                                     refused,
                                      session_scope,
                                      use_credentials,
 )
@@ -66,5 +67,6 @@ from services.messaging.bus.session import (
 __all__ = ["AUTH_ENV", "DUPLICATE", "GAP", "IN_ORDER", "MAX_HOLES", "MODES", "RECOVERED", "REDUNDANT", "REFUSALS_LOG",
            "AliveWatch", "Answers", "Inbox", "Latest", "Received", "RejectLog", "SequenceTracker", "ask", "ask_all",
            "declare_alive", "declare_latest_publisher", "declare_reliable_publisher", "free_tcp_port", "init_zenoh_log",
-           "loopback_endpoint", "make_config", "open_session", "run_is_done", "session_scope", "use_credentials",
+           "loopback_endpoint", "make_config", "open_session", "refused", "run_is_done", "session_scope",
+           "use_credentials",
            "watch_alive"]

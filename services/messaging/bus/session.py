@@ -134,12 +134,41 @@ def open_session(conf: zenoh.Config, *, retry_for: float = 0.0) -> zenoh.Session
     """
     deadline = time.monotonic() + retry_for
     while True:
+        if time.monotonic() < deadline and refused(conf):
+            time.sleep(0.1)  # quietly: each try of Zenoh's own logs two warnings (`mam run` starts every role at once)
+            continue
         try:
             return zenoh.open(conf)
         except zenoh.ZError:
             if time.monotonic() >= deadline:
                 raise
             time.sleep(0.1)
+
+
+def refused(conf: zenoh.Config) -> bool:
+    """Whether every endpoint `conf` connects to is a TCP port that refuses connections (nothing
+    listens there yet). False for any other transport, or where anything else happens: Zenoh then
+    tries, and logs why it could not connect. A port that accepts is closed again at once; a
+    listener that logs the connections it accepts (REFUSALS_LOG) shows it as an early end of file."""
+    try:
+        endpoints = json.loads(conf.get_json("connect/endpoints"))
+    except Exception:
+        return False
+    if not endpoints or not isinstance(endpoints, list):
+        return False
+    for endpoint in endpoints:
+        proto, _, rest = str(endpoint).partition("/")
+        host, _, port = rest.split("?")[0].split("#")[0].rpartition(":")
+        if proto != "tcp" or not port.isdigit():
+            return False
+        try:
+            with socket.create_connection((host.strip("[]"), int(port)), timeout=1.0):
+                return False
+        except ConnectionRefusedError:
+            continue
+        except OSError:
+            return False
+    return True
 
 
 @contextmanager
