@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from mam_core import optim_start
 from mam_core.accel import for_device
 from mam_core.config import AlgoConfig
 from mam_core.ensemble import CriticEnsemble, soft_update
@@ -96,7 +97,7 @@ def adam_step(opt: torch.optim.Optimizer, loss: torch.Tensor, params: list[torch
     grads = torch.autograd.grad(loss, params)
     for p, g in zip(params, grads):
         p.grad = g if g.stride() == p.stride() else g.contiguous()
-    opt.step()
+    optim_start.step(opt)  # what opt.step() computes, without importing torch._dynamo
     for p in params:
         p.grad = None
 

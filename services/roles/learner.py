@@ -155,8 +155,6 @@ class Learner:
                 self.receive(stage, timeout=0.002)
                 p.awaiting = tuple(stage.missing(index, it.slots))
                 self.idle_duties(f"iteration {index}'s rows from slots {list(p.awaiting)}", waited)
-                if it.random and not optim_start.dynamo_imported():  # the first step's import, while the
-                    optim_start.import_dynamo()  # workers step the random phase (mam_core/optim_start.py)
             p.awaiting = ()
             p.wait_s += time.perf_counter() - waited
             if not stage.ready(index, it.slots):  # stopped
