@@ -60,6 +60,15 @@ _status: dict[str, Any] = {}
 _before: dict[str, str | None] = {}  # the pinned variables as they were before pin() set them
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity), at least 1. Standard library only:
+    the launcher, which never imports torch, asks it too."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
 def cpu_has_avx2() -> bool:
     """An x86-64 CPU with AVX2 and FMA (Linux: /proc/cpuinfo), the machines the pins cover."""
     if platform.machine().lower() not in ("x86_64", "amd64"):

@@ -52,6 +52,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import torch
 
+from mam_core import arithmetic
+
 _PARALLEL_MIN_FLOPS = 1 << 20  # a one-member product this big is cut in two; smaller ones run in this thread
 _MIN_HALF = 32  # a one-member product is cut in two column halves of at least this many columns
 THREADS_ENV = "MAM_GEMM_THREADS"  # the threads a process starts with (default 1; `set_threads` changes it)
@@ -111,10 +113,7 @@ def _from_environment() -> None:
 
 def default_threads() -> int:
     """The cores this process may run on (its CPU affinity), at least 1."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
+    return arithmetic.usable_cores()
 
 
 def _blasable(stride1: int, stride2: int, d2: int) -> bool:

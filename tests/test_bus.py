@@ -9,6 +9,8 @@ everyone else a client connected to it.
 from __future__ import annotations
 
 import logging
+import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -566,9 +568,6 @@ def test_a_client_waits_quietly_for_an_endpoint_that_is_not_up_yet_then_connects
     """`mam run` starts every role at once: a client whose learner is still starting waits while the
     port refuses (no Zenoh warning a try), and connects once it listens; a port that never listens
     still ends in Zenoh's own error after `retry_for`."""
-    import subprocess
-    import sys
-
     endpoint = bus.loopback_endpoint(bus.free_tcp_port())
     assert bus.refused(make_config(connect=[endpoint]))
     assert not bus.refused(make_config(connect=["udp/127.0.0.1:1"]))  # another transport: Zenoh's to try

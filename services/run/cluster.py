@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import math
 import os
 import signal
 import subprocess
@@ -67,12 +68,12 @@ def _child_setup(role: str) -> Callable[[], None]:
 def slots_note(workers: int, slots_per_worker: int, cores: int) -> str | None:
     """A note for `mam run` when its worker processes outnumber the cores twice over and more:
     several slots a process cost less there (docs/PERFORMANCE.md)."""
-    processes = -(-workers // slots_per_worker)
-    if processes < 2 * cores or cores < 1:
+    processes = math.ceil(workers / slots_per_worker)
+    if cores < 1 or processes < 2 * cores:
         return None
-    n = -(-workers // cores)
+    n = math.ceil(workers / cores)
     return (f"{processes} worker processes on {cores} core(s): --slots-per-worker {n} steps the {workers} slots in "
-            f"{-(-workers // n)} (one loop each; 0.85x the wall time of a 6-slot run on 2 cores, the same run: "
+            f"{math.ceil(workers / n)} (one loop each; 0.85x the wall time of a 6-slot run on 2 cores, the same run: "
             "docs/PERFORMANCE.md)")
 
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 import signal
 import time
 from collections.abc import Iterator
@@ -99,7 +98,7 @@ def _run_locked(cfg: RunConfig, run_dir: Path, console: Console, plot: bool, out
                   f"K={cfg.algo.actors} M={cfg.algo.workers}  budget {budget_text(cfg)}")
     for line in budget_warnings(cfg):  # no silent no-op: what the budget leaves out, and M < K
         console.print(f"[yellow]note:[/] {line}", highlight=False)
-    if note := slots_note(cfg.algo.workers, cfg.slots_per_worker, len(os.sched_getaffinity(0))):
+    if note := slots_note(cfg.algo.workers, cfg.slots_per_worker, arithmetic.usable_cores()):
         console.print(f"[yellow]note:[/] {note}", highlight=False)
     registry.register(cfg.run, endpoint, run_dir)  # `mam watch --run NAME` finds it without --connect
     console.print(f"run dir {run_dir}   watch live: [cyan]{command_name()} watch --run {cfg.run}[/]")
