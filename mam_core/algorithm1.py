@@ -109,6 +109,9 @@ def _gathering(replay: Any, agent: MultiActorAgent, positions: list[Any]) -> Cal
     return lambda: replay.gather(next(pending), size, groups)
 
 
+_RECENT = 256  # iterations an `Algorithm1` keeps once built (`iteration`)
+
+
 @dataclass(frozen=True)
 class Algorithm1:
     schedule: Schedule
@@ -229,6 +232,20 @@ class Algorithm1:
         return self.schedule.updates_allowed(n) if n >= self.batch_size else 0
 
     def iteration(self, index: int) -> Iteration:
+        """Iteration `index` (1..iterations). A role asks for the same few iterations many times
+        (a worker on each pass of its loop, each slot of a process alike): the recent ones are kept."""
+        it = self._recent.get(index)
+        if it is None:
+            if len(self._recent) >= _RECENT:
+                self._recent.clear()
+            it = self._recent[index] = self._iteration(index)
+        return it
+
+    @cached_property
+    def _recent(self) -> dict[int, Iteration]:
+        return {}
+
+    def _iteration(self, index: int) -> Iteration:
         if not 1 <= index <= self.iterations:
             raise ValueError(f"iteration {index} outside 1..{self.iterations}")
         s = self.schedule

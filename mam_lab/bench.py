@@ -222,7 +222,7 @@ ROWS: tuple[tuple[str, str], ...] = (
     ("lag2_learner_wait_share", "  learner's wait for rows, share of training time, lag 2"),
     ("lag_reference_wall_s", "one-process reference, wall s"),
     ("lag_reference_update_share", "  its share in updates (the rest: stepping, acting, evaluating)"),
-    ("collection_lag0_speed_vs_reference", "collection-heavy (M=6, 32x32): speed, lag 0"),
+    ("collection_lag0_speed_vs_reference", "collection-heavy (M=6, 32x32, utd 0.5): speed, lag 0"),
     ("collection_lag2_speed_vs_reference", "collection-heavy: speed, lag 2"),
     ("collection_lag2_packed_speed_vs_reference", "collection-heavy: speed, lag 2, 3 slots a worker process"),
     ("collection_lag_reference_update_share", "  its reference's share in updates"),

@@ -5,12 +5,13 @@ round, interleaved (the order rotates every round) so a shared machine slows all
 `run_reference` in a process of its own, `mam run --lag 0` and `mam run --lag 2`. Two
 configurations (`CONFIGS`): **learner-bound** (M = 3, the bench's networks: the updates are nearly
 all of the reference's time) and **collection-heavy** (M = 6, 32×32 networks, batch 64, 4
-evaluation episodes a competition: stepping and evaluating take a third or more of it, so the
-lag has work to overlap), where a fourth side runs `--lag 2` with three slots a worker process
-(`--slots-per-worker 3`, services/roles/worker_group.py). The reference reports the share of its
-wall time spent in updates (`reference_update_share`); the rest is stepping, acting and evaluating.
-The figure of each lag is a *speed*: the reference's wall time ÷ `mam run`'s wall time (above 1:
-the distributed run is faster than one process computing the same run), the median over rounds.
+evaluation episodes a competition, an update every second iteration: stepping and evaluating
+take a third or more of it, so the lag has work to overlap), where a fourth side runs `--lag 2`
+with three slots a worker process (`--slots-per-worker 3`, services/roles/worker_group.py). The
+reference reports the share of its wall time spent in updates (`reference_update_share`); the
+rest is stepping, acting and evaluating. The figure of each lag is a *speed*: the reference's
+wall time ÷ `mam run`'s wall time (above 1: the distributed run is faster than one process
+computing the same run), the median over rounds.
 The learner's wait share (the time its loop waited for an iteration's rows, learner.jsonl's
 `exact_wait_s`, over its training part) says where the time goes.
 """
@@ -25,28 +26,41 @@ import tempfile
 import time
 import uuid
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 from mam_lab.bench_sizes import ROOT, BenchSizes, child_env, stop_children
 
 LAGS = (0, 2)
-# name: (key prefix, workers, hidden (None: the bench's), batch (None: the bench's), evaluation episodes,
-# iterations (a multiple of the bench's: the collection-heavy run's iterations are short, and at 1x its
-# reference took 15 s, mostly `mam run`'s start-up on the other side), slots a worker process steps in
-# a third side, `--lag 2 --slots-per-worker N` (None: no such side))
-CONFIGS = {"learner-bound": ("", 3, None, None, 1, 1, None),
-           "collection-heavy": ("collection_", 6, (32, 32), 64, 4, 4, 3)}
+
+
+class LagConfig(NamedTuple):
+    prefix: str  # of its figures' keys
+    workers: int  # M
+    hidden: tuple[int, ...] | None  # None: the bench's networks
+    batch: int | None  # None: the bench's mini-batch
+    episodes: int  # evaluation episodes a competition
+    scale: int  # its iterations: this multiple of the bench's (the collection-heavy run's iterations are
+    # short, and at 1x its reference took 15 s, mostly `mam run`'s start-up on the other side)
+    packed: int | None  # slots a worker process steps in a fourth side, `--lag 2 --slots-per-worker N`
+    utd: float = 1.0  # updates an iteration
+
+
+# The collection-heavy run makes an update every second iteration: at one an iteration (until
+# 2026-12-07) its reference spent 71% of its time in updates, short of the third or more that
+# stepping and evaluating are to take there (docs/PERFORMANCE.md, "The collection-heavy bench").
+CONFIGS = {"learner-bound": LagConfig("", 3, None, None, 1, 1, None),
+           "collection-heavy": LagConfig("collection_", 6, (32, 32), 64, 4, 4, 3, utd=0.5)}
 
 
 def run_args(sizes: BenchSizes, iterations: int, seed: int, config: str = "learner-bound") -> list[str]:
     """The run's options (shared by `mam run` and the reference)."""
-    _, workers, hidden, batch, episodes, *_ = CONFIGS[config]
-    start, c = iterations // 4, iterations // 2
-    return ["--env", "HalfCheetah-v5", "--algo", "ma-td3", "--workers", str(workers), "--steps", str(iterations),
-            "--start-steps", str(start), "--compete-every", str(c // 2), "--eliminate-at", str(c),
-            "--eval-episodes", str(episodes), "--eval-every", str(10 * iterations),
-            "--hidden", ",".join(map(str, hidden or sizes.hidden)), "--batch-size", str(batch or sizes.batch_size),
-            "--seed", str(seed)]
+    c = CONFIGS[config]
+    start, elim = iterations // 4, iterations // 2
+    return ["--env", "HalfCheetah-v5", "--algo", "ma-td3", "--workers", str(c.workers), "--steps", str(iterations),
+            "--start-steps", str(start), "--compete-every", str(elim // 2), "--eliminate-at", str(elim),
+            "--eval-episodes", str(c.episodes), "--eval-every", str(10 * iterations),
+            "--hidden", ",".join(map(str, c.hidden or sizes.hidden)), "--batch-size", str(c.batch or sizes.batch_size),
+            "--utd", str(c.utd), "--seed", str(seed)]
 
 
 REFERENCE = """
@@ -61,7 +75,7 @@ cfg = resolve("ma-td3", workers=int(a["--workers"]), start_steps=int(a["--start-
               compete_every=int(a["--compete-every"]), eliminate_at=int(a["--eliminate-at"]),
               eval_episodes=int(a["--eval-episodes"]), eval_every=int(a["--eval-every"]),
               hidden=tuple(int(h) for h in a["--hidden"].split(",")), batch_size=int(a["--batch-size"]),
-              seed=int(a["--seed"]))
+              utd=float(a["--utd"]), seed=int(a["--seed"]))
 spent = [0.0]
 updates = Algorithm1.run_updates
 def timed_updates(*args, **kw):
@@ -112,8 +126,10 @@ def bench_lag(sizes: BenchSizes, log: Callable[[str], None] = print, rounds: int
 
 def _bench_config(sizes: BenchSizes, log: Callable[[str], None], rounds: int, iterations: int,
                   config: str) -> dict[str, Any]:
-    prefix, workers, iterations, packed = *CONFIGS[config][:2], iterations * CONFIGS[config][5], CONFIGS[config][6]
-    log(f"lag ({config}): HalfCheetah-v5 ma-td3, K=2, M={workers}, paper schedule, {iterations} iterations: the "
+    c = CONFIGS[config]
+    prefix, workers, iterations, packed = c.prefix, c.workers, iterations * c.scale, c.packed
+    log(f"lag ({config}): HalfCheetah-v5 ma-td3, K=2, M={workers}, paper schedule, {iterations} iterations, "
+        f"{c.utd:g} update(s) an iteration: the "
         f"one-process reference, mam run --lag {LAGS[0]} and --lag {LAGS[1]}"
         f"{f', and --lag 2 with {packed} slots a worker process' if packed else ''}, {rounds} interleaved rounds")
     sides = ["reference", *(f"lag{b}" for b in LAGS), *(["lag2_packed"] if packed else [])]
@@ -145,7 +161,7 @@ def _bench_config(sizes: BenchSizes, log: Callable[[str], None], rounds: int, it
     med = statistics.median
     out: dict[str, Any] = {f"{prefix}lag_reference_wall_s": med(walls["reference"]),
                            f"{prefix}lag_reference_update_share": med(shares), f"{prefix}lag_workers": workers,
-                           f"{prefix}lag_config_iterations": iterations}
+                           f"{prefix}lag_config_iterations": iterations, f"{prefix}lag_utd": c.utd}
     if packed:
         out[f"{prefix}lag2_packed_slots_per_worker"] = packed
     for side in sides[1:]:

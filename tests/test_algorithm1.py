@@ -88,6 +88,25 @@ def test_every_when_the_roles_ask_is_the_plans():
         plan.judged_version(3, "rounds")
 
 
+def test_a_plan_keeps_recent_iterations_and_gives_what_it_would_compute():
+    """`iteration` keeps the last ones it built (a worker asks for the same one on every pass):
+    what it returns, in any order of asking and past its bound, is what a fresh plan computes."""
+    from mam_core import algorithm1
+
+    s = Schedule("paper", slots=3, steps=1200, start=300, compete_every=150, eliminate_at=600)
+    plan = Algorithm1(s, batch_size=4, policy_delay=2, eval_every=100, lag=2)
+    n = plan.iterations
+    assert n > 2 * algorithm1._RECENT  # (the bound is crossed: the kept ones are dropped and built again)
+    order = [*range(1, n + 1), *range(n, 0, -7), *range(1, n + 1, 3)]
+    for i in order:
+        fresh = Algorithm1(s, batch_size=4, policy_delay=2, eval_every=100, lag=2)
+        assert plan.iteration(i) == fresh.iteration(i)
+        assert plan.iteration(i) is plan.iteration(i)  # kept, not built again
+        assert len(plan._recent) <= algorithm1._RECENT
+    with pytest.raises(ValueError, match="outside"):
+        plan.iteration(n + 1)
+
+
 def test_the_elimination_in_transitions_is_one_rule_for_plots_and_figures():
     """C counts iterations of M transitions under `paper`, transitions under `equal-data`."""
     assert elimination_transitions({"eliminate_at": 6, "actors": 2, "workers": 3, "schedule": "paper"}) == 18

@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mam_core.policy import EnvSpec, member_shapes
+from mam_core.policy import EnvSpec, member_shapes, params_digest
 from services.messaging import bus, keys
 from services.messaging.codec import LearnerStats, Weights
 from services.roles.lockstep import WeightsHistory
-from services.roles.role import MAX_VERSION_LEAD, Every, plausible_version, weights_screen
+from services.roles.role import MAX_VERSION_LEAD, Decodes, Every, plausible_version, weights_screen
 
 ROOT = Path(__file__).resolve().parents[1]
 ROLE_MODULES = ("learner", "worker", "referee", "monitor", "router")
@@ -47,6 +47,36 @@ def test_weights_history_keeps_one_copy_per_version_and_prefers_the_current_lear
     h.add(1, 7, dict(_params(1.0)))
     h.forget_below(6)
     assert not h.has(0, 5) and h.has(1, 7)
+
+
+def test_the_slots_of_one_process_decode_each_message_once_between_them():
+    """Slots stepped by one worker process (WorkerGroup) share a `Decodes`: a weights message
+    each slot's subscription receives (its own copy of the bytes) is decoded once, its held copy
+    and digest made once; junk is rejected and counted by each slot and keeps nothing."""
+    decodes, shapes = Decodes(), member_shapes(3, HIDDEN, 2)
+    rejects = [bus.RejectLog(None, "message") for _ in range(2)]
+    screens = [weights_screen(shapes, 2, r, decodes) for r in rejects]
+    key, item = weights_item(1, 3, 0.5)
+    admitted = [screen(item._replace(payload=bytes(bytearray(item.payload)))) for screen in screens]
+    assert admitted[0].payload is not admitted[1].payload and admitted[0].value is admitted[1].value
+    histories = [WeightsHistory(2, decodes) for _ in range(2)]
+    for h, got in zip(histories, admitted):
+        w = got.value
+        assert h.add(w.actor, w.version, w.params, w.incarnation, payload=got.payload)
+    held = [h.get(1, 3) for h in histories]
+    assert held[0] is held[1] and held[0]["w0"] is not admitted[0].value.params["w0"]  # one copy, of its own
+    assert histories[0].digest(1, 3) == histories[1].digest(1, 3) == params_digest(admitted[0].value.params)
+    alone = WeightsHistory(2)  # a process with one slot: its own copy, the same digest
+    assert alone.add(1, 3, admitted[0].value.params) and alone.digest(1, 3) == histories[0].digest(1, 3)
+    kept = len(decodes._values)
+    for screen in screens:
+        assert screen(bus.Received(key, b"\x93garbage", None, 0.0)) is None
+    assert [r.total for r in rejects] == [1, 1] and len(decodes._values) == kept
+    calls = []
+    for i in range(Decodes.KEEP + 10):  # it keeps the last few only
+        decodes.get("stats", i.to_bytes(4, "big"), lambda: calls.append(1) or len(calls))
+    assert len(decodes._values) <= Decodes.KEEP and len(calls) == Decodes.KEEP + 10
+    assert decodes.get("stats", (Decodes.KEEP + 9).to_bytes(4, "big"), lambda: -1) == Decodes.KEEP + 10
 
 
 def test_weights_screen_rejects_malformed_messages_in_the_callback():

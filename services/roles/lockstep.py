@@ -34,6 +34,7 @@ import numpy as np
 
 from mam_core.policy import params_digest
 from services.messaging.codec import TransitionBatch
+from services.roles.role import Decodes
 
 log = logging.getLogger("mam.learner")
 
@@ -134,24 +135,34 @@ class SlotStage:
         return rows, sources, done
 
 
+def held_copy(params: Mapping[str, np.ndarray]) -> tuple[dict[str, np.ndarray], str]:
+    """A role's own copy of an actor's parameters (never a view of a message's buffer), and its
+    `params_digest`: what rows acted with it carry. Read, never changed, once made."""
+    copy = {name: np.array(a, np.float32, copy=True) for name, a in params.items()}
+    return copy, params_digest(copy)
+
+
 class WeightsHistory:
     """A role's copies of each actor at the versions it may still need (the referee's
     evaluations, a worker's next B+1 iterations). A version is one set of parameters of one
     learner incarnation; after a learner restart its successor's copy of a version replaces
     the dead one's (`prefer`)."""
 
-    def __init__(self, n_actors: int) -> None:
+    def __init__(self, n_actors: int, decodes: Decodes | None = None) -> None:
         self.by_actor: list[dict[int, tuple[str, dict[str, np.ndarray], str]]] = [{} for _ in range(n_actors)]
+        self.decodes = decodes  # shared by the slots of one process: one copy of a version between them
 
     def add(self, actor: int, version: int, params: Mapping[str, np.ndarray], incarnation: str = "",
-            prefer: str = "") -> bool:
+            prefer: str = "", payload: bytes | None = None) -> bool:
         """Keep `params` as `actor`'s `version` unless a copy from `prefer` (the current learner
-        incarnation) is held already; True if kept."""
+        incarnation) is held already; True if kept. `payload`: the message they came in, under
+        which `decodes` keeps the copy (`held_copy`) for the other slots of the process."""
         held = self.by_actor[actor].get(version)
         if held is not None and (held[0] == incarnation or (prefer and held[0] == prefer)):
             return False
-        copy = {name: np.array(a, np.float32, copy=True) for name, a in params.items()}
-        self.by_actor[actor][version] = (incarnation, copy, params_digest(copy))
+        copy, digest = held_copy(params) if self.decodes is None or payload is None else \
+            self.decodes.get("held", payload, lambda: held_copy(params))
+        self.by_actor[actor][version] = (incarnation, copy, digest)
         return True
 
     def has(self, actor: int, version: int) -> bool:

@@ -11,6 +11,7 @@ import logging
 import os
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -213,16 +214,48 @@ def plausible_version(w: Weights, stats: LearnerStats | None) -> bool:
     return w.version <= stats.versions[w.actor] + MAX_VERSION_LEAD
 
 
-def weights_screen(shapes: Mapping[str, tuple[int, ...]], n_actors: int,
-                   rejects: bus.RejectLog) -> Callable[[bus.Received], bus.Received | None]:
+class Decodes:
+    """The values of the last few messages a process decoded, by kind and payload: the slots of
+    one worker process (services/roles/worker_group.py) each receive every weights and stats
+    message, and decode it once between them, not once each. A value is shared: its users
+    read it and never change it. A payload that does not decode keeps nothing (each user
+    rejects it and counts it as before)."""
+
+    KEEP = 64  # values kept (a few versions of each actor, the last stats)
+
+    def __init__(self) -> None:
+        self._values: dict[tuple[str, bytes], Any] = {}
+        self._lock = threading.Lock()  # (screens run in Zenoh's threads, the loop in the main one)
+
+    def get(self, kind: str, payload: bytes, decode: Callable[[], Any]) -> Any:
+        key = (kind, payload)
+        with self._lock:
+            if key in self._values:
+                return self._values[key]
+        value = decode()
+        with self._lock:
+            if len(self._values) >= self.KEEP:
+                self._values.pop(next(iter(self._values)))
+            self._values[key] = value
+        return value
+
+
+def _decoded(decodes: Decodes | None, kind: str, payload: bytes, decode: Callable[[], Any]) -> Any:
+    return decode() if decodes is None else decodes.get(kind, payload, decode)
+
+
+def weights_screen(shapes: Mapping[str, tuple[int, ...]], n_actors: int, rejects: bus.RejectLog,
+                   decodes: Decodes | None = None) -> Callable[[bus.Received], bus.Received | None]:
     """A weights subscription's screen (`bus.Inbox(screen=...)`), run in the callback: a message
     that does not decode as weights of the run's shapes is rejected and counted there, so a
     flood of junk on a weights key never takes a queue slot or a valid message's place. What
-    it stores carries the decoded Weights (`Received.value`: `decoded_weights` reads it)."""
+    it stores carries the decoded Weights (`Received.value`: `decoded_weights` reads it),
+    shared through `decodes` where given."""
 
     def admits(item: bus.Received) -> bus.Received | None:
         try:
-            return item._replace(value=Weights.from_bytes(item.payload, shapes, n_actors))
+            return item._replace(value=_decoded(decodes, "weights", item.payload,
+                                                lambda: Weights.from_bytes(item.payload, shapes, n_actors)))
         except MessageError as e:
             rejects.reject(keys.parse_last(item.key), e)
             return None
@@ -245,14 +278,15 @@ def learner_order(incarnation: str) -> tuple[int, str]:
     return (int(head[1:]), rest) if head[:1] == "e" and head[1:].isdigit() and rest else (0, incarnation)
 
 
-def fresh_learner_stats(latest: bus.Latest, run: str, rejects: bus.RejectLog) -> LearnerStats | None:
+def fresh_learner_stats(latest: bus.Latest, run: str, rejects: bus.RejectLog,
+                        decodes: Decodes | None = None) -> LearnerStats | None:
     """The learner's stats if new ones arrived since the last call (a malformed message is
-    counted as rejected, never raised), else None."""
+    counted as rejected, never raised), else None; shared through `decodes` where given."""
     item = latest.fresh().get(keys.learner_stats(run))
     if item is None:
         return None
     try:
-        return LearnerStats.from_bytes(item.payload)
+        return _decoded(decodes, "stats", item.payload, lambda: LearnerStats.from_bytes(item.payload))
     except MessageError as e:
         rejects.reject("learner", e)
         return None

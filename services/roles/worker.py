@@ -47,9 +47,11 @@ STATUS_EVERY_S = 10.0
 LOST_AFTER_S = 2.0  # the learner's stats still lack a row sent this long before them: the batch was lost
 class Worker(GuardedSimulator, WorkerReports):
     def __init__(self, cfg: RunConfig, session: Any, worker_id: str, slot_index: int = 0,
-                 run_dir: Path | None = None, wake: threading.Event | None = None) -> None:
+                 run_dir: Path | None = None, wake: threading.Event | None = None,
+                 decodes: role.Decodes | None = None) -> None:
         self.run_dir, self.cfg, self.algo, self.session, self.id = run_dir, cfg, cfg.algo, session, worker_id
-        self.wake = wake  # set by its subscriptions when a sample arrives (several slots in one loop: WorkerGroup)
+        # several slots in one loop (WorkerGroup): any slot's subscriptions set `wake`, and they decode once (`decodes`)
+        self.wake, self.decodes = wake, decodes
         role.refuse_unbound(cfg, worker_id, [slot_index], f"slot {slot_index}", log)
         self.incarnation = uuid.uuid4().hex[:12]
         self.rejects = bus.RejectLog(log, "message")
@@ -75,7 +77,7 @@ class Worker(GuardedSimulator, WorkerReports):
         self.actors = NumpyActors(self.algo.actors, self.spec, self.algo.hidden, self.algo.family.policy_kind)
         self.shapes = self.actors.shapes
         self.policies = [self.actors.policy(k) for k in range(self.algo.actors)]
-        self.history = WeightsHistory(self.algo.actors)  # the versions the next B+1 iterations act with
+        self.history = WeightsHistory(self.algo.actors, decodes)  # the versions the next B+1 iterations act with
         self.weights_held_max = 0  # the most versions held at once (reported: bounded by the lag, not the run)
         self.weights_received = 0  # weights messages received by closed subscriptions (reported with the open one's)
         self.loaded: list[tuple[int, str] | None] = [None] * self.algo.actors  # (version, incarnation) in `actors`
@@ -199,7 +201,8 @@ class Worker(GuardedSimulator, WorkerReports):
     def subscribe_weights(self) -> bus.Inbox:
         """Every version, in order (a slot acts with one of the last B+1): a queue, not the latest sample."""
         return bus.Inbox.subscribe(self.session, keys.weights_all(self.cfg.run), maxsize=1024,
-                                   screen=role.weights_screen(self.shapes, self.algo.actors, self.rejects),
+                                   screen=role.weights_screen(self.shapes, self.algo.actors, self.rejects,
+                                                              self.decodes),
                                    wake=self.wake)
 
     def close_weights(self) -> None:
@@ -237,13 +240,13 @@ class Worker(GuardedSimulator, WorkerReports):
                 continue
             if w.version >= oldest and role.plausible_version(w, stats) and \
                     role.learner_order(w.incarnation) >= self.learner.newest:  # not a stale learner's
-                self.history.add(w.actor, w.version, w.params, w.incarnation, prefer=current)
+                self.history.add(w.actor, w.version, w.params, w.incarnation, prefer=current, payload=item.payload)
         self.history.forget_below(oldest)
         self.weights_held_max = max(self.weights_held_max, self.history.held())
 
     def refresh(self, decisions: dict[int, dict[str, int]], index: int | None) -> None:
         """Weights, the referee's decisions (with the one before: none is missed), the learner's stats."""
-        st = role.fresh_learner_stats(self.stats_sub, self.cfg.run, self.rejects)
+        st = role.fresh_learner_stats(self.stats_sub, self.cfg.run, self.rejects, self.decodes)
         if st is not None and role.learner_order(st.incarnation) >= self.learner.newest:  # else a stale learner's
             self.learner.newest = role.learner_order(st.incarnation)
             self.learner.stats, self.learner.stats_at = st, time.monotonic()
@@ -353,8 +356,8 @@ class Worker(GuardedSimulator, WorkerReports):
 
 def main(run: str, conf: Any, ids: list[str], slots: list[int], run_dir: Path | None = None) -> None:
     """Serve `slots` as the workers `ids`: one `Worker`, or several in one loop (worker_group.py)."""
-    worker_group.serve(run, conf, ids, slots, lambda cfg, session, wid, slot, wake: Worker(
-        cfg, session, wid, slot, run_dir, wake))
+    worker_group.serve(run, conf, ids, slots, lambda cfg, session, wid, slot, wake, decodes: Worker(
+        cfg, session, wid, slot, run_dir, wake, decodes))
 
 
 app = typer.Typer(add_completion=False, help=__doc__)

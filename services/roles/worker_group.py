@@ -26,7 +26,8 @@ class WorkerGroup:
     the learner, the referee and a spare see the same slots as from separate processes, and each
     stays exact through the same recovery paths. The loop gives every slot a pass in turn and
     waits only when none could step, until a sample arrives on any slot's subscriptions (`wake`):
-    the process wakes once for a weights version, not once per slot, and shares one interpreter
+    the process wakes once for a weights version, not once per slot, decodes each weights and
+    stats message once for all its slots (`role.Decodes`), and shares one interpreter
     and one Zenoh session (on two cores, 0.87x the wall time of a six-slot run, the same bits:
     docs/PERFORMANCE.md). A slot rebuilding itself (`Worker.take_over`, after a restart) holds
     the others for as long as its query takes; a killed process takes all its slots with it
@@ -34,10 +35,12 @@ class WorkerGroup:
 
     WAIT_S = 0.05  # the longest wait without a sample (a slot's own waits are 0.05-0.1 s)
 
-    def __init__(self, make: Callable[[str, int, threading.Event], Any], ids: list[str], slots: list[int]) -> None:
-        """`make(id, slot, wake)`: the slot's `Worker`, its subscriptions setting `wake`."""
-        self.wake = threading.Event()
-        self.workers = [make(wid, slot, self.wake) for wid, slot in zip(ids, slots)]
+    def __init__(self, make: Callable[[str, int, threading.Event, role.Decodes], Any], ids: list[str],
+                 slots: list[int]) -> None:
+        """`make(id, slot, wake, decodes)`: the slot's `Worker`, its subscriptions setting `wake`,
+        its messages decoded through `decodes` (one for the group)."""
+        self.wake, self.decodes = threading.Event(), role.Decodes()
+        self.workers = [make(wid, slot, self.wake, self.decodes) for wid, slot in zip(ids, slots)]
 
     @property
     def stop_requested(self) -> bool:
@@ -107,11 +110,12 @@ def slot_ids(id_text: str | None, slots: list[int]) -> list[str]:
 
 
 def serve(run: str, conf: Any, ids: list[str], slots: list[int], make: Callable[..., Any]) -> None:
-    """Serve `slots` as the workers `ids`, each built by `make(cfg, session, id, slot, wake)`: one
-    slot alone (its waits its own, `wake` None), several in a `WorkerGroup`."""
+    """Serve `slots` as the workers `ids`, each built by `make(cfg, session, id, slot, wake,
+    decodes)`: one slot alone (its waits its own, `wake` and `decodes` None), several in a
+    `WorkerGroup`."""
     def build(cfg: Any, session: Any) -> Any:
         if len(slots) == 1:
-            return make(cfg, session, ids[0], slots[0], None)
-        return WorkerGroup(lambda wid, slot, wake: make(cfg, session, wid, slot, wake), ids, slots)
+            return make(cfg, session, ids[0], slots[0], None, None)
+        return WorkerGroup(lambda wid, slot, wake, decodes: make(cfg, session, wid, slot, wake, decodes), ids, slots)
 
     role.serve_role("worker", conf, build, run=run, log=logging.getLogger("mam.worker"))
