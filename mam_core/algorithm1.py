@@ -109,7 +109,17 @@ def _gathering(replay: Any, agent: MultiActorAgent, positions: list[Any]) -> Cal
     return lambda: replay.gather(next(pending), size, groups)
 
 
-_RECENT = 256  # iterations an `Algorithm1` keeps once built (`iteration`)
+_RECENT = 256  # iterations (and update counts) an `Algorithm1` keeps once built
+
+
+def _kept(recent: dict[int, Any], index: int, build: Callable[[int], Any]) -> Any:
+    """`build(index)`, kept in `recent` (emptied when full) for the next ask."""
+    value = recent.get(index)
+    if value is None:
+        if len(recent) >= _RECENT:
+            recent.clear()
+        value = recent[index] = build(index)
+    return value
 
 
 @dataclass(frozen=True)
@@ -226,23 +236,25 @@ class Algorithm1:
     # -- one iteration ----------------------------------------------------------------------------
     def updates_after(self, index: int) -> int:
         """The agent's update counter after iteration `index` (0 before the first)."""
+        return _kept(self._recent_updates, index, self._updates_after)
+
+    def _updates_after(self, index: int) -> int:
         if index <= 0:
             return 0
         n = self.transitions_before(index + 1) if index < self.iterations else self.schedule.budget
         return self.schedule.updates_allowed(n) if n >= self.batch_size else 0
 
     def iteration(self, index: int) -> Iteration:
-        """Iteration `index` (1..iterations). A role asks for the same few iterations many times
-        (a worker on each pass of its loop, each slot of a process alike): the recent ones are kept."""
-        it = self._recent.get(index)
-        if it is None:
-            if len(self._recent) >= _RECENT:
-                self._recent.clear()
-            it = self._recent[index] = self._iteration(index)
-        return it
+        """Iteration `index` (1..iterations). A role asks for the same few iterations, and their
+        versions, many times (a worker on each pass of its loop): the recent ones are kept."""
+        return _kept(self._recent, index, self._iteration)
 
     @cached_property
     def _recent(self) -> dict[int, Iteration]:
+        return {}
+
+    @cached_property
+    def _recent_updates(self) -> dict[int, int]:
         return {}
 
     def _iteration(self, index: int) -> Iteration:

@@ -52,8 +52,16 @@ def _actor_index(k: object) -> int:
     return k
 
 
+_BASES: dict[str, str] = {}  # run -> its checked base (a role builds its run's keys on every pass of its loop)
+
+
 def _base(run: str) -> str:
-    return f"{ROOT}/{check_name(run, 'run')}"
+    base = _BASES.get(run) if isinstance(run, str) else None
+    if base is None:
+        base = f"{ROOT}/{check_name(run, 'run')}"
+        if len(_BASES) < 64:
+            _BASES[run] = base
+    return base
 
 
 def weights(run: str, k: int) -> str:
