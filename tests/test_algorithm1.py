@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mam_core import algorithm1
 from mam_core.algorithm1 import Algorithm1, Purpose, elimination_transitions
 from mam_core.config import resolve
 from mam_core.obsolescence import initial_allocation, obsolescence_for
@@ -91,8 +92,6 @@ def test_every_when_the_roles_ask_is_the_plans():
 def test_a_plan_keeps_recent_iterations_and_gives_what_it_would_compute():
     """`iteration` keeps the last ones it built (a worker asks for the same one on every pass):
     what it returns, in any order of asking and past its bound, is what a fresh plan computes."""
-    from mam_core import algorithm1
-
     s = Schedule("paper", slots=3, steps=1200, start=300, compete_every=150, eliminate_at=600)
     plan = Algorithm1(s, batch_size=4, policy_delay=2, eval_every=100, lag=2)
     n = plan.iterations

@@ -34,7 +34,7 @@ import numpy as np
 
 from mam_core.policy import params_digest
 from services.messaging.codec import TransitionBatch
-from services.roles.role import Decodes
+from services.roles.role import Decodes, decoded
 
 log = logging.getLogger("mam.learner")
 
@@ -160,8 +160,7 @@ class WeightsHistory:
         held = self.by_actor[actor].get(version)
         if held is not None and (held[0] == incarnation or (prefer and held[0] == prefer)):
             return False
-        copy, digest = held_copy(params) if self.decodes is None or payload is None else \
-            self.decodes.get("held", payload, lambda: held_copy(params))
+        copy, digest = decoded(self.decodes, "held", payload, lambda: held_copy(params))
         self.by_actor[actor][version] = (incarnation, copy, digest)
         return True
 

@@ -240,8 +240,9 @@ class Decodes:
         return value
 
 
-def _decoded(decodes: Decodes | None, kind: str, payload: bytes, decode: Callable[[], Any]) -> Any:
-    return decode() if decodes is None else decodes.get(kind, payload, decode)
+def decoded(decodes: Decodes | None, kind: str, payload: bytes | None, decode: Callable[[], Any]) -> Any:
+    """`decode()`, shared through `decodes` (keyed by `payload`) where both are given."""
+    return decode() if decodes is None or payload is None else decodes.get(kind, payload, decode)
 
 
 def weights_screen(shapes: Mapping[str, tuple[int, ...]], n_actors: int, rejects: bus.RejectLog,
@@ -254,7 +255,7 @@ def weights_screen(shapes: Mapping[str, tuple[int, ...]], n_actors: int, rejects
 
     def admits(item: bus.Received) -> bus.Received | None:
         try:
-            return item._replace(value=_decoded(decodes, "weights", item.payload,
+            return item._replace(value=decoded(decodes, "weights", item.payload,
                                                 lambda: Weights.from_bytes(item.payload, shapes, n_actors)))
         except MessageError as e:
             rejects.reject(keys.parse_last(item.key), e)
@@ -286,7 +287,7 @@ def fresh_learner_stats(latest: bus.Latest, run: str, rejects: bus.RejectLog,
     if item is None:
         return None
     try:
-        return _decoded(decodes, "stats", item.payload, lambda: LearnerStats.from_bytes(item.payload))
+        return decoded(decodes, "stats", item.payload, lambda: LearnerStats.from_bytes(item.payload))
     except MessageError as e:
         rejects.reject("learner", e)
         return None
