@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import statistics
 import subprocess
 import sys
@@ -74,31 +75,45 @@ def _run(cmd: list[str], env: dict[str, str], out: Path, timeout: float) -> floa
     return time.monotonic() - t0
 
 
-def _child_env(**extra: str) -> dict[str, str]:
-    return dict(os.environ, PYTHONWARNINGS="ignore", COLUMNS="160", **extra)
+def _check_arithmetic(run_dir: Path, want: str) -> None:
+    """The run's learner computed with `want` arithmetic (its log's "arithmetic ..." line)."""
+    log = (run_dir / "logs" / "learner.log").read_text(errors="replace")
+    said = re.search(r"arithmetic (\w+), GEMMs ([\w-]+)", log)
+    if said is None or said.group(1) != want or (want == "native") != (said.group(2) == "native"):
+        raise RuntimeError(f"{run_dir}: the learner was to compute with {want} arithmetic; its log says "
+                           f"{said.group(0) if said else 'nothing of it'}")
 
 
 def sb3_importable(path: str) -> bool:
-    env = dict(_child_env(), PYTHONPATH=path)
+    env = dict(arithmetic.unpinned_environ(), PYTHONPATH=path)
     return subprocess.run([sys.executable, "-c", "import stable_baselines3"], env=env, capture_output=True,
                           timeout=120).returncode == 0
+
+
+def bench_sides(steps: int, start_steps: int, sb3_path: str = "") -> dict[str, tuple[list[str], dict[str, str]]]:
+    """Each side's command and environment. Every side starts from the environment this process
+    had before it pinned the arithmetic (`arithmetic.unpinned_environ`), as from a user's shell:
+    a `mam run` pins its own kernels, or, with `--arithmetic native`, hands its roles the variables
+    it found. Given this process's pins instead, `mam run --arithmetic native` took them for the
+    user's and computed in MKL's COMPATIBLE branch (the records before `td3-1c047b8-intel`)."""
+    plain = dict(arithmetic.unpinned_environ(), PYTHONWARNINGS="ignore", COLUMNS="160")
+    sides: dict[str, tuple[list[str], dict[str, str]]] = {
+        "loop": ([sys.executable, "benchmarks/td3_loop.py", "--steps", str(steps), "--start-steps", str(start_steps)],
+                 plain)}
+    run = ["run", "--env", "HalfCheetah-v5", "--algo", "td3", "--steps", str(steps), "--start-steps", str(start_steps),
+           "--eval-episodes", "10", "--eval-every", str(10 * steps), "--seed", "0", "--no-plot"]
+    sides["mam"] = ([sys.executable, "-m", "services.cli", *run], plain)
+    sides["mam-native"] = ([sys.executable, "-m", "services.cli", *run, "--arithmetic", "native"], plain)
+    if sb3_path and sb3_importable(sb3_path):
+        sides["sb3"] = ([sys.executable, "-c", SB3, str(steps), str(start_steps)], dict(plain, PYTHONPATH=sb3_path))
+    return sides
 
 
 def main(rounds: int = typer.Option(2), steps: int = typer.Option(10_000), start_steps: int = typer.Option(5_000),
          sb3_path: str = typer.Option("", help="folder with stable_baselines3 installed (else no sb3 side)"),
          timeout: float = typer.Option(1800.0)) -> None:
     """Print the wall times of each side and their ratios, one JSON object on the last line."""
-    base = _child_env()
-    plain = dict(arithmetic.unpinned_environ(), PYTHONWARNINGS="ignore")  # the yardsticks pick their own kernels
-    sides: dict[str, tuple[list[str], dict[str, str]]] = {
-        "loop": ([sys.executable, "benchmarks/td3_loop.py", "--steps", str(steps), "--start-steps", str(start_steps)],
-                 plain)}
-    run = ["run", "--env", "HalfCheetah-v5", "--algo", "td3", "--steps", str(steps), "--start-steps", str(start_steps),
-           "--eval-episodes", "10", "--eval-every", str(10 * steps), "--seed", "0", "--no-plot"]
-    sides["mam"] = ([sys.executable, "-m", "services.cli", *run], base)
-    sides["mam-native"] = ([sys.executable, "-m", "services.cli", *run, "--arithmetic", "native"], base)
-    if sb3_path and sb3_importable(sb3_path):
-        sides["sb3"] = ([sys.executable, "-c", SB3, str(steps), str(start_steps)], dict(plain, PYTHONPATH=sb3_path))
+    sides = bench_sides(steps, start_steps, sb3_path)
     walls: dict[str, list[float]] = {s: [] for s in sides}
     names = list(sides)
     with tempfile.TemporaryDirectory(prefix="mam-bench-td3-") as tmp:
@@ -108,6 +123,8 @@ def main(rounds: int = typer.Option(2), steps: int = typer.Option(10_000), start
                 if name.startswith("mam"):
                     cmd = [*cmd, "--run", f"bench-td3-{uuid.uuid4().hex[:6]}", "--run-dir", f"{tmp}/{name}-{r}"]
                 walls[name].append(_run(cmd, env, Path(tmp) / f"{name}-{r}.out", timeout))
+                if name.startswith("mam"):
+                    _check_arithmetic(Path(tmp) / f"{name}-{r}", "native" if name == "mam-native" else "portable")
                 print(f"round {r + 1}: {name} {walls[name][-1]:.1f} s", flush=True)
     med = statistics.median
     out: dict[str, Any] = {"steps": steps, "start_steps": start_steps, "rounds": rounds,

@@ -180,6 +180,7 @@ def test_a_native_run_reruns_on_its_machine_with_its_own_kernels(tmp_path: Path)
                     "--run-dir", str(run_dir), "--no-plot", "--arithmetic", "native"], cwd=ROOT, env=env,
                    capture_output=True, text=True, timeout=300, check=True)
     assert json.loads((run_dir / "config.json").read_text())["arithmetic"] == "native"
+    assert "arithmetic native, GEMMs native, 1 torch thread" in (run_dir / "logs" / "learner.log").read_text()
     code = ("import sys, json; import mam_core; import torch; torch.set_num_threads(1); sys.path.insert(0, '.')\n"
             "from pathlib import Path\n"
             "from mam_core.config import resolve\nfrom mam_core.reference import run_reference\n"
@@ -191,6 +192,27 @@ def test_a_native_run_reruns_on_its_machine_with_its_own_kernels(tmp_path: Path)
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300,
                          env=dict(env, MAM_ARITHMETIC="native"), check=True)
     assert json.loads(out.stdout.strip().splitlines()[-1]) == [True, True]
+
+
+PINS_SEEN = ("import json, os, sys; from mam_core import arithmetic; arithmetic.for_children(sys.argv[1]); "
+             "print(json.dumps({k: os.environ.get(k) for k in arithmetic.PINS}))")
+
+
+def test_the_td3_bench_starts_each_side_from_the_users_environment() -> None:
+    """`mam_lab.bench_td3` pins its own arithmetic as it imports mam_core; its `mam run
+    --arithmetic native` side must still hand its roles the variables a user's shell has (here:
+    this process's before it pinned), not the bench's pins, which native would keep as the
+    user's (MKL's COMPATIBLE branch: the native side ran ~2x slower than native in the records
+    before td3-1c047b8-intel). The portable side pins as always."""
+    from mam_lab.bench_td3 import bench_sides
+
+    sides, user = bench_sides(100, 50), arithmetic.unpinned_environ()
+    for side, arith, want in (("mam-native", "native", {k: user.get(k) for k in arithmetic.PINS}),
+                              ("mam", "portable", arithmetic.status()["pins"])):
+        out = subprocess.run([sys.executable, "-c", PINS_SEEN, arith], cwd=ROOT, env=sides[side][1],
+                             capture_output=True, text=True, timeout=120, check=True)
+        assert json.loads(out.stdout) == want, side
+    assert arithmetic.ARITHMETIC_ENV not in sides["mam"][1] and sides["loop"][1] == sides["mam"][1]
 
 
 MUJOCO_STEPS = """

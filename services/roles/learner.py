@@ -23,7 +23,7 @@ from typing import Any
 import torch
 import typer
 
-from mam_core import gemm, optim_start
+from mam_core import arithmetic, gemm, optim_start
 from mam_core.agent import EnvSpec, MultiActorAgent, pick_device
 from mam_core.algorithm1 import Algorithm1
 from mam_core.pacing import CheckpointRule
@@ -66,7 +66,10 @@ class Learner:
         self.spec = EnvSpec.from_env_id(cfg.env_id, cfg.env_kwargs)
         self.device = pick_device(self.algo.device)
         torch.manual_seed(self.algo.seed)
-        gemm.use_learner_threads(cfg.learner_threads)  # mam_core/gemm.py
+        threads = gemm.use_learner_threads(cfg.learner_threads)  # mam_core/gemm.py
+        arith = arithmetic.status()  # what this process computes with: the log says it (benches check it)
+        log.info("arithmetic %s, GEMMs %s, %s%s", arith["arithmetic"], arith["gemm"], threads,
+                 f"; machine-bound: {arith['machine_bound']}" if arith["machine_bound"] else "")
         optim_start.defer_dynamo_import()  # building the agent imports nothing: its config goes out ~1 s sooner
         agent = MultiActorAgent(self.algo, self.spec, self.device)
         plan = Algorithm1.for_run(self.algo, cfg.steps)  # every "when" of the run
