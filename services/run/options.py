@@ -138,8 +138,8 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
          "printed). Every B is one deterministic run of its seed, equal to mam_core.reference with the same B",
          symbol="B"),
     _opt("arithmetic", str, "portable (default): kernels pinned, so the run reruns from --seed on any x86-64 CPU "
-         "with AVX2 (the learner at 0.75-1.15x its native updates/s on one or two threads, mam run --algo td3 "
-         "at 0.57-0.74x native's wall time: docs/PERFORMANCE.md); "
+         "with AVX2 (its learner at 0.86-1.15x native's updates/s with two threads on AMD EPYCs, 0.61-0.73x on an "
+         "Intel Xeon with AVX-512, where mam run --algo td3 took 1.52x native's wall time: docs/PERFORMANCE.md); "
          "native: the fastest kernels of this CPU, the run reruns only here (sets MAM_ARITHMETIC for the children; "
          "for roles started by hand export MAM_ARITHMETIC=native)", target=RUN),
     _opt("run", str, "run name: the key-expression namespace mam/<run>/...", target=RUN),
