@@ -29,6 +29,7 @@ nothing but the standard library.
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import sys
@@ -56,8 +57,16 @@ PINS: dict[str, str] = {
 # the learner's GEMMs over its threads; a longer spin burns the core the workers need).
 SPEED = {"OPENBLAS_THREAD_TIMEOUT": "16"}
 
+# Where a pinned process starts another, the child inherits its pins and cannot tell them from
+# values its user exported (a `mam run --arithmetic native` started by a pinned program kept MKL's
+# COMPATIBLE branch as the user's choice: docs/PERFORMANCE.md, "A native side that was not native").
+# So a process that pins passes on, in this variable, the values it found (JSON), and a process
+# that finds a variable still at the pinned value with this beside it takes the value passed on.
+FOUND_ENV = "MAM_ARITHMETIC_FOUND"
+_NAMES = (*PINS, *SPEED, "NPY_ENABLE_CPU_FEATURES")  # what pin() sets or removes
+
 _status: dict[str, Any] = {}
-_before: dict[str, str | None] = {}  # the pinned variables as they were before pin() set them
+_before: dict[str, str | None] = {}  # the variables as the user set them (`_found`), before pin() set them
 
 
 def usable_cores() -> int:
@@ -84,6 +93,35 @@ def cpu_has_avx2() -> bool:
     return False
 
 
+def _pinned(name: str) -> str | None:
+    """The value `pin()` leaves in the environment for `name` (None: removed)."""
+    return PINS.get(name, SPEED.get(name))
+
+
+def _found() -> dict[str, str | None]:
+    """The variables of `_NAMES` as the user set them: as this process found them, but for a value
+    still at what a pinning ancestor set, which is taken as what that ancestor found (FOUND_ENV)."""
+    found = {k: os.environ.get(k) for k in _NAMES}
+    try:
+        passed = json.loads(os.environ.get(FOUND_ENV) or "{}")
+    except ValueError:
+        passed = {}
+    if isinstance(passed, dict):
+        for k in _NAMES:
+            v = passed.get(k, "")
+            if k in passed and (v is None or isinstance(v, str)) and found[k] == _pinned(k):
+                found[k] = v
+    return found
+
+
+def _restore(values: dict[str, str | None]) -> None:
+    for k, v in values.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+
+
 def pin() -> dict[str, Any]:
     """Set the pins of `PINS` in os.environ (over any value already there) unless the
     arithmetic is native; return `status()`. Idempotent: the first call decides."""
@@ -94,12 +132,15 @@ def pin() -> dict[str, Any]:
         raise ValueError(f"{ARITHMETIC_ENV}={mode!r}: choose one of {', '.join(ARITHMETICS)}")
     late = [m for m in ("numpy", "torch") if m in sys.modules]
     why = ""
+    _before.update(_found())
     if mode == "native":
         why = "native arithmetic: the libraries choose their kernels for this CPU"
+        _restore(_before)  # an ancestor's pins are not the user's: the machine's own kernels
+        os.environ.pop(FOUND_ENV, None)
     elif not cpu_has_avx2():
         why = f"not an x86-64 CPU with AVX2 and FMA ({platform.machine()}): nothing pinned"
     else:
-        _before.update({k: os.environ.get(k) for k in (*PINS, *SPEED, "NPY_ENABLE_CPU_FEATURES")})
+        os.environ[FOUND_ENV] = json.dumps(_before, sort_keys=True)  # for the processes this one starts
         os.environ.update(PINS)
         for k, v in SPEED.items():
             os.environ.setdefault(k, v)
@@ -124,6 +165,7 @@ def unpinned_environ() -> dict[str, str]:
         else:
             env[k] = v
     env.pop(ARITHMETIC_ENV, None)
+    env.pop(FOUND_ENV, None)
     return env
 
 
@@ -165,8 +207,5 @@ def for_children(arithmetic: str) -> None:
     pin()
     os.environ[ARITHMETIC_ENV] = arithmetic
     if arithmetic == "native":
-        for k, v in _before.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+        _restore(_before)
+        os.environ.pop(FOUND_ENV, None)

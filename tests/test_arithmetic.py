@@ -42,7 +42,8 @@ KERNEL_CHOICES = [
      "NPY_ENABLE_CPU_FEATURES": "X86_V3", "MAM_GEMM_THREADS": "3",
      "GLIBC_TUNABLES": "glibc.cpu.hwcaps=-AVX512F,-AVX512VL,-AVX512BW,-AVX512DQ,-AVX512CD"},
 ]
-_CHOSEN = {k for choice in KERNEL_CHOICES for k in choice} | set(arithmetic.PINS) | {arithmetic.ARITHMETIC_ENV}
+_CHOSEN = {k for choice in KERNEL_CHOICES for k in choice} | set(arithmetic.PINS) | {arithmetic.ARITHMETIC_ENV,
+                                                                                   arithmetic.FOUND_ENV}
 
 
 def _numerics(extra: dict[str, str]) -> dict:
@@ -213,6 +214,43 @@ def test_the_td3_bench_starts_each_side_from_the_users_environment() -> None:
                              capture_output=True, text=True, timeout=120, check=True)
         assert json.loads(out.stdout) == want, side
     assert arithmetic.ARITHMETIC_ENV not in sides["mam"][1] and sides["loop"][1] == sides["mam"][1]
+
+
+@AVX2
+def test_a_process_started_by_a_pinned_one_still_computes_natively_under_native_arithmetic() -> None:
+    """A child inherits its pinned parent's pins and could take them for its user's: `mam run
+    --arithmetic native` started by a pinned program (a bench, `mam experiment`'s scheduler, a
+    script that imported mam_core) computed in MKL's COMPATIBLE branch. The parent passes on what
+    it found (FOUND_ENV): a native child, a native grandchild, and the roles a pinned child starts
+    under native arithmetic see the user's variables; a portable one still pins."""
+    user = arithmetic.unpinned_environ()
+    want = {k: user.get(k) for k in arithmetic.PINS}
+    inherited = dict(os.environ)  # this process is pinned (tests/conftest.py): what a child of it inherits
+    assert {k: inherited[k] for k in arithmetic.PINS} == arithmetic.PINS and arithmetic.FOUND_ENV in inherited
+    if want["MKL_CBWR"] == "COMPATIBLE":
+        pytest.skip("this shell exports MKL_CBWR=COMPATIBLE itself: nothing tells the pins apart")
+
+    def seen(code: str, *args: str, **extra: str) -> dict:
+        out = subprocess.run([sys.executable, "-c", code, *args], cwd=ROOT, capture_output=True, text=True,
+                             timeout=120, env=dict(inherited, **extra), check=True)
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    native = ("import json, os, mam_core, torch; from mam_core import arithmetic\n"
+              "print(json.dumps(dict({k: os.environ.get(k) for k in arithmetic.PINS}, "
+              "cap=torch.backends.cpu.get_cpu_capability())))")
+    got = seen(native, MAM_ARITHMETIC="native")
+    cap = got.pop("cap")
+    assert got == want
+    with open("/proc/cpuinfo") as f:
+        if "avx512f" in f.read():  # the machine's own ATen kernels, not the pinned AVX2 ones
+            assert cap.startswith("AVX512"), cap
+    grandchild = ("import json, os, subprocess, sys, mam_core\n"
+                  "env = dict(os.environ, MAM_ARITHMETIC='native')\n"
+                  "print(subprocess.run([sys.executable, '-c', sys.argv[1]], env=env, capture_output=True, "
+                  "text=True, check=True).stdout)")
+    assert {k: v for k, v in seen(grandchild, native).items() if k != "cap"} == want
+    assert seen(PINS_SEEN, "native") == want  # `mam run --arithmetic native` in a pinned child: its roles' view
+    assert seen(PINS_SEEN, "portable") == arithmetic.PINS
 
 
 MUJOCO_STEPS = """
