@@ -95,7 +95,7 @@ def bench_sides(steps: int, start_steps: int, sb3_path: str = "") -> dict[str, t
     had before it pinned the arithmetic (`arithmetic.unpinned_environ`), as from a user's shell:
     a `mam run` pins its own kernels, or, with `--arithmetic native`, hands its roles the variables
     it found. Given this process's pins instead, `mam run --arithmetic native` took them for the
-    user's and computed in MKL's COMPATIBLE branch (the records before `td3-1c047b8-intel`)."""
+    user's and computed in MKL's COMPATIBLE branch (the records up to `td3-1c047b8-intel`)."""
     plain = dict(arithmetic.unpinned_environ(), PYTHONWARNINGS="ignore", COLUMNS="160")
     sides: dict[str, tuple[list[str], dict[str, str]]] = {
         "loop": ([sys.executable, "benchmarks/td3_loop.py", "--steps", str(steps), "--start-steps", str(start_steps)],

@@ -203,8 +203,8 @@ def test_the_td3_bench_starts_each_side_from_the_users_environment() -> None:
     """`mam_lab.bench_td3` pins its own arithmetic as it imports mam_core; its `mam run
     --arithmetic native` side must still hand its roles the variables a user's shell has (here:
     this process's before it pinned), not the bench's pins, which native would keep as the
-    user's (MKL's COMPATIBLE branch: the native side ran ~2x slower than native in the records
-    before td3-1c047b8-intel). The portable side pins as always."""
+    user's (MKL's COMPATIBLE branch: the native side took 2.5x native's time in the records up to
+    td3-1c047b8-intel). The portable side pins as always."""
     from mam_lab.bench_td3 import bench_sides
 
     sides, user = bench_sides(100, 50), arithmetic.unpinned_environ()
