@@ -188,3 +188,17 @@ def test_a_finished_role_exits_at_once_with_its_logs_and_output_flushed(tmp_path
     assert out.returncode == 3, out.stderr
     assert out.stdout == "printed, not yet flushed"  # flushed, and no teardown ran after it
     assert "the last line of work" in log.read_text()
+
+
+def test_a_role_whose_teardown_hangs_leaves_within_its_bound() -> None:
+    """`role.leave_within`: a process whose work is done (here: nothing) and whose teardown then
+    hangs (here: a sleep of a minute) exits 0 after the bound, and says so in its log."""
+    import time
+
+    code = ("import logging, time; from services.roles import role; logging.basicConfig(level=logging.INFO)\n"
+            "role.leave_within(1.0, 'the test role'); time.sleep(60)")
+    t0 = time.monotonic()
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=50)
+    took = time.monotonic() - t0
+    assert out.returncode == 0 and took < 30, (out.returncode, took, out.stderr[-2000:])
+    assert "the test role: its teardown took over 1 s after its work was done; leaving without it" in out.stderr

@@ -52,6 +52,7 @@ log = logging.getLogger("mam.learner")
 STATS_PERIOD_S = 0.1  # stats this often while updating; four times as often while waiting for data
 LOG_PERIOD_S = 1.0
 HEARTBEAT_S = 2.0  # config re-published this often
+LEAVE_WITHIN_S = 20.0  # after the run's last file: the most its teardown may take (role.leave_within)
 STOP_GRACE_S = 2.0  # a stop after updates made ahead of an iteration's rows waits this long for them
 INBOX_STAGE_AHEAD = 1024  # more queued after an iteration: all staged at once (a resend of thousands of batches)
 
@@ -317,6 +318,7 @@ class Learner:
         learner_files.count_late(self.intake, self.agent.versions, self.inbox.drain())
         self.out.wait_for_referee(msg, lambda: self.stop_requested)
         learner_files.write_transport(self.state, self.run_dir, self.inbox.dropped)
+        role.leave_within(LEAVE_WITHIN_S, "the learner")  # the run is done and recorded: nothing left to lose
 
 
 def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None:

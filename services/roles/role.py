@@ -49,6 +49,22 @@ def exit_finished(code: int = 0) -> NoReturn:
     os._exit(code)
 
 
+def leave_within(seconds: float, what: str) -> threading.Timer:
+    """A role whose work is done and whose files are closed leaves within `seconds` whatever its
+    teardown does (undeclaring, closing its Zenoh session): past them it logs so and exits 0
+    (`exit_finished`), so that `mam run`, which waits for the learner's exit, is not held by a
+    teardown that hangs (seen once in CI: a learner that had written transport.json and logged
+    "done" did not exit for 300 s). `what`: the log line's subject."""
+    def leave() -> None:
+        log.warning("%s: its teardown took over %.0f s after its work was done; leaving without it", what, seconds)
+        exit_finished(0)
+
+    timer = threading.Timer(seconds, leave)
+    timer.daemon = True
+    timer.start()
+    return timer
+
+
 def refuse_unbound(cfg: RunConfig, worker_id: str, slots: list[int], what: str, log: logging.Logger) -> None:
     """A worker or spare that the run's slot binding (services/run/binding.py) lets claim none of
     `slots`: one line, exit EXIT_CONFIG (78, which `mam run` never restarts); the learner would
