@@ -108,18 +108,18 @@ def _found() -> dict[str, str | None]:
         passed = {}
     if isinstance(passed, dict):
         for k in _NAMES:
-            v = passed.get(k, "")
-            if k in passed and (v is None or isinstance(v, str)) and found[k] == _pinned(k):
-                found[k] = v
+            if k in passed and isinstance(passed[k], (str, type(None))) and found[k] == _pinned(k):
+                found[k] = passed[k]
     return found
 
 
-def _restore(values: dict[str, str | None]) -> None:
+def _restore(values: dict[str, str | None], env: Any = os.environ) -> None:
+    """Set (or remove, for None) each variable of `values` in `env`."""
     for k, v in values.items():
         if v is None:
-            os.environ.pop(k, None)
+            env.pop(k, None)
         else:
-            os.environ[k] = v
+            env[k] = v
 
 
 def pin() -> dict[str, Any]:
@@ -159,11 +159,7 @@ def unpinned_environ() -> dict[str, str]:
     kernels (a yardstick that is not mam)."""
     pin()
     env = dict(os.environ)
-    for k, v in _before.items():
-        if v is None:
-            env.pop(k, None)
-        else:
-            env[k] = v
+    _restore(_before, env)
     env.pop(ARITHMETIC_ENV, None)
     env.pop(FOUND_ENV, None)
     return env

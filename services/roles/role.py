@@ -49,7 +49,7 @@ def exit_finished(code: int = 0) -> NoReturn:
     os._exit(code)
 
 
-def leave_within(seconds: float, what: str) -> threading.Timer:
+def leave_within(seconds: float, what: str) -> None:
     """A role whose work is done and whose files are closed leaves within `seconds` whatever its
     teardown does (undeclaring, closing its Zenoh session): past them it logs so and exits 0
     (`exit_finished`), so that `mam run`, which waits for the learner's exit, is not held by a
@@ -62,7 +62,6 @@ def leave_within(seconds: float, what: str) -> threading.Timer:
     timer = threading.Timer(seconds, leave)
     timer.daemon = True
     timer.start()
-    return timer
 
 
 def refuse_unbound(cfg: RunConfig, worker_id: str, slots: list[int], what: str, log: logging.Logger) -> None:
