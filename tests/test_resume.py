@@ -3,6 +3,7 @@ with; nothing to continue, or a flag that contradicts the run, is refused at onc
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -17,7 +18,7 @@ import pytest
 from mam_core.config import resolve
 from mam_core.policy import read_policy_file
 from mam_core.reference import run_reference
-from services.run.rundir import read_jsonl
+from services.run.rundir import earlier_parts, read_jsonl
 from tests.e2e import ROOT, processes_of, unique_run
 
 ARGS = ["--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--steps", "1500", "--workers", "3", "--actors", "2",
@@ -29,6 +30,37 @@ ARGS = ["--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--steps", "1500", "--w
 def mam_run(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "services.cli", "run", *args], cwd=ROOT, text=True,
                           capture_output=True, timeout=timeout, env=dict(os.environ, COLUMNS="200"))
+
+
+def kill_past_a_checkpoint(run_dir: Path, proc: subprocess.Popen) -> None:
+    """Once the run has a checkpoint past its start and launcher.json counts the part, SIGKILL
+    `proc`'s group and every process naming the run directory (the run's roles, in sessions of
+    their own), as a reboot would. They are stopped first, all at once, and nothing waits a fixed
+    time: a fast box runs this budget's last 1,000 iterations in 2 s, and a CI run once finished
+    during such a wait."""
+    deadline = time.monotonic() + 180
+    while not (checkpointed(run_dir) > 0 and earlier_parts(run_dir)["wall_s"] > 0):
+        assert time.monotonic() < deadline and proc.poll() is None, "the run did not get going"
+        time.sleep(0.1)
+    os.killpg(proc.pid, signal.SIGSTOP)  # restarts nothing meanwhile
+    pids = [int(pid) for pid in subprocess.run(["pgrep", "-f", str(run_dir)], capture_output=True,
+                                                text=True).stdout.split()]
+    for sig in (signal.SIGSTOP, signal.SIGKILL):
+        for pid in pids:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, sig)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(30)
+    assert not (run_dir / "summary.json").exists(), "the run finished before it could be stopped"
+
+
+def checkpointed(run_dir: Path) -> int:
+    """The most updates a checkpoint of the run holds (its manifests), 0 before one past the start."""
+    updates = [0]
+    for manifest in (run_dir / "checkpoints").glob("manifest-*.json"):
+        with contextlib.suppress(OSError, ValueError):
+            updates.append(int(json.loads(manifest.read_text())["updates"]))
+    return max(updates)
 
 
 def test_resume_refuses_a_directory_with_nothing_to_continue(tmp_path: Path) -> None:
@@ -48,18 +80,7 @@ def test_a_killed_mam_run_continues_with_resume_to_its_budget(tmp_path: Path) ->
                              str(run_dir)], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
                             start_new_session=True)
     try:
-        deadline = time.monotonic() + 180
-        while not any(r.get("iterations", 0) >= 400 for r in read_jsonl(run_dir / "learner.jsonl")) \
-                or not list((run_dir / "checkpoints").glob("manifest-*.json")):
-            assert time.monotonic() < deadline and proc.poll() is None, "the run did not get going"
-            time.sleep(0.3)
-        time.sleep(2.5)  # a checkpoint past the start
-        # the launcher keeps launcher.json up to date while the part runs (every PARTS_EVERY_S)
-        while not json.loads((run_dir / "launcher.json").read_text())["wall_s"] > 0:
-            assert time.monotonic() < deadline and proc.poll() is None, "launcher.json does not count the part"
-            time.sleep(0.3)
-        os.killpg(proc.pid, signal.SIGKILL)  # `mam run` and every child, as a reboot would
-        proc.wait(30)
+        kill_past_a_checkpoint(run_dir, proc)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
@@ -113,19 +134,7 @@ def test_a_grid_killed_mid_run_continues_the_run_from_its_checkpoint_exactly(tmp
     proc = subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
                             start_new_session=True)
     try:
-        deadline = time.monotonic() + 180
-        while not any(r.get("iterations", 0) >= 400 for r in read_jsonl(run_dir / "learner.jsonl")) \
-                or not list((run_dir / "checkpoints").glob("manifest-*.json")):
-            assert time.monotonic() < deadline and proc.poll() is None, "the grid's run did not get going"
-            time.sleep(0.3)
-        time.sleep(2.5)
-        while not json.loads((run_dir / "launcher.json").read_text())["wall_s"] > 0:
-            assert time.monotonic() < deadline and proc.poll() is None, "launcher.json does not count the part"
-            time.sleep(0.3)
-        os.killpg(proc.pid, signal.SIGKILL)  # the grid and its run's own session: everything
-        for line in subprocess.run(["pgrep", "-f", str(run_dir)], capture_output=True, text=True).stdout.split():
-            os.kill(int(line), signal.SIGKILL)
-        proc.wait(30)
+        kill_past_a_checkpoint(run_dir, proc)  # the grid and its run's own session: everything
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
