@@ -38,7 +38,9 @@ from typing import Any
 
 ARITHMETIC_ENV = "MAM_ARITHMETIC"
 ARITHMETICS = ("portable", "native")
-GEMM_ENV = "MAM_PORTABLE_GEMM"  # "mkl": the learner's GEMMs in MKL's COMPATIBLE branch (the fallback)
+# "mkl": the learner's GEMMs in MKL's COMPATIBLE branch (the fallback); "chain": in mam_core's own
+# kernels (one FMA chain an element: mam_core/chain_gemm.c), other bits than the default's
+GEMM_ENV = "MAM_PORTABLE_GEMM"
 
 # NumPy names its AVX-512 dispatch targets X86_V4, AVX512_ICL, AVX512_SPR (2.4 and later) or
 # AVX512F, AVX512_SKX, ... (earlier): names a NumPy does not know are ignored (an ImportWarning).
@@ -166,15 +168,20 @@ def unpinned_environ() -> dict[str, str]:
 
 
 def portable_gemm() -> bool:
-    """Do the learner's float32 GEMMs run in `mam_core.gemm` (NumPy's pinned OpenBLAS)? Under
-    portable arithmetic where NumPy's BLAS is OpenBLAS; else torch's (MKL COMPATIBLE under
-    portable arithmetic, the fallback; the machine's own kernels under native)."""
+    """Do the learner's float32 GEMMs run in `mam_core.gemm`? Under portable arithmetic in NumPy's
+    pinned OpenBLAS where NumPy's BLAS is OpenBLAS, or in mam_core's own kernels where GEMM_ENV
+    asks for "chain"; else torch's (MKL COMPATIBLE under portable arithmetic, the fallback; the
+    machine's own kernels under native)."""
     if "gemm" not in _status:
         pin()
-        forced = os.environ.get(GEMM_ENV, "") == "mkl"  # the fallback, on purpose (benchmarks, tests)
-        _status["gemm"] = "openblas-haswell" if _status["portable"] and not forced and _numpy_blas_is_openblas() \
-            else ("mkl-compatible" if _status["portable"] else "native")
-    return _status["gemm"] == "openblas-haswell"
+        asked = os.environ.get(GEMM_ENV, "")  # "mkl": the fallback, on purpose (benchmarks, tests)
+        if not _status["portable"]:
+            _status["gemm"] = "native"
+        elif asked == "chain":
+            _status["gemm"] = "chain"
+        else:
+            _status["gemm"] = "openblas-haswell" if asked != "mkl" and _numpy_blas_is_openblas() else "mkl-compatible"
+    return _status["gemm"] in ("openblas-haswell", "chain")
 
 
 def _numpy_blas_is_openblas() -> bool:

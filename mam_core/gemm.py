@@ -45,9 +45,12 @@ that no call takes the row-major N·N form.
 from __future__ import annotations
 
 import ctypes
+import hashlib
 import os
+import subprocess
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -77,7 +80,8 @@ def set_threads(n: int) -> None:
             return
         if _pool is not None:
             _pool.shutdown(wait=True)
-        _pool = ThreadPoolExecutor(n - 1, thread_name_prefix="mam-gemm") if n > 1 and _batch() is None else None
+        _pool = ThreadPoolExecutor(n - 1, thread_name_prefix="mam-gemm") \
+            if n > 1 and (_chain() is not None or _batch() is None) else None
         _threads = n
 
 
@@ -162,6 +166,9 @@ def bmm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     never in the row-major N·N form: where both operands are row-major the product is computed
     as (bᵀ·aᵀ)ᵀ, both transposed (T·T), and returned as a transposed view. The form depends on
     the operands' layouts only, which the code fixes, never on the machine."""
+    chain = _chain()
+    if chain is not None:
+        return chain.bmm(a, b)
     e = max(a.shape[0], b.shape[0])
     an, a_rows = _operand(a, e)
     bn, b_rows = _operand(b, e)
@@ -315,6 +322,101 @@ def _find_batch() -> _Batch | None:
             if hasattr(lib, batch) and hasattr(lib, set_threads):
                 return _Batch(lib, batch, set_threads)
     return None
+
+
+class _Chain:
+    """The kernels of mam_core/chain_gemm.c (MAM_PORTABLE_GEMM=chain): every element of a product
+    is one FMA chain over k in order, from +0, so its bits are the operands' alone, on any CPU,
+    kernel (AVX-512F, AVX2+FMA or plain C: `ISA_ENV` picks one, for tests) and thread. Built
+    once with the C compiler (`CC`, else cc) into the user's cache, named by the source's hash."""
+
+    ISA_ENV = "MAM_CHAIN_ISA"  # 1 plain C, 2 AVX2+FMA, 3 AVX-512F; unset: the best this CPU has
+    SOURCE = Path(__file__).with_name("chain_gemm.c")
+    FLAGS = ("-O2", "-shared", "-fPIC", "-ffp-contract=off")  # no -march: each kernel names its own target
+
+    def __init__(self, isa: int | None = None) -> None:
+        lib = ctypes.CDLL(str(self.build()))
+        long = ctypes.c_long
+        self.fn = lib.chain_sgemm
+        self.fn.restype = ctypes.c_int
+        self.fn.argtypes = [ctypes.c_int, long, ctypes.c_int, ctypes.c_int, ctypes.c_int,
+                            ctypes.c_void_p, long, long, long, ctypes.c_void_p, long, long, long,
+                            ctypes.c_void_p, long, long, long]
+        lib.chain_isa.restype, lib.chain_isa.argtypes = ctypes.c_int, [ctypes.c_int]
+        if isa is None:
+            try:
+                isa = int(os.environ.get(self.ISA_ENV, "0"))
+            except ValueError:
+                raise ValueError(f"{self.ISA_ENV}={os.environ[self.ISA_ENV]!r}: give 1, 2 or 3") from None
+        self.isa = lib.chain_isa(isa)  # what it runs: 0 (or more than the CPU has) the best there is
+
+    @classmethod
+    def build(cls) -> Path:
+        source = cls.SOURCE.read_bytes()
+        cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "mam"
+        lib = cache / f"chain-{hashlib.sha256(source + ' '.join(cls.FLAGS).encode()).hexdigest()[:16]}.so"
+        if lib.is_file():
+            return lib
+        cache.mkdir(parents=True, exist_ok=True)
+        tmp = lib.with_suffix(f".{os.getpid()}.tmp")
+        cc = os.environ.get("CC", "cc")
+        try:
+            subprocess.run([cc, *cls.FLAGS, "-o", str(tmp), str(cls.SOURCE)], check=True, capture_output=True,
+                           text=True, timeout=120)
+        except (OSError, subprocess.SubprocessError) as exc:
+            detail = getattr(exc, "stderr", "") or exc
+            raise RuntimeError(f"{arithmetic.GEMM_ENV}=chain needs a C compiler ({cc}) to build "
+                               f"{cls.SOURCE.name}: {detail}") from None
+        os.replace(tmp, lib)  # whole or not at all, for processes building it at once
+        return lib
+
+    def bmm(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """a [E or 1, m, k] · b [E or 1, k, n] -> [E, m, n], in strided operands as they are: the
+        members, or the columns of one member, in parts over the threads (any cut, the same bits)."""
+        a, b = a.detach(), b.detach()
+        e, (m, k), n = max(a.shape[0], b.shape[0]), a.shape[1:], b.shape[2]
+        out = torch.empty((e, m, n))
+        parts = min(_threads, max(e, n // 32)) if 2 * e * m * n * k >= _PARALLEL_MIN_FLOPS else 1
+        if parts > 1 and e >= parts:
+            cuts = [(e * i // parts, e * (i + 1) // parts, 0, n) for i in range(parts)]
+        else:
+            cols = [n * i // parts // 32 * 32 for i in range(parts)] + [n]
+            cuts = [(0, e, lo, hi) for lo, hi in zip(cols[:-1], cols[1:])]
+        calls = [self._call(a, b, out, *cut) for cut in cuts]
+        pool = _pool
+        if pool is None or len(calls) == 1:
+            for call in calls:
+                self._run(call)
+        else:
+            futures = [pool.submit(self._run, call) for call in calls[1:]]
+            self._run(calls[0])
+            for f in futures:
+                f.result()
+        return out
+
+    def _call(self, a: torch.Tensor, b: torch.Tensor, out: torch.Tensor, lo: int, hi: int, c0: int,
+              c1: int) -> tuple:
+        """The arguments of one `chain_sgemm` call: members lo..hi-1, columns c0..c1-1."""
+        (aes, ars, acs), (bes, brs, bcs), (ces, crs, ccs) = a.stride(), b.stride(), out.stride()
+        aes, bes = (aes if a.shape[0] > 1 else 0), (bes if b.shape[0] > 1 else 0)  # a shared member
+        return (self.isa, hi - lo, a.shape[1], c1 - c0, a.shape[2],
+                a.data_ptr() + 4 * aes * lo, aes, ars, acs,
+                b.data_ptr() + 4 * (bes * lo + bcs * c0), bes, brs, bcs,
+                out.data_ptr() + 4 * (ces * lo + ccs * c0), ces, crs, ccs)
+
+    def _run(self, call: tuple) -> None:
+        if call[1] > 0 and call[3] > 0 and self.fn(*call) != 0:
+            raise MemoryError("chain_sgemm: no memory for its packed operands")
+
+
+_CHAIN: list[_Chain | None] = []
+
+
+def _chain() -> _Chain | None:
+    """The chain kernels, where MAM_PORTABLE_GEMM=chain picks them (built at the first call)."""
+    if not _CHAIN:
+        _CHAIN.append(_Chain() if arithmetic.portable_gemm() and arithmetic.status()["gemm"] == "chain" else None)
+    return _CHAIN[0]
 
 
 class _Baddbmm(torch.autograd.Function):

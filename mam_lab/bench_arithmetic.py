@@ -8,7 +8,9 @@
   pins of `mam_core.arithmetic.PINS`, the GEMMs in `mam_core.gemm`), `portable-threads` (the same
   with the GEMMs over 2 threads in OpenBLAS's `sgemm_batch`: the same bits),
   `portable-threads-python` (over 2 Python threads instead), `portable-mkl` (the pins with the GEMMs in MKL's
-  COMPATIBLE branch: the fallback, and the default before `mam_core.gemm`). The processes take
+  COMPATIBLE branch: the fallback, and the default before `mam_core.gemm`), `portable-chain` and
+  `portable-chain-threads` (the GEMMs in mam_core's own kernels, one FMA chain an element, on 1
+  and 2 threads: `MAM_PORTABLE_GEMM=chain`, other bits than the default's). The processes take
   turns in rounds whose order rotates; a ratio is the median over rounds of the within-round ratio.
 * **actor** — the workers' and referee's forward pass (HalfCheetah shapes, 256x256): `dense`
   (fixed order, `mam_core.policy`) against `x @ w + b` (BLAS), batch 1 and 10, interleaved in
@@ -37,6 +39,8 @@ LEARNER_ARITHMETICS: dict[str, tuple[str, dict[str, str]]] = {
     "portable-threads": ("portable", {GEMM_THREADS_ENV: "2"}),
     "portable-threads-python": ("portable", {GEMM_THREADS_ENV: "2", "MAM_GEMM_BATCH": "0"}),
     "portable-mkl": ("portable", {arithmetic.GEMM_ENV: "mkl"}),
+    "portable-chain": ("portable", {arithmetic.GEMM_ENV: "chain"}),
+    "portable-chain-threads": ("portable", {arithmetic.GEMM_ENV: "chain", GEMM_THREADS_ENV: "2"}),
 }
 
 

@@ -71,10 +71,13 @@ def main(env: str = typer.Option("HalfCheetah-v5", help="gymnasium env id"),
     if widths != (256, 256) or batch_size != 256:  # the defaults: the digests docs/RESULTS.md quotes
         overrides = dict(hidden=widths, batch_size=batch_size)
     named = {} if algo == "ma-td3" else {"algo": algo}
+    digests = numerics(env, steps, seed, algo, **overrides)
     state = arithmetic.status()
     label = "portable" if state["portable"] else f"{state['arithmetic']}, machine-bound: {state['machine_bound']}"
+    if state["portable"] and state.get("gemm") != "openblas-haswell":  # the default GEMMs go unnamed, as before
+        label += f", GEMMs {state.get('gemm')}"
     print(json.dumps({"env": env, "steps": steps, "seed": seed, **named, **overrides, "arithmetic": label,
-                      **numerics(env, steps, seed, algo, **overrides)}))
+                      **digests}))
 
 
 if __name__ == "__main__":
