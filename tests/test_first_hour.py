@@ -7,6 +7,7 @@ them, with unique run names and ports; the registry of local runs in a temporary
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -140,6 +141,32 @@ def test_mam_run_says_at_start_what_the_budget_leaves_out(tmp_path: Path) -> Non
                  "note: M = 1 worker slot for K = 3 actors"):
         assert note in text, note
     assert processes_of(run) == []
+
+
+def test_a_referee_that_comes_up_after_the_run_reached_its_budget_still_evaluates_it(tmp_path: Path) -> None:
+    """A run so short that the learner reaches its budget before its referee is up (CI saw `mam
+    run` wait 300 s for a referee that found the learner gone): the learner stays for the referee,
+    which evaluates the final policy; every role exits 0."""
+    from services.messaging import bus
+
+    run, endpoint, run_dir = unique_run("late-referee"), bus.loopback_endpoint(bus.free_tcp_port()), tmp_path / "run"
+    common = ["--run", run, "--run-dir", str(run_dir)]
+    learner = spawn("learner", *TINY, "--steps", "60", "--start-steps", "40", "--workers", "1", "--actors", "2",
+                    "--listen", endpoint, *common, log=tmp_path / "learner.log")
+    worker = spawn("worker", *common, "--connect", endpoint, "--id", "w0", "--slot", "0", log=tmp_path / "worker.log")
+    referee = None
+    try:
+        deadline = time.monotonic() + 120
+        while "at iteration 60, " not in (tmp_path / "learner.log").read_text():  # its last checkpoint
+            assert time.monotonic() < deadline and learner.poll() is None, (tmp_path / "learner.log").read_text()
+            time.sleep(0.2)
+        referee = spawn("referee", *common, "--connect", endpoint, log=tmp_path / "referee.log")
+        for proc in (learner, worker, referee):
+            assert proc.wait(120) == 0, (tmp_path / "learner.log").read_text()[-2000:]
+    finally:
+        stop(*(p for p in (learner, worker, referee) if p is not None))
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert len(summary["final_returns"]) == 2 and summary["env_steps"] == 60, summary
 
 
 @pytest.mark.slow

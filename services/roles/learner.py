@@ -121,11 +121,11 @@ class Learner:
         self.bias_writer = (self.board.tee(JsonlWriter(self.run_dir / rundir.BIAS), tb.bias_scalars)
                             if self.cfg.bias_every else None)
         self.out.config()
-        worker_count = announce.WorkerCount(s, self.cfg, log)  # a split-role run short of M workers warns
+        self.worker_count = announce.WorkerCount(s, self.cfg, log)  # a split-role run short of M workers warns
         try:
             self._loop()
         finally:
-            worker_count.close()
+            self.worker_count.close()
             w = self.watches
             for closable in (self.inbox, self.episode_queries, self.allocation, w.referee_reports, self.rivals,
                              w.workers, w.referees, self.log_writer, self.bias_writer, self.board):
@@ -269,7 +269,7 @@ class Learner:
                                                                            self.out.next_seq))
         self.follow_allocation()
         if not p.referee_seen and self.watches.referees.live():
-            p.referee_seen = True  # finish() waits for its final evaluation
+            p.referee_seen = True  # (finish() names a referee that never came)
 
     def apply_elimination(self) -> None:
         """The referee's survivor at C (it evaluates the actors after iteration C-1 while C's rows come in)."""
@@ -301,6 +301,7 @@ class Learner:
 
     def finish(self) -> None:
         """Budget reached: final weights, checkpoint, then tell everyone until they have left."""
+        self.worker_count.close()  # the workers leave now: no warning about their count
         self.out.weights(all_actors=True)
         learner_files.write_log(self.state, self.log_writer)
         self.checkpoint()

@@ -83,7 +83,7 @@ class Progress:
     inexact: str = ""  # why the run is not exact ("" while it is)
     survivor: int | None = None  # the actor left after the elimination (applied)
     decided_survivor: int | None = None  # the referee's choice at C, applied where the plan places it
-    referee_seen: bool = False  # the run had a referee: the learner's end waits for its final evaluation
+    referee_seen: bool = False  # the run had a referee (finish() names one that never came)
     wall_before: float = 0.0  # wall seconds of the run before this incarnation (from the checkpoint)
     started: float = field(default_factory=time.monotonic)  # this incarnation's start
     awaiting: tuple[int, ...] = ()  # slots whose rows the loop waits for; -1: the referee's decision

@@ -224,12 +224,11 @@ class Outbox:
         """Stay up (repeating done) until the referee has written its final evaluation.
 
         A referee that dies now is restarted (`mam run`) and needs this learner's config,
-        done notice and snapshots. Waits while a referee was seen during the run and has not
-        reported `final`: up to REFEREE_GRACE_S without any referee alive, and at most
-        REFEREE_WAIT_S in all.
+        done notice and snapshots; so does one that has not come up yet (a run short enough to
+        end while its referee still starts: the learner left, the referee found no one to
+        connect to, and `mam run` waited for it). Waits until a referee reports `final`: up to
+        REFEREE_GRACE_S without any referee alive, and at most REFEREE_WAIT_S in all.
         """
-        if not self.st.progress.referee_seen:
-            return
         deadline = time.monotonic() + REFEREE_WAIT_S
         gone_since: float | None = None
         last_put = 0.0
@@ -242,8 +241,8 @@ class Outbox:
             elif gone_since is None:
                 gone_since = now
             elif now - gone_since > REFEREE_GRACE_S:
-                log.warning("no referee for %.0f s after done: not waiting for its final evaluation",
-                            REFEREE_GRACE_S)
+                log.warning("no referee for %.0f s after done%s: not waiting for its final evaluation",
+                            REFEREE_GRACE_S, "" if self.st.progress.referee_seen else " (none came in the run)")
                 return
             if now - last_put >= 1.0:  # a restarted referee needs these (the caches serve them too)
                 self.done(msg.to_bytes(self.sender, self.next_seq()))

@@ -65,5 +65,6 @@ class WorkerCount:
             self.stop.wait(5.0)
 
     def close(self) -> None:
-        self.stop.set()
-        self.watch.close()
+        if not self.stop.is_set():  # once (the learner closes it at its budget, and on leaving)
+            self.stop.set()
+            self.watch.close()

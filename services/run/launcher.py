@@ -195,8 +195,8 @@ def follow(cfg: RunConfig, endpoint: str, cluster: LocalCluster, console: Consol
         roles = bus.watch_alive(session, cfg.run)
         reports = bus.Latest(late_join=False).subscribe(session, keys.role_stats_all(cfg.run, "worker"))
         with console.status("starting learner and referee"):
-            while not {"learner", "referee"} <= {role for role, _ in roles.members()}:
-                cluster.supervise()
+            while not {"learner", "referee"} <= {role for role, _ in roles.members()} and not cluster.finished():
+                cluster.supervise()  # (a learner that finished the run before both were seen has left)
                 time.sleep(0.1)
         roles.close()
         # What is known of the run: `mam watch`'s own state (services/roles/monitor_view.py), fed the same messages
