@@ -15,6 +15,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0
 	$(PY) -m pip install --quiet -e ".[dev]"
+	$(PY) -m mam_core.gemm  # portable arithmetic's GEMM kernels, built with the C compiler (cc)
 	touch $(STAMP)
 
 install: $(STAMP)

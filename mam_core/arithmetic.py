@@ -38,9 +38,12 @@ from typing import Any
 
 ARITHMETIC_ENV = "MAM_ARITHMETIC"
 ARITHMETICS = ("portable", "native")
-# "mkl": the learner's GEMMs in MKL's COMPATIBLE branch (the fallback); "chain": in mam_core's own
-# kernels (one FMA chain an element: mam_core/chain_gemm.c), other bits than the default's
+# The learner's GEMMs under portable arithmetic: mam_core's own kernels (the default: one FMA chain
+# an element, mam_core/chain_gemm.c); "openblas": NumPy's OpenBLAS pinned to its Haswell kernels
+# (the default from 08c3077 until the chain kernels: other bits, to rerun the records of those
+# commits); "mkl": MKL's COMPATIBLE branch (the default before 08c3077; other bits again)
 GEMM_ENV = "MAM_PORTABLE_GEMM"
+GEMMS = {"chain": "chain", "openblas": "openblas-haswell", "mkl": "mkl-compatible"}  # GEMM_ENV: status["gemm"]
 
 # NumPy names its AVX-512 dispatch targets X86_V4, AVX512_ICL, AVX512_SPR (2.4 and later) or
 # AVX512F, AVX512_SKX, ... (earlier): names a NumPy does not know are ignored (an ImportWarning).
@@ -168,20 +171,19 @@ def unpinned_environ() -> dict[str, str]:
 
 
 def portable_gemm() -> bool:
-    """Do the learner's float32 GEMMs run in `mam_core.gemm`? Under portable arithmetic in NumPy's
-    pinned OpenBLAS where NumPy's BLAS is OpenBLAS, or in mam_core's own kernels where GEMM_ENV
-    asks for "chain"; else torch's (MKL COMPATIBLE under portable arithmetic, the fallback; the
-    machine's own kernels under native)."""
+    """Do the learner's float32 GEMMs run in `mam_core.gemm`? Under portable arithmetic, in
+    mam_core's own kernels ("chain", the default) or NumPy's pinned OpenBLAS (GEMM_ENV=openblas,
+    where NumPy's BLAS is OpenBLAS: else an error); else torch's (MKL COMPATIBLE under portable
+    arithmetic with GEMM_ENV=mkl; the machine's own kernels under native)."""
     if "gemm" not in _status:
         pin()
-        asked = os.environ.get(GEMM_ENV, "")  # "mkl": the fallback, on purpose (benchmarks, tests)
-        if not _status["portable"]:
-            _status["gemm"] = "native"
-        elif asked == "chain":
-            _status["gemm"] = "chain"
-        else:
-            _status["gemm"] = "openblas-haswell" if asked != "mkl" and _numpy_blas_is_openblas() else "mkl-compatible"
-    return _status["gemm"] in ("openblas-haswell", "chain")
+        asked = os.environ.get(GEMM_ENV, "") or "chain"
+        if asked not in GEMMS:
+            raise ValueError(f"{GEMM_ENV}={asked!r}: give one of {', '.join(GEMMS)}")
+        if asked == "openblas" and _status["portable"] and not _numpy_blas_is_openblas():
+            raise ValueError(f"{GEMM_ENV}=openblas: this NumPy's BLAS is not OpenBLAS")
+        _status["gemm"] = GEMMS[asked] if _status["portable"] else "native"
+    return _status["gemm"] in ("chain", "openblas-haswell")
 
 
 def _numpy_blas_is_openblas() -> bool:

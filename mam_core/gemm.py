@@ -2,8 +2,18 @@
 
 torch's CPU GEMMs run in MKL, whose only branch with the same bits on Intel and AMD is
 COMPATIBLE (`MKL_CBWR`), about 3-6x slower than the machine's own kernels. Here every product of
-the learner's layers (the forward one and both backward ones) runs in NumPy's OpenBLAS instead,
-pinned so that the kernel, its blocking and its path are fixed (mam_core/arithmetic.py):
+the learner's layers (the forward one and both backward ones) runs in other kernels:
+
+- By default in mam_core's own (`_Chain`, mam_core/chain_gemm.c): every element of a product is
+  one chain of fused multiply-adds over k in order, from +0, a sum defined by the operands alone.
+  FMA rounds once, by IEEE 754, on every CPU; the kernels vectorize across the elements, never
+  along k, so the AVX-512, AVX2 and plain C kernels, any blocking, layout and cut over threads
+  give the same bits, and no library's version or CPU table enters. They are built with the C
+  compiler at the first use (or by `make venv`) into the user's cache.
+- With `MAM_PORTABLE_GEMM=openblas` (the default from 08c3077 until the chain kernels; other
+  bits, kept to rerun records of those commits) in NumPy's OpenBLAS, pinned so that the kernel,
+  its blocking and its path are fixed (mam_core/arithmetic.py); the rest of this docstring is
+  about it:
 
 - `OPENBLAS_CORETYPE=Haswell`: the AVX2/FMA kernels on any x86-64 CPU with AVX2 (the dynamic
   build's table for that core, whatever the CPU is). FMA rounds once, by IEEE 754, on every vendor.
@@ -48,6 +58,7 @@ import ctypes
 import hashlib
 import os
 import subprocess
+import tempfile
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -325,10 +336,11 @@ def _find_batch() -> _Batch | None:
 
 
 class _Chain:
-    """The kernels of mam_core/chain_gemm.c (MAM_PORTABLE_GEMM=chain): every element of a product
-    is one FMA chain over k in order, from +0, so its bits are the operands' alone, on any CPU,
-    kernel (AVX-512F, AVX2+FMA or plain C: `ISA_ENV` picks one, for tests) and thread. Built
-    once with the C compiler (`CC`, else cc) into the user's cache, named by the source's hash."""
+    """The kernels of mam_core/chain_gemm.c (portable arithmetic's default): every element of a
+    product is one FMA chain over k in order, from +0, so its bits are the operands' alone, on any
+    CPU, kernel (AVX-512F, AVX2+FMA or plain C: `ISA_ENV` picks one, for tests) and thread. Built
+    once with the C compiler (`CC`, else cc) into the user's cache (else the temporary
+    directory's), named by the hash of the source and the flags."""
 
     ISA_ENV = "MAM_CHAIN_ISA"  # 1 plain C, 2 AVX2+FMA, 3 AVX-512F; unset: the best this CPU has
     SOURCE = Path(__file__).with_name("chain_gemm.c")
@@ -352,12 +364,20 @@ class _Chain:
 
     @classmethod
     def build(cls) -> Path:
-        source = cls.SOURCE.read_bytes()
-        cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "mam"
-        lib = cache / f"chain-{hashlib.sha256(source + ' '.join(cls.FLAGS).encode()).hexdigest()[:16]}.so"
-        if lib.is_file():
-            return lib
-        cache.mkdir(parents=True, exist_ok=True)
+        name = f"chain-{hashlib.sha256(cls.SOURCE.read_bytes() + ' '.join(cls.FLAGS).encode()).hexdigest()[:16]}.so"
+        caches = [Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "mam",
+                  Path(tempfile.gettempdir()) / f"mam-{os.getuid()}"]
+        for cache in caches:
+            if (cache / name).is_file():
+                return cache / name
+        for cache in caches:
+            try:
+                cache.mkdir(parents=True, exist_ok=True)
+                if os.access(cache, os.W_OK):
+                    break
+            except OSError:
+                continue
+        lib = cache / name
         tmp = lib.with_suffix(f".{os.getpid()}.tmp")
         cc = os.environ.get("CC", "cc")
         try:
@@ -365,8 +385,8 @@ class _Chain:
                            text=True, timeout=120)
         except (OSError, subprocess.SubprocessError) as exc:
             detail = getattr(exc, "stderr", "") or exc
-            raise RuntimeError(f"{arithmetic.GEMM_ENV}=chain needs a C compiler ({cc}) to build "
-                               f"{cls.SOURCE.name}: {detail}") from None
+            raise RuntimeError(f"portable arithmetic needs a C compiler ({cc}; set CC to another) to build "
+                               f"{cls.SOURCE}: {detail}; or run with --arithmetic native") from None
         os.replace(tmp, lib)  # whole or not at all, for processes building it at once
         return lib
 
@@ -412,8 +432,18 @@ class _Chain:
 _CHAIN: list[_Chain | None] = []
 
 
+def ready() -> str:
+    """Load the kernels this process's GEMMs use (building the chain kernels if need be); their
+    name (arithmetic.status()["gemm"]). RuntimeError: they cannot be built here (no C compiler);
+    ValueError: MAM_PORTABLE_GEMM names no kernels."""
+    arithmetic.portable_gemm()
+    _chain()
+    return arithmetic.status()["gemm"]
+
+
 def _chain() -> _Chain | None:
-    """The chain kernels, where MAM_PORTABLE_GEMM=chain picks them (built at the first call)."""
+    """The chain kernels, under portable arithmetic unless MAM_PORTABLE_GEMM picks others (built
+    at the first call)."""
     if not _CHAIN:
         _CHAIN.append(_Chain() if arithmetic.portable_gemm() and arithmetic.status()["gemm"] == "chain" else None)
     return _CHAIN[0]
@@ -496,3 +526,6 @@ def addmm(bias: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 _from_environment()
+
+if __name__ == "__main__":  # `make venv`: build the chain kernels now (an error names what is missing)
+    print(f"mam: portable GEMM kernels in {_Chain.build()}")

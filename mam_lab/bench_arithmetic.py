@@ -5,13 +5,13 @@
 * **learner** — MA-TD3 (K = 2) and TD3 updates/s, 256x256 networks, batch 256, HalfCheetah
   shapes, one torch thread, one process per arithmetic (each library reads its pins when it
   loads): `native` (nothing pinned, the machine's own kernels), `portable` (mam's default: the
-  pins of `mam_core.arithmetic.PINS`, the GEMMs in `mam_core.gemm`), `portable-threads` (the same
-  with the GEMMs over 2 threads in OpenBLAS's `sgemm_batch`: the same bits),
-  `portable-threads-python` (over 2 Python threads instead), `portable-mkl` (the pins with the GEMMs in MKL's
-  COMPATIBLE branch: the fallback, and the default before `mam_core.gemm`), `portable-chain` and
-  `portable-chain-threads` (the GEMMs in mam_core's own kernels, one FMA chain an element, on 1
-  and 2 threads: `MAM_PORTABLE_GEMM=chain`, other bits than the default's). The processes take
-  turns in rounds whose order rotates; a ratio is the median over rounds of the within-round ratio.
+  pins of `mam_core.arithmetic.PINS`, the GEMMs in mam_core's own kernels, one FMA chain an
+  element), `portable-threads` (the same over 2 threads: the same bits), `portable-avx2` (their
+  AVX2 kernel, what a CPU without AVX-512 runs: the same bits), `portable-openblas` and
+  `portable-openblas-threads` (the GEMMs in pinned OpenBLAS, 1 and 2 threads: the default before
+  the chain kernels, other bits), `portable-mkl` (the GEMMs in MKL's COMPATIBLE branch: the
+  default before OpenBLAS, other bits again). The processes take turns in rounds whose order
+  rotates; a ratio is the median over rounds of the within-round ratio.
 * **actor** — the workers' and referee's forward pass (HalfCheetah shapes, 256x256): `dense`
   (fixed order, `mam_core.policy`) against `x @ w + b` (BLAS), batch 1 and 10, interleaved in
   this process; and worker steps/s: a HalfCheetah-v5 `env.step` plus the actor forward.
@@ -37,10 +37,10 @@ LEARNER_ARITHMETICS: dict[str, tuple[str, dict[str, str]]] = {
     "native": ("native", {}),
     "portable": ("portable", {}),
     "portable-threads": ("portable", {GEMM_THREADS_ENV: "2"}),
-    "portable-threads-python": ("portable", {GEMM_THREADS_ENV: "2", "MAM_GEMM_BATCH": "0"}),
+    "portable-avx2": ("portable", {"MAM_CHAIN_ISA": "2"}),
+    "portable-openblas": ("portable", {arithmetic.GEMM_ENV: "openblas"}),
+    "portable-openblas-threads": ("portable", {arithmetic.GEMM_ENV: "openblas", GEMM_THREADS_ENV: "2"}),
     "portable-mkl": ("portable", {arithmetic.GEMM_ENV: "mkl"}),
-    "portable-chain": ("portable", {arithmetic.GEMM_ENV: "chain"}),
-    "portable-chain-threads": ("portable", {arithmetic.GEMM_ENV: "chain", GEMM_THREADS_ENV: "2"}),
 }
 
 
@@ -88,7 +88,7 @@ def learner_child() -> None:
 def bench_learner_arithmetic(rounds: int, updates: int, log: Callable[[str], None] = print) -> dict[str, Any]:
     procs = {}
     for name, (mode, extra) in LEARNER_ARITHMETICS.items():
-        env = {k: v for k, v in os.environ.items() if k not in arithmetic.PINS and k != arithmetic.GEMM_ENV}
+        env = {k: v for k, v in os.environ.items() if k not in (*arithmetic.PINS, arithmetic.GEMM_ENV, "MAM_CHAIN_ISA")}
         env.update(extra, **{arithmetic.ARITHMETIC_ENV: mode})  # the child pins (or not) as it starts
         procs[name] = subprocess.Popen([sys.executable, "-m", "mam_lab.bench_arithmetic", "--child"], env=env,
                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)

@@ -74,7 +74,7 @@ def main(env: str = typer.Option("HalfCheetah-v5", help="gymnasium env id"),
     digests = numerics(env, steps, seed, algo, **overrides)
     state = arithmetic.status()
     label = "portable" if state["portable"] else f"{state['arithmetic']}, machine-bound: {state['machine_bound']}"
-    if state["portable"] and state.get("gemm") != "openblas-haswell":  # the default GEMMs go unnamed, as before
+    if state["portable"] and state.get("gemm") != "chain":  # the default GEMMs go unnamed, as before
         label += f", GEMMs {state.get('gemm')}"
     print(json.dumps({"env": env, "steps": steps, "seed": seed, **named, **overrides, "arithmetic": label,
                       **digests}))

@@ -28,20 +28,25 @@ AVX2 = pytest.mark.skipif(not arithmetic.cpu_has_avx2(), reason="the pins cover 
 # versions of pyproject.toml and the Makefile. A change of these digests is a change of results:
 # docs/RESULTS.md says which ledger records were computed before it.
 TINY_NUMERICS = ["--env", "HalfCheetah-v5", "--steps", "100", "--seed", "1", "--hidden", "16,16", "--batch-size", "16"]
-EXPECTED_DIGESTS = {"paper": "54d817ee4f322ab7", "equal-data": "f725b9b095f2b33e"}
+EXPECTED_DIGESTS = {"paper": "3e3eb536e3ea1949", "equal-data": "11346d2a57da436c"}
+# The learner's GEMMs in pinned OpenBLAS (MAM_PORTABLE_GEMM=openblas): the default's digest from
+# 08c3077 until the chain kernels, still printed, so records of those commits can be rerun
+OPENBLAS_DIGESTS = {"paper": "54d817ee4f322ab7", "equal-data": "f725b9b095f2b33e"}
 
 # Stand-ins for other machines: the variables that make each library choose another kernel
 # (OpenBLAS, ATen, MKL, NumPy), and masks that make MKL and glibc's libm (MuJoCo's sin, cos,
 # exp) see a CPU without AVX-512.
 KERNEL_CHOICES = [
     {},
-    {"OPENBLAS_CORETYPE": "Haswell", "ATEN_CPU_CAPABILITY": "default", "MKL_CBWR": "AVX2", "MAM_GEMM_THREADS": "2"},
+    {"OPENBLAS_CORETYPE": "Haswell", "ATEN_CPU_CAPABILITY": "default", "MKL_CBWR": "AVX2", "MAM_GEMM_THREADS": "2",
+     "MAM_CHAIN_ISA": "2"},
     {"OPENBLAS_CORETYPE": "SkylakeX", "ATEN_CPU_CAPABILITY": "avx2", "MKL_CBWR": "AUTO", "OPENBLAS_NUM_THREADS": "2",
-     "OPENBLAS_L2_SIZE": "2048"},
+     "OPENBLAS_L2_SIZE": "2048", "MAM_CHAIN_ISA": "1"},
     {"OPENBLAS_CORETYPE": "Zen", "ATEN_CPU_CAPABILITY": "default", "MKL_ENABLE_INSTRUCTIONS": "AVX2",
      "NPY_ENABLE_CPU_FEATURES": "X86_V3", "MAM_GEMM_THREADS": "3",
      "GLIBC_TUNABLES": "glibc.cpu.hwcaps=-AVX512F,-AVX512VL,-AVX512BW,-AVX512DQ,-AVX512CD"},
 ]
+# MAM_CHAIN_ISA: the AVX2 and the plain C kernels of the default GEMMs, where this CPU would take AVX-512's
 _CHOSEN = {k for choice in KERNEL_CHOICES for k in choice} | set(arithmetic.PINS) | {arithmetic.ARITHMETIC_ENV,
                                                                                    arithmetic.FOUND_ENV}
 
@@ -104,12 +109,16 @@ def test_the_numerics_digest_is_the_committed_one_whatever_kernels_the_machine_w
     """Each choice runs `python -m mam_lab.numerics` (two at a time); with native arithmetic two
     of the same choices give two digests, so the variables do reach the libraries."""
     native = [dict(KERNEL_CHOICES[0], MAM_ARITHMETIC="native"), dict(KERNEL_CHOICES[1], MAM_ARITHMETIC="native")]
+    openblas = [dict(choice, MAM_PORTABLE_GEMM="openblas") for choice in KERNEL_CHOICES[:2]]
     with ThreadPoolExecutor(2) as pool:
-        results = list(pool.map(_numerics, KERNEL_CHOICES + native))
+        results = list(pool.map(_numerics, KERNEL_CHOICES + openblas + native))
     for choice, got in zip(KERNEL_CHOICES, results):
         assert got["arithmetic"] == "portable", got
         assert {s: got[s]["digest"] for s in EXPECTED_DIGESTS} == EXPECTED_DIGESTS, choice
-    a, b = results[len(KERNEL_CHOICES):]
+    for choice, got in zip(openblas, results[len(KERNEL_CHOICES):]):
+        assert got["arithmetic"] == "portable, GEMMs openblas-haswell", got
+        assert {s: got[s]["digest"] for s in OPENBLAS_DIGESTS} == OPENBLAS_DIGESTS, choice
+    a, b = results[len(KERNEL_CHOICES) + len(openblas):]
     assert a["arithmetic"].startswith("native") and a["paper"]["digest"] != b["paper"]["digest"]
 
 

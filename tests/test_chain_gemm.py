@@ -1,4 +1,4 @@
-"""mam_core's own GEMM kernels (MAM_PORTABLE_GEMM=chain, mam_core/chain_gemm.c): every element is
+"""mam_core's own GEMM kernels (portable arithmetic's default, mam_core/chain_gemm.c): every element is
 one FMA chain over k in order, from +0, so the AVX-512, AVX2 and plain C kernels, any blocking,
 orientation, layout, member sharing and thread count give the same bits, and those bits are the
 definition computed exactly here, in rationals."""
@@ -137,6 +137,7 @@ def test_a_learner_s_updates_have_the_same_bits_under_every_kernel_and_thread_co
 
 def test_no_compiler_is_a_clear_error(tmp_path) -> None:
     code = "from mam_core import gemm; gemm._Chain()"
-    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path), "CC": str(tmp_path / "no-cc")}
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path), "TMPDIR": str(tmp_path), "CC": str(tmp_path / "no-cc")}
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60, env=env)
-    assert out.returncode != 0 and "MAM_PORTABLE_GEMM=chain needs a C compiler" in out.stderr, out.stderr[-2000:]
+    assert out.returncode != 0 and "portable arithmetic needs a C compiler" in out.stderr, out.stderr[-2000:]
+    assert "--arithmetic native" in out.stderr

@@ -1,5 +1,6 @@
-"""The learner's portable GEMMs (mam_core/gemm.py): right, the same bits for any thread count, and
-never in the form OpenBLAS runs with another kernel on AVX-512 CPUs."""
+"""The learner's portable GEMMs (mam_core/gemm.py): right, the same bits for any thread count, and,
+in pinned OpenBLAS (MAM_PORTABLE_GEMM=openblas), never in the form OpenBLAS runs with another
+kernel on AVX-512 CPUs. The default kernels' own tests: tests/test_chain_gemm.py."""
 
 from __future__ import annotations
 
@@ -28,6 +29,14 @@ def one_thread():
     gemm.set_threads(1)
 
 
+@pytest.fixture
+def openblas(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The products in pinned OpenBLAS (MAM_PORTABLE_GEMM=openblas) in this process."""
+    monkeypatch.setattr(gemm, "_chain", lambda: None)
+    gemm.set_threads(2)  # the pool as set_threads makes it for OpenBLAS (none while its batch call is there)
+    gemm.set_threads(1)
+
+
 def layouts(e: int, m: int, k: int, n: int, rng: np.random.Generator) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """(a, b) pairs of one product in every layout the layers make: row- and column-major operands,
     a member axis expanded from one shared input."""
@@ -38,7 +47,7 @@ def layouts(e: int, m: int, k: int, n: int, rng: np.random.Generator) -> list[tu
             (a, shared), (a, shared.mT.contiguous().mT)]
 
 
-def test_products_match_float64() -> None:
+def test_products_match_float64(openblas: None) -> None:
     rng = np.random.default_rng(0)
     for e, m, k, n in [(4, 256, 23, 256), (2, 1, 256, 256), (2, 256, 256, 1), (3, 6, 256, 64), (1, 17, 5, 3)]:
         for a, b in layouts(e, m, k, n, rng):
@@ -60,7 +69,7 @@ def test_gradients_match_torch() -> None:
         torch.testing.assert_close(got.double(), want.double(), rtol=1e-5, atol=1e-4)
 
 
-def test_a_product_over_one_term_is_numpy_s_bit_for_bit() -> None:
+def test_a_product_over_one_term_is_numpy_s_bit_for_bit(openblas: None) -> None:
     """k = 1 (the critics' Q head in the backward) is a multiplication, not a BLAS call: the same
     bits as NumPy's matmul, signed zeros and underflows included, in every layout."""
     rng = np.random.default_rng(5)
@@ -122,8 +131,11 @@ def trained(threads: int, algo: str = "ma-td3", updates: int = 6) -> dict[str, n
             for name, t in state[net].items()}
 
 
+@pytest.mark.parametrize("kernels", ["chain", "openblas"])
 @pytest.mark.parametrize("algo", ["ma-td3", "ma-sac", "td3"])
-def test_the_same_bits_for_every_thread_count(algo: str) -> None:
+def test_the_same_bits_for_every_thread_count(algo: str, kernels: str, request: pytest.FixtureRequest) -> None:
+    if kernels == "openblas":
+        request.getfixturevalue("openblas")
     assert 2 * 128 ** 3 >= gemm._PARALLEL_MIN_FLOPS
     one, two, three = trained(1, algo), trained(2, algo), trained(3, algo)
     for name in one:
@@ -158,7 +170,7 @@ def gemm_one_thread(x: np.ndarray) -> np.ndarray:
     return np.frombuffer(out.stdout, np.float32).reshape(512, 512)
 
 
-def test_no_product_is_a_row_major_nn_call(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_no_product_is_a_row_major_nn_call(monkeypatch: pytest.MonkeyPatch, openblas: None) -> None:
     """Every operand pair an update hands to BLAS: at least one is transposed in BLAS's terms
     (OpenBLAS would run row-major N·N products in its AVX-512 kernel on AVX-512 CPUs)."""
     seen: list[tuple[bool, bool]] = []
@@ -173,17 +185,20 @@ def test_no_product_is_a_row_major_nn_call(monkeypatch: pytest.MonkeyPatch) -> N
     assert len(seen) > 20 and (True, True) not in seen
 
 
-def test_the_fallback_is_mkl_compatible() -> None:
-    """`MAM_PORTABLE_GEMM=mkl` puts the GEMMs back in torch (MKL's COMPATIBLE branch)."""
+def test_the_kernels_a_process_computes_with() -> None:
+    """Portable arithmetic: the chain kernels by default, `MAM_PORTABLE_GEMM=openblas` pinned OpenBLAS,
+    `mkl` torch's own GEMMs in MKL's COMPATIBLE branch; a name it does not know is an error."""
     code = ("import mam_core; from mam_core import arithmetic; "
             "print(arithmetic.portable_gemm(), arithmetic.status()['gemm'])")
-    env = {k: v for k, v in os.environ.items() if k not in arithmetic.PINS}
+    env = {k: v for k, v in os.environ.items() if k not in arithmetic.PINS and k != arithmetic.GEMM_ENV}
+    for asked, want in (("", ["True", "chain"]), ("openblas", ["True", "openblas-haswell"]),
+                        ("mkl", ["False", "mkl-compatible"])):
+        out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60,
+                             env=dict(env, **{arithmetic.GEMM_ENV: asked, arithmetic.ARITHMETIC_ENV: "portable"}))
+        assert out.stdout.split() == want, (asked, out.stderr)
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60,
-                         env=dict(env, **{arithmetic.GEMM_ENV: "mkl", arithmetic.ARITHMETIC_ENV: "portable"}))
-    assert out.stdout.split() == ["False", "mkl-compatible"], out.stderr
-    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60,
-                         env=dict(env, **{arithmetic.ARITHMETIC_ENV: "portable"}))
-    assert out.stdout.split() == ["True", "openblas-haswell"], out.stderr
+                         env=dict(env, **{arithmetic.GEMM_ENV: "blis", arithmetic.ARITHMETIC_ENV: "portable"}))
+    assert out.returncode != 0 and "MAM_PORTABLE_GEMM='blis': give one of chain, openblas, mkl" in out.stderr
 
 
 @pytest.mark.slow
@@ -213,7 +228,7 @@ def test_a_run_whose_learner_uses_other_threads_equals_the_reference(tmp_path) -
 
 
 def test_the_warm_up_changes_no_bits() -> None:
-    """Each process cold (its threads' first products): TD3 updates with and without the
+    """OpenBLAS, each process cold (its threads' first products): TD3 updates with and without the
     warm-up product (`MAM_GEMM_WARM`), on one and on two threads, give the same parameters."""
     code = ("import sys, hashlib, mam_core, numpy as np; from tests.test_gemm import trained; "
             "p = trained(int(sys.argv[1]), 'td3', updates=3); "
@@ -222,7 +237,8 @@ def test_the_warm_up_changes_no_bits() -> None:
     for warm in ("0", "1"):
         for threads in ("1", "2"):
             out = subprocess.run([sys.executable, "-c", code, threads], cwd=ROOT, capture_output=True, text=True,
-                                 timeout=120, env=dict(os.environ, **{gemm.WARM_ENV: warm}))
+                                 timeout=120, env=dict(os.environ, **{gemm.WARM_ENV: warm,
+                                                                      arithmetic.GEMM_ENV: "openblas"}))
             assert out.returncode == 0, out.stderr[-2000:]
             digests.add(out.stdout.split()[-1])
     assert len(digests) == 1, digests

@@ -368,8 +368,9 @@ def learner_command(
     if steps is not None and (run_config is not None or resume is not None):
         cfg = RunConfig.from_dict({**cfg.to_dict(), "steps": steps})
     cpu.check_precision(cfg)
-    from services.run.preflight import require_device
+    from services.run.preflight import require_device, require_gemm
     require_device(cfg.algo.device, log)  # a device torch does not see: exit 78 (EXIT_CONFIG) after one line
+    require_gemm(log)  # portable GEMM kernels that cannot be built here (no C compiler): likewise
     if not listen and not connect and cfg.endpoint:
         listen = [cfg.endpoint]  # a resumed or launched learner comes back where its clients look
     listen = listen or ([] if connect or zenoh_config else [role.LISTEN_ALL])

@@ -88,6 +88,18 @@ def require_device(device: str, log: logging.Logger) -> None:
         raise SystemExit(EXIT_CONFIG)
 
 
+def require_gemm(log: logging.Logger) -> None:
+    """In the learner: exit EXIT_CONFIG with one log line if the GEMM kernels of its arithmetic
+    cannot be loaded here (portable arithmetic's are built with the C compiler at first use)."""
+    from mam_core import gemm
+
+    try:
+        gemm.ready()
+    except (RuntimeError, ValueError) as e:
+        log.error("%s %s", CONFIG_ERROR, e)
+        raise SystemExit(EXIT_CONFIG) from None
+
+
 def check_run_dir(run_dir: Path) -> None:
     """ConfigError unless `run_dir` is (or can be made) a directory this process can write to."""
     if run_dir.exists() and not run_dir.is_dir():
