@@ -141,3 +141,19 @@ def test_no_compiler_is_a_clear_error(tmp_path) -> None:
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60, env=env)
     assert out.returncode != 0 and "portable arithmetic needs a C compiler" in out.stderr, out.stderr[-2000:]
     assert "--arithmetic native" in out.stderr
+
+
+def test_a_learner_that_cannot_build_them_stops_with_one_configuration_error(tmp_path) -> None:
+    """`mam-learner` where no C compiler is found: exit 78 (EXIT_CONFIG, which `mam run` does not
+    restart) after one line that says what is missing and what else would do."""
+    from services.run.preflight import CONFIG_ERROR, EXIT_CONFIG
+
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path), "TMPDIR": str(tmp_path), "CC": str(tmp_path / "no-cc"),
+           "PYTHONWARNINGS": "ignore"}
+    out = subprocess.run([sys.executable, "-m", "services.roles.learner", "--env", "Pendulum-v1", "--algo", "td3",
+                          "--steps", "1000",
+                          "--run", "no-compiler", "--run-dir", str(tmp_path / "run"), "--listen", "tcp/127.0.0.1:0"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=120, env=env)
+    lines = [line for line in (out.stdout + out.stderr).splitlines() if CONFIG_ERROR in line]
+    assert out.returncode == EXIT_CONFIG and len(lines) == 1, out.stdout[-2000:] + out.stderr[-2000:]
+    assert "portable arithmetic needs a C compiler" in lines[0] and "--arithmetic native" in lines[0]
