@@ -14,6 +14,9 @@
 #include <stdlib.h>
 #include <string.h>
 #include <math.h>
+#include <pthread.h>
+#include <stdatomic.h>
+#include <time.h>
 
 #define KC 256
 #define MC 96
@@ -208,35 +211,184 @@ static void product(kernels ks, int m, int n, int k, const float *a, long ars, l
     }
 }
 
-/* e products C_q = A_q B_q (q < e), strides in elements (es: from one member to the next).
-   Each element of C is one FMA chain over k in order from +0, so neither the kernel, nor the
-   blocking, nor the orientation below changes a bit. Returns 0, or -1 if out of memory. */
-int chain_sgemm(int isa, long e, int m, int n, int k,
+/* Packing buffers, one pair a thread, grown as needed and kept. */
+static __thread float *tl_pa, *tl_pb;
+static __thread size_t tl_pa_n, tl_pb_n;
+
+static float *grown(float **buf, size_t *have, size_t need) {
+    if (*have >= need) return *buf;
+    free(*buf);
+    *buf = aligned_alloc(64, padded(need * sizeof(float), 64));
+    *have = *buf ? need : 0;
+    return *buf;
+}
+
+/* One product C[m,n] = A[m,k] B[k,n] in this thread: C = A B or Cᵀ = Bᵀ Aᵀ (the same chains),
+   the one that pads the fewest tiles. 0, or -1 if out of memory. */
+static int one(kernels ks, int m, int n, int k, const float *a, long ars, long acs,
+               const float *b, long brs, long bcs, float *c, long crs, long ccs) {
+    if (m <= 0 || n <= 0) return 0;
+    if (k <= 0) {  /* an empty sum: +0 */
+        for (int i = 0; i < m; i++)
+            for (int j = 0; j < n; j++) c[i * crs + j * ccs] = 0.0f;
+        return 0;
+    }
+    if (padded(m, ks.mr) * padded(n, ks.nr) > padded(n, ks.mr) * padded(m, ks.nr) || (n == 1 && m > 1)) {
+        const float *t = a; a = b; b = t;  /* A' = Bᵀ, B' = Aᵀ, C' = Cᵀ */
+        long ars2 = bcs, acs2 = brs, brs2 = acs, bcs2 = ars, s = crs;
+        ars = ars2; acs = acs2; brs = brs2; bcs = bcs2; crs = ccs; ccs = s;
+        int tm = m; m = n; n = tm;
+    }
+    int ncmax = n < NC ? n : NC, kcmax = k < KC ? k : KC, mcmax = m < MC ? m : MC;
+    float *pb = grown(&tl_pb, &tl_pb_n, padded(ncmax, ks.nr) * kcmax);
+    float *pa = grown(&tl_pa, &tl_pa_n, padded(mcmax, ks.mr) * kcmax);
+    if (!pa || !pb) return -1;
+    product(ks, m, n, k, a, ars, acs, b, brs, bcs, c, crs, ccs, pa, pb);
+    return 0;
+}
+
+/* A batch of e products C_q = A_q B_q, cut into tasks: task t is member t (by_members), or the
+   rows (or columns) lo..hi of every member. Any cut gives the same bits. */
+typedef struct {
+    kernels ks;
+    long e;
+    int m, n, k, by_members, by_rows, width;
+    const float *a, *b;
+    float *c;
+    long aes, ars, acs, bes, brs, bcs, ces, crs, ccs;
+} job_t;
+
+static int task(const job_t *j, int t) {
+    long q0 = j->by_members ? t : 0, q1 = j->by_members ? t + 1 : j->e;
+    int lo = j->by_members ? 0 : t * j->width;
+    int hi = j->by_members ? (j->by_rows ? j->m : j->n) : lo + j->width;
+    hi = hi < (j->by_rows ? j->m : j->n) ? hi : (j->by_rows ? j->m : j->n);
+    for (long q = q0; q < q1; q++) {
+        const float *a = j->a + q * j->aes, *b = j->b + q * j->bes;
+        float *c = j->c + q * j->ces;
+        int failed = j->by_rows
+            ? one(j->ks, hi - lo, j->n, j->k, a + lo * j->ars, j->ars, j->acs, b, j->brs, j->bcs,
+                  c + lo * j->crs, j->crs, j->ccs)
+            : one(j->ks, j->m, hi - lo, j->k, a, j->ars, j->acs, b + lo * j->bcs, j->brs, j->bcs,
+                  c + lo * j->ccs, j->crs, j->ccs);
+        if (failed) return -1;
+    }
+    return 0;
+}
+
+/* The threads: workers claim the tasks of the current job (generation << 32 | next task) with a
+   compare-and-swap, so a worker late for one job can never take a task of the next; the caller
+   takes tasks too and returns once every task is done. Between jobs a worker spins spin_ns,
+   then sleeps on a condition variable (a long spin burns the core the env workers need). */
+#define MAX_THREADS 64
+static struct {
+    pthread_mutex_t mu;
+    pthread_cond_t cv;
+    job_t job;
+    int ntasks, started, want;
+    _Atomic unsigned long long claim;
+    atomic_int done, failed, sleeping;
+    long spin_ns;
+} P = {.mu = PTHREAD_MUTEX_INITIALIZER, .cv = PTHREAD_COND_INITIALIZER};
+static pthread_mutex_t one_job = PTHREAD_MUTEX_INITIALIZER;
+
+static void run_tasks(unsigned gen) {
+    for (;;) {
+        unsigned long long v = atomic_load(&P.claim);
+        if ((unsigned)(v >> 32) != gen || (int)(v & 0xffffffffu) >= P.ntasks) return;
+        if (!atomic_compare_exchange_weak(&P.claim, &v, v + 1)) continue;
+        if (task(&P.job, (int)(v & 0xffffffffu)) != 0) atomic_store(&P.failed, 1);
+        atomic_fetch_add(&P.done, 1);
+    }
+}
+
+static long since_ns(const struct timespec *t0) {
+    struct timespec t;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    return (t.tv_sec - t0->tv_sec) * 1000000000L + (t.tv_nsec - t0->tv_nsec);
+}
+
+static void *worker(void *arg) {
+    int index = (int)(long)arg;
+    unsigned seen = (unsigned)(atomic_load(&P.claim) >> 32);
+    for (;;) {
+        struct timespec t0;
+        clock_gettime(CLOCK_MONOTONIC, &t0);
+        unsigned gen;
+        for (int n = 1; (gen = (unsigned)(atomic_load(&P.claim) >> 32)) == seen; n++) {
+            _mm_pause();
+            if (n % 64 == 0 && since_ns(&t0) > P.spin_ns) {
+                pthread_mutex_lock(&P.mu);
+                atomic_fetch_add(&P.sleeping, 1);
+                while ((unsigned)(atomic_load(&P.claim) >> 32) == seen) pthread_cond_wait(&P.cv, &P.mu);
+                atomic_fetch_sub(&P.sleeping, 1);
+                pthread_mutex_unlock(&P.mu);
+                clock_gettime(CLOCK_MONOTONIC, &t0);
+            }
+        }
+        seen = gen;
+        if (index < P.want) run_tasks(gen);
+    }
+    return NULL;
+}
+
+/* Spread the job's ntasks over this thread and threads - 1 workers. 0, or -1 (out of memory). */
+static int run_job(const job_t *job, int ntasks, int threads) {
+    pthread_mutex_lock(&one_job);
+    while (P.started < threads - 1 && P.started < MAX_THREADS) {
+        pthread_t t;
+        pthread_attr_t attr;
+        pthread_attr_init(&attr);
+        pthread_attr_setdetachstate(&attr, PTHREAD_CREATE_DETACHED);
+        int failed = pthread_create(&t, &attr, worker, (void *)(long)P.started);
+        pthread_attr_destroy(&attr);
+        if (failed) break;  /* fewer threads: the same bits */
+        P.started++;
+    }
+    P.job = *job;
+    P.ntasks = ntasks;
+    P.want = threads - 1;
+    atomic_store(&P.done, 0);
+    atomic_store(&P.failed, 0);
+    unsigned gen = (unsigned)(atomic_load(&P.claim) >> 32) + 1;
+    atomic_store(&P.claim, (unsigned long long)gen << 32);
+    if (atomic_load(&P.sleeping) > 0) {
+        pthread_mutex_lock(&P.mu);
+        pthread_cond_broadcast(&P.cv);
+        pthread_mutex_unlock(&P.mu);
+    }
+    run_tasks(gen);
+    while (atomic_load(&P.done) < ntasks) _mm_pause();
+    int failed = atomic_load(&P.failed);
+    pthread_mutex_unlock(&one_job);
+    return failed ? -1 : 0;
+}
+
+/* e products C_q = A_q B_q (q < e), strides in elements (es: from one member to the next), over
+   `threads` threads where the batch is big enough (spin_us: how long an idle thread spins for
+   the next batch). Each element of C is one FMA chain over k in order from +0, so neither the
+   kernel, nor the blocking, nor the orientation, nor the cut over threads changes a bit.
+   Returns 0, or -1 if out of memory. */
+int chain_sgemm(int isa, int threads, long spin_us, long e, int m, int n, int k,
                 const float *a, long aes, long ars, long acs,
                 const float *b, long bes, long brs, long bcs,
                 float *c, long ces, long crs, long ccs) {
-    kernels ks = pick(isa);
-    if (k <= 0) {  /* an empty sum: +0 */
-        for (long q = 0; q < e; q++)
-            for (int i = 0; i < m; i++)
-                for (int j = 0; j < n; j++) c[q * ces + i * crs + j * ccs] = 0.0f;
+    job_t j = {pick(isa), e, m, n, k, 0, 0, 0, a, b, c, aes, ars, acs, bes, brs, bcs, ces, crs, ccs};
+    double flops = 2.0 * e * m * n * k;
+    threads = threads < 1 ? 1 : threads > MAX_THREADS + 1 ? MAX_THREADS + 1 : threads;
+    if (threads == 1 || flops < (double)(1 << 20)) {
+        j.by_members = 1;
+        for (long t = 0; t < e; t++)
+            if (task(&j, (int)t) != 0) return -1;
         return 0;
     }
-    /* C = A B or Cᵀ = Bᵀ Aᵀ (the same chains): the one that pads the fewest tiles */
-    int swap = padded(m, ks.mr) * padded(n, ks.nr) > padded(n, ks.mr) * padded(m, ks.nr) || (n == 1 && m > 1);
-    if (swap) {  /* A' = Bᵀ, B' = Aᵀ, C' = Cᵀ */
-        const float *a2 = b, *b2 = a;
-        long aes2 = bes, ars2 = bcs, acs2 = brs, bes2 = aes, brs2 = acs, bcs2 = ars, crs2 = ccs, ccs2 = crs;
-        int m2 = n, n2 = m;
-        a = a2; b = b2; aes = aes2; ars = ars2; acs = acs2; bes = bes2; brs = brs2; bcs = bcs2;
-        crs = crs2; ccs = ccs2; m = m2; n = n2;
+    P.spin_ns = spin_us * 1000;
+    if (e >= threads) {
+        j.by_members = 1;
+        return run_job(&j, (int)e, threads);
     }
-    int ncmax = n < NC ? n : NC, kcmax = k < KC ? k : KC, mcmax = m < MC ? m : MC;
-    size_t bsz = padded(ncmax, ks.nr) * kcmax, asz = padded(mcmax, ks.mr) * kcmax;
-    float *pb = aligned_alloc(64, padded(bsz * 4, 64)), *pa = aligned_alloc(64, padded(asz * 4, 64));
-    if (!pa || !pb) { free(pa); free(pb); return -1; }
-    for (long q = 0; q < e; q++)
-        product(ks, m, n, k, a + q * aes, ars, acs, b + q * bes, brs, bcs, c + q * ces, crs, ccs, pa, pb);
-    free(pa); free(pb);
-    return 0;
+    j.by_rows = m > n;  /* cut the longer side in `threads` blocks of whole tiles */
+    int side = j.by_rows ? m : n;
+    j.width = (int)padded((side + threads - 1) / threads, 32);
+    return run_job(&j, (side + j.width - 1) / j.width, threads);
 }

@@ -92,7 +92,7 @@ def set_threads(n: int) -> None:
         if _pool is not None:
             _pool.shutdown(wait=True)
         _pool = ThreadPoolExecutor(n - 1, thread_name_prefix="mam-gemm") \
-            if n > 1 and (_chain() is not None or _batch() is None) else None
+            if n > 1 and _chain() is None and _batch() is None else None
         _threads = n
 
 
@@ -344,16 +344,22 @@ class _Chain:
 
     ISA_ENV = "MAM_CHAIN_ISA"  # 1 plain C, 2 AVX2+FMA, 3 AVX-512F; unset: the best this CPU has
     SOURCE = Path(__file__).with_name("chain_gemm.c")
-    FLAGS = ("-O2", "-shared", "-fPIC", "-ffp-contract=off")  # no -march: each kernel names its own target
+    FLAGS = ("-O2", "-shared", "-fPIC", "-pthread", "-ffp-contract=off")  # no -march: each kernel names its target
+    SPIN_ENV = "MAM_GEMM_SPIN_US"  # how long an idle GEMM thread spins for the next product before it sleeps
+    SPIN_US = 50
 
     def __init__(self, isa: int | None = None) -> None:
         lib = ctypes.CDLL(str(self.build()))
         long = ctypes.c_long
         self.fn = lib.chain_sgemm
         self.fn.restype = ctypes.c_int
-        self.fn.argtypes = [ctypes.c_int, long, ctypes.c_int, ctypes.c_int, ctypes.c_int,
+        self.fn.argtypes = [ctypes.c_int, ctypes.c_int, long, long, ctypes.c_int, ctypes.c_int, ctypes.c_int,
                             ctypes.c_void_p, long, long, long, ctypes.c_void_p, long, long, long,
                             ctypes.c_void_p, long, long, long]
+        try:
+            self.spin_us = int(os.environ.get(self.SPIN_ENV, self.SPIN_US))
+        except ValueError:
+            raise ValueError(f"{self.SPIN_ENV}={os.environ[self.SPIN_ENV]!r}: give microseconds") from None
         lib.chain_isa.restype, lib.chain_isa.argtypes = ctypes.c_int, [ctypes.c_int]
         if isa is None:
             try:
@@ -391,42 +397,19 @@ class _Chain:
         return lib
 
     def bmm(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        """a [E or 1, m, k] · b [E or 1, k, n] -> [E, m, n], in strided operands as they are: the
-        members, or the columns of one member, in parts over the threads (any cut, the same bits)."""
+        """a [E or 1, m, k] · b [E or 1, k, n] -> [E, m, n], from the strided operands as they are,
+        over `threads()` threads where the product is big enough (the library cuts it by members,
+        else by blocks of rows or columns: any cut, the same bits)."""
         a, b = a.detach(), b.detach()
         e, (m, k), n = max(a.shape[0], b.shape[0]), a.shape[1:], b.shape[2]
         out = torch.empty((e, m, n))
-        parts = min(_threads, max(e, n // 32)) if 2 * e * m * n * k >= _PARALLEL_MIN_FLOPS else 1
-        if parts > 1 and e >= parts:
-            cuts = [(e * i // parts, e * (i + 1) // parts, 0, n) for i in range(parts)]
-        else:
-            cols = [n * i // parts // 32 * 32 for i in range(parts)] + [n]
-            cuts = [(0, e, lo, hi) for lo, hi in zip(cols[:-1], cols[1:])]
-        calls = [self._call(a, b, out, *cut) for cut in cuts]
-        pool = _pool
-        if pool is None or len(calls) == 1:
-            for call in calls:
-                self._run(call)
-        else:
-            futures = [pool.submit(self._run, call) for call in calls[1:]]
-            self._run(calls[0])
-            for f in futures:
-                f.result()
-        return out
-
-    def _call(self, a: torch.Tensor, b: torch.Tensor, out: torch.Tensor, lo: int, hi: int, c0: int,
-              c1: int) -> tuple:
-        """The arguments of one `chain_sgemm` call: members lo..hi-1, columns c0..c1-1."""
         (aes, ars, acs), (bes, brs, bcs), (ces, crs, ccs) = a.stride(), b.stride(), out.stride()
-        aes, bes = (aes if a.shape[0] > 1 else 0), (bes if b.shape[0] > 1 else 0)  # a shared member
-        return (self.isa, hi - lo, a.shape[1], c1 - c0, a.shape[2],
-                a.data_ptr() + 4 * aes * lo, aes, ars, acs,
-                b.data_ptr() + 4 * (bes * lo + bcs * c0), bes, brs, bcs,
-                out.data_ptr() + 4 * (ces * lo + ccs * c0), ces, crs, ccs)
-
-    def _run(self, call: tuple) -> None:
-        if call[1] > 0 and call[3] > 0 and self.fn(*call) != 0:
+        if self.fn(self.isa, _threads, self.spin_us, e, m, n, k,
+                   a.data_ptr(), aes if a.shape[0] > 1 else 0, ars, acs,  # a member shared by all: stride 0
+                   b.data_ptr(), bes if b.shape[0] > 1 else 0, brs, bcs,
+                   out.data_ptr(), ces, crs, ccs) != 0:
             raise MemoryError("chain_sgemm: no memory for its packed operands")
+        return out
 
 
 _CHAIN: list[_Chain | None] = []
