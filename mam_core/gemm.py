@@ -401,8 +401,10 @@ class _Chain:
         over `threads()` threads where the product is big enough (the library cuts it by members,
         else by blocks of rows or columns: any cut, the same bits)."""
         a, b = a.detach(), b.detach()
+        if a.dtype != torch.float32 or b.dtype != torch.float32 or a.device.type != "cpu" or b.device.type != "cpu":
+            raise TypeError(f"chain kernels multiply float32 CPU tensors, not {a.dtype}/{b.dtype} on {a.device}")
         e, (m, k), n = max(a.shape[0], b.shape[0]), a.shape[1:], b.shape[2]
-        out = torch.empty((e, m, n))
+        out = torch.empty((e, m, n), dtype=torch.float32)
         (aes, ars, acs), (bes, brs, bcs), (ces, crs, ccs) = a.stride(), b.stride(), out.stride()
         if self.fn(self.isa, _threads, self.spin_us, e, m, n, k,
                    a.data_ptr(), aes if a.shape[0] > 1 else 0, ars, acs,  # a member shared by all: stride 0

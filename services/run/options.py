@@ -137,9 +137,10 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
          "B iterations after it is drawn: workers step up to B iterations ahead of the learner (0: Algorithm 1 as "
          "printed). Every B is one deterministic run of its seed, equal to mam_core.reference with the same B",
          symbol="B"),
-    _opt("arithmetic", str, "portable (default): kernels pinned, so the run reruns from --seed on any x86-64 CPU "
-         "with AVX2 (its learner at 0.86-1.15x native's updates/s with two threads on AMD EPYCs, 0.61-0.73x on an "
-         "Intel Xeon with AVX-512, where mam run --algo td3 took 1.52x native's wall time: docs/PERFORMANCE.md); "
+    _opt("arithmetic", str, "portable (default): kernels pinned and the learner's GEMMs in mam's own (built with the "
+         "C compiler), so the run reruns from --seed on any x86-64 CPU with AVX2 (its learner at 0.94-0.96x native's "
+         "updates/s with two threads on an Intel Xeon with AVX-512, where mam run --algo td3 took 1.08x native's "
+         "wall time: docs/PERFORMANCE.md); "
          "native: the fastest kernels of this CPU, the run reruns only here (sets MAM_ARITHMETIC for the children; "
          "for roles started by hand export MAM_ARITHMETIC=native)", target=RUN),
     _opt("run", str, "run name: the key-expression namespace mam/<run>/...", target=RUN),
