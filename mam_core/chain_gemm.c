@@ -1,4 +1,5 @@
-/* The learner's GEMMs under MAM_PORTABLE_GEMM=chain (mam_core/gemm.py, `_Chain`).
+/* The learner's GEMMs under portable arithmetic (mam_core/gemm.py, `_Chain`; built by `make venv`
+   or at the first product).
 
    Every element of C = A B is one chain of fused multiply-adds over k in order, from +0:
        c = +0;  for p = 0 .. k-1:  c = fma(A[i][p], B[p][j], c)
@@ -6,9 +7,9 @@
    operands alone. The kernels below (AVX-512F, AVX2+FMA, plain C) vectorize across the
    elements of C, never along p, and a later block of p carries each chain on from the float
    the earlier block stored: the kernel, the blocking, the tile shapes, the orientation
-   (C or its transpose) and the thread that computes a tile cannot change a bit.
-   tests/test_gemm.py checks the kernels against each other (the plain C one is the definition
-   above, written out) and against the product in float64. */
+   (C or its transpose) and the thread that computes a tile cannot change a bit. Packing and
+   threads only move data. tests/test_chain_gemm.py checks every kernel against the chain
+   computed exactly in rationals and the kernels against each other in every layout. */
 #include <immintrin.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -18,9 +19,9 @@
 #include <stdatomic.h>
 #include <time.h>
 
-#define KC 256
-#define MC 96
-#define NC 2048
+#define KC 256   /* a block of p (the chain goes on across blocks) */
+#define MC 96    /* rows of A packed at a time */
+#define NC 2048  /* columns of B packed at a time */
 
 typedef void (*kernel_fn)(int kc, const float *pa, const float *pb, long ldb, float *c, long ldc, int first);
 

@@ -135,6 +135,24 @@ def test_a_learner_s_updates_have_the_same_bits_under_every_kernel_and_thread_co
     assert learner_digest({gemm._Chain.ISA_ENV: "1", "T": "1"}) == fast
 
 
+def test_a_fresh_machine_builds_them_once_and_computes_the_same_bits(tmp_path) -> None:
+    """An empty cache (a fresh machine): the first process builds the library there with the
+    compiler, and its products are this process's bit for bit; a second process reuses the build."""
+    code = ("import sys, numpy as np, mam_core, torch; from mam_core import gemm; k = gemm._Chain(); "
+            "a = torch.from_numpy(np.random.default_rng(7).standard_normal((2, 70, 300), dtype=np.float32)); "
+            "sys.stdout.buffer.write(k.bmm(a, a.mT).numpy().tobytes())")
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path)}
+    first = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, timeout=120, env=env)
+    assert first.returncode == 0, first.stderr[-2000:]
+    built = list((tmp_path / "mam").glob("chain-*.so"))
+    assert len(built) == 1
+    made = built[0].stat().st_mtime_ns
+    again = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, timeout=120, env=env)
+    assert again.stdout == first.stdout and built[0].stat().st_mtime_ns == made
+    a = torch.from_numpy(np.random.default_rng(7).standard_normal((2, 70, 300), dtype=np.float32))
+    assert first.stdout == gemm._Chain().bmm(a, a.mT).numpy().tobytes()
+
+
 def test_no_compiler_is_a_clear_error(tmp_path) -> None:
     code = "from mam_core import gemm; gemm._Chain()"
     env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path), "TMPDIR": str(tmp_path), "CC": str(tmp_path / "no-cc")}
