@@ -172,14 +172,16 @@ def _warm(pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]], batch: _Batch
             np.matmul(a, b, out=out)
 
 
-def bmm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """a [E, m, k] · b [E, k, n] -> [E, m, n] float32 on the CPU, one pinned `sgemm` a member,
-    never in the row-major N·N form: where both operands are row-major the product is computed
-    as (bᵀ·aᵀ)ᵀ, both transposed (T·T), and returned as a transposed view. The form depends on
-    the operands' layouts only, which the code fixes, never on the machine."""
+def bmm(a: torch.Tensor, b: torch.Tensor, like: torch.Tensor | None = None) -> torch.Tensor:
+    """a [E, m, k] · b [E, k, n] -> [E, m, n] float32 on the CPU. In the chain kernels, laid out
+    as `like` (row- or column-major: a gradient in its variable's layout, which spares autograd a
+    transposing copy; the bits do not depend on it), else row-major. In pinned OpenBLAS one
+    `sgemm` a member, never in the row-major N·N form: where both operands are row-major the
+    product is computed as (bᵀ·aᵀ)ᵀ, both transposed (T·T), and returned as a transposed view.
+    The form depends on the operands' layouts only, which the code fixes, never on the machine."""
     chain = _chain()
     if chain is not None:
-        return chain.bmm(a, b)
+        return chain.bmm(a, b, transposed=like is not None and _transposed(like))
     e = max(a.shape[0], b.shape[0])
     an, a_rows = _operand(a, e)
     bn, b_rows = _operand(b, e)
@@ -396,15 +398,16 @@ class _Chain:
         os.replace(tmp, lib)  # whole or not at all, for processes building it at once
         return lib
 
-    def bmm(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        """a [E or 1, m, k] · b [E or 1, k, n] -> [E, m, n], from the strided operands as they are,
-        over `threads()` threads where the product is big enough (the library cuts it by members,
-        else by blocks of rows or columns: any cut, the same bits)."""
+    def bmm(self, a: torch.Tensor, b: torch.Tensor, transposed: bool = False) -> torch.Tensor:
+        """a [E or 1, m, k] · b [E or 1, k, n] -> [E, m, n] (column-major if `transposed`), from the
+        strided operands as they are, over `threads()` threads where the product is big enough
+        (the library cuts it by members, else by blocks of rows or columns: any cut, the same bits)."""
         a, b = a.detach(), b.detach()
         if a.dtype != torch.float32 or b.dtype != torch.float32 or a.device.type != "cpu" or b.device.type != "cpu":
             raise TypeError(f"chain kernels multiply float32 CPU tensors, not {a.dtype}/{b.dtype} on {a.device}")
         e, (m, k), n = max(a.shape[0], b.shape[0]), a.shape[1:], b.shape[2]
-        out = torch.empty((e, m, n), dtype=torch.float32)
+        out = torch.empty((e, n, m), dtype=torch.float32).mT if transposed else torch.empty((e, m, n),
+                                                                                             dtype=torch.float32)
         (aes, ars, acs), (bes, brs, bcs), (ces, crs, ccs) = a.stride(), b.stride(), out.stride()
         if self.fn(self.isa, _threads, self.spin_us, e, m, n, k,
                    a.data_ptr(), aes if a.shape[0] > 1 else 0, ars, acs,  # a member shared by all: stride 0
@@ -450,9 +453,9 @@ class _Baddbmm(torch.autograd.Function):
         if ctx.needs_input_grad[0]:
             grad_bias = grad.sum_to_size(ctx.bias_shape)
         if ctx.needs_input_grad[1]:
-            grad_a = _summed_to(bmm(grad, b.transpose(1, 2)), a.shape)
+            grad_a = _summed_to(bmm(grad, b.transpose(1, 2), like=a), a.shape)
         if ctx.needs_input_grad[2]:
-            grad_b = _summed_to(bmm(a.transpose(1, 2), grad), b.shape)
+            grad_b = _summed_to(bmm(a.transpose(1, 2), grad, like=b), b.shape)
         return grad_bias, grad_a, grad_b
 
 
@@ -480,6 +483,11 @@ class _ReLU(torch.autograd.Function):
         if out.stride() != grad.stride() and _dense(out):
             grad = torch.empty_like(out).copy_(grad)
         return torch.ops.aten.threshold_backward(grad, out, 0)
+
+
+def _transposed(x: torch.Tensor) -> bool:
+    """Is x [.., r, c] laid out column-major (a transposed view of a row-major array)?"""
+    return x.shape[-1] > 1 and x.shape[-2] > 1 and x.stride(-2) == 1 and x.stride(-1) >= x.shape[-2]
 
 
 def _dense(x: torch.Tensor) -> bool:
