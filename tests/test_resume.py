@@ -73,6 +73,29 @@ def test_resume_refuses_a_directory_with_nothing_to_continue(tmp_path: Path) -> 
     assert got.returncode == 2 and "no verified checkpoint in" in got.stderr and str(run_dir) in got.stderr
 
 
+def test_a_learner_resumed_with_other_gemm_kernels_stops_and_says_how_to_resume(tmp_path: Path) -> None:
+    """The learner's GEMM kernels come from the environment (MAM_PORTABLE_GEMM), not the run's
+    config: a checkpoint records them, and a learner that would resume it with others exits 78
+    after one line naming the variable, instead of computing another run from there on."""
+    from services.roles.checkpoint import load_checkpoint
+    from services.run.preflight import CONFIG_ERROR, EXIT_CONFIG
+
+    run_dir = tmp_path / "run"
+    env = dict(os.environ, COLUMNS="200", MAM_PORTABLE_GEMM="openblas")
+    flags = ["--env", "AppleCollect-v1", "--algo", "ma-ddpg", "--steps", "60", "--start-steps", "40", "--workers", "1",
+             "--actors", "2", "--hidden", "16,16", "--batch-size", "16", "--eval-episodes", "1", "--no-plot"]
+    got = subprocess.run([sys.executable, "-m", "services.cli", "run", *flags, "--run", unique_run("gemm"), "--run-dir",
+                          str(run_dir)], cwd=ROOT, text=True, capture_output=True, timeout=300, env=env)
+    assert got.returncode == 0, got.stdout[-2000:] + got.stderr[-2000:]
+    assert load_checkpoint(run_dir)["gemm"] == "openblas-haswell"
+    env.pop("MAM_PORTABLE_GEMM")
+    learner = subprocess.run([sys.executable, "-m", "services.roles.learner", "--resume", str(run_dir), "--listen",
+                              "tcp/127.0.0.1:0"], cwd=ROOT, text=True, capture_output=True, timeout=120, env=env)
+    lines = [line for line in (learner.stdout + learner.stderr).splitlines() if CONFIG_ERROR in line]
+    assert learner.returncode == EXIT_CONFIG and len(lines) == 1, learner.stdout[-2000:] + learner.stderr[-2000:]
+    assert "computed its GEMMs with openblas-haswell" in lines[0] and "MAM_PORTABLE_GEMM=openblas" in lines[0]
+
+
 @pytest.mark.slow
 def test_a_killed_mam_run_continues_with_resume_to_its_budget(tmp_path: Path) -> None:
     run, run_dir = unique_run("resume"), tmp_path / "run"

@@ -42,7 +42,7 @@ from services.roles.intake import Intake
 from services.roles.learner_state import LearnerState, LogRates
 from services.roles.lockstep import SlotStage
 from services.roles.outbox import Outbox, Watches
-from services.run import announce, cpu, options, rundir, runlock
+from services.run import announce, cpu, options, preflight, rundir, runlock
 from services.run.binding import SlotBinding
 from services.run.config import RunConfig
 from services.run.rundir import JsonlWriter, write_json
@@ -329,6 +329,10 @@ def main(cfg: RunConfig, conf: Any, run_dir: Path, resume: bool = False) -> None
         except CheckpointCorrupt as e:  # every generation is damaged: nothing to resume from
             log.error("stopping: %s", e)
             raise SystemExit(EXIT_CORRUPT) from None
+        problem = preflight.gemm_problem(state.get("gemm"), arithmetic.status()["gemm"]) if state else ""
+        if problem:
+            log.error("%s %s", preflight.CONFIG_ERROR, problem)
+            raise SystemExit(preflight.EXIT_CONFIG)
         if state is not None:  # this part's endpoint (`mam run` gave it a new port): a later restart listens there
             cfg = RunConfig.from_dict({**json.loads(state["config"]), "steps": cfg.steps,
                                        **({"endpoint": cfg.endpoint} if cfg.endpoint else {})})
@@ -368,9 +372,8 @@ def learner_command(
     if steps is not None and (run_config is not None or resume is not None):
         cfg = RunConfig.from_dict({**cfg.to_dict(), "steps": steps})
     cpu.check_precision(cfg)
-    from services.run.preflight import require_device, require_gemm
-    require_device(cfg.algo.device, log)  # a device torch does not see: exit 78 (EXIT_CONFIG) after one line
-    require_gemm(log)  # portable GEMM kernels that cannot be built here (no C compiler): likewise
+    preflight.require_device(cfg.algo.device, log)  # a device torch does not see: exit 78 (EXIT_CONFIG), one line
+    preflight.require_gemm(log)  # portable GEMM kernels that cannot be built here (no C compiler): likewise
     if not listen and not connect and cfg.endpoint:
         listen = [cfg.endpoint]  # a resumed or launched learner comes back where its clients look
     listen = listen or ([] if connect or zenoh_config else [role.LISTEN_ALL])

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from mam_core import arithmetic
 from mam_core.config import AlgoConfig
 from mam_core.evaluation import estimation_bias
 from mam_core.seeding import bias_seed
@@ -37,7 +38,8 @@ def checkpoint(st: LearnerState, cfg: RunConfig, run_dir: Path, kept: Carried) -
     path = save_checkpoint(run_dir, st.agent, st.buffer, st.counters(), cfg, st.replay_log,
                            survivor=p.survivor,  # with policy.npz, in a verified generation
                            extra={"kept_weights": kept_weights_state(kept.kept_weights),
-                                  "kept_snapshots": kept_weights_state(kept.kept_snapshots)})
+                                  "kept_snapshots": kept_weights_state(kept.kept_snapshots),
+                                  "gemm": arithmetic.status().get("gemm", "")})  # preflight.gemm_problem
     st.checkpoints.mark(st.agent.updates, p.env_steps, time.monotonic())
     if st.replay_log is not None:  # only now on disk: workers may drop what the previous one holds
         st.acks.checkpointed(st.intake.checkpointed_prefixes())

@@ -21,6 +21,7 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 from services.run import rundir
 
@@ -98,6 +99,23 @@ def require_gemm(log: logging.Logger) -> None:
     except (RuntimeError, ValueError) as e:
         log.error("%s %s", CONFIG_ERROR, e)
         raise SystemExit(EXIT_CONFIG) from None
+
+
+def gemm_problem(recorded: Any, current: str) -> str:
+    """Why a learner computing its GEMMs with `current` (arithmetic.status()["gemm"]) must not
+    resume a checkpoint whose learner computed with `recorded` ("" if it may: the same, or a
+    checkpoint from before the kernels were recorded). The kernels are chosen by the environment
+    (MAM_PORTABLE_GEMM), not by the run's config, so a resume from another shell could change
+    them, and with them every float of the rest of the run."""
+    from mam_core import arithmetic
+
+    if not isinstance(recorded, str) or recorded == current:
+        return ""
+    asked = {"chain": f"{arithmetic.GEMM_ENV} unset", "openblas-haswell": f"{arithmetic.GEMM_ENV}=openblas",
+             "mkl-compatible": f"{arithmetic.GEMM_ENV}=mkl"}
+    how = asked.get(recorded, f"the GEMMs {recorded!r}")
+    return (f"this run's learner computed its GEMMs with {recorded}, this one would with {current}, and the "
+            f"rest of the run would not be the run: resume it with {how} in the environment")
 
 
 def check_run_dir(run_dir: Path) -> None:
