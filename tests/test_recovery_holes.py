@@ -333,13 +333,21 @@ def test_a_frozen_learner_replaced_by_one_of_a_higher_epoch_stops_when_it_comes_
         while iterations(second, after=copied) < frozen_at + 300:
             assert time.monotonic() < deadline and l2.poll() is None, (tmp_path / "l2.log").read_text()[-3000:]
             time.sleep(0.2)
+        # The workers pause (not a fault) while the first learner comes back, so that the run cannot
+        # end meanwhile: once the second learner has left, nothing would show a higher epoch (CI
+        # saw the run end 10 s after SIGCONT, before the first learner's session was back).
+        for w in ws:
+            w.send_signal(signal.SIGSTOP)
         l1.send_signal(signal.SIGCONT)
         assert l1.wait(60) == 73, (tmp_path / "l1.log").read_text(errors="replace")[-3000:]
         assert not (first / "summary.json").exists()  # it stopped while the run went on
+        for w in ws:
+            w.send_signal(signal.SIGCONT)
         assert l2.wait(300) == 0, (tmp_path / "l2.log").read_text(errors="replace")[-3000:]
     finally:
-        if l1.poll() is None:
-            l1.send_signal(signal.SIGCONT)
+        for proc in (l1, *ws):
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGCONT)
         stop(*ws, referee, *([l2] if l2 is not None else []), l1, router)
     text = (tmp_path / "l1.log").read_text(errors="replace")
     assert "(a higher epoch) serves run" in text and "is stale" in text, text[-3000:]
