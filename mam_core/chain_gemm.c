@@ -1,4 +1,4 @@
-/* The learner's GEMMs under portable arithmetic (mam_core/gemm.py, `_Chain`; built by `make venv`
+/* The learner's GEMMs under portable arithmetic (mam_core/chain.py; built by `make venv`
    or at the first product).
 
    Every element of C = A B is one chain of fused multiply-adds over k in order, from +0:
@@ -61,40 +61,23 @@ static void gather_rows(const float *src, long ss, int rows, int kc, float *dst,
         for (int p = 0; p < kc; p++) dst[(long)p * ld + i] = src[i * ss + p];
 }
 
-/* A panel: mr rows, for each p its mr values; rows past mc are zeros (their results are dropped). */
-static void pack_a(const float *a, long ars, long acs, int mc, int kc, int mr, float *dst, int avx2) {
-    for (int i0 = 0; i0 < mc; i0 += mr, dst += (long)mr * kc) {
-        int rows = mc - i0 < mr ? mc - i0 : mr;
-        if (acs == 1 && rows == mr) {  /* row-major: each row read along p */
-            gather_rows(a + (long)i0 * ars, ars, mr, kc, dst, mr, avx2);
+/* Panels of `width` lines of X (line l, step p at x[l * ls + p * ps]): for each p its `width`
+   values side by side; lines past `lines` are zeros (their results are dropped). A's panels are
+   its rows (ls, ps = ars, acs), B's its columns (bcs, brs). */
+static void pack(const float *x, long ls, long ps, int lines, int kc, int width, float *dst, int avx2) {
+    for (int l0 = 0; l0 < lines; l0 += width, dst += (long)width * kc) {
+        int n = lines - l0 < width ? lines - l0 : width;
+        if (ps == 1 && n == width) {  /* each line read along p */
+            gather_rows(x + (long)l0 * ls, ls, width, kc, dst, width, avx2);
             continue;
         }
-        if (ars == 1 && rows == mr) {  /* column-major: each p's rows lie side by side */
-            for (int p = 0; p < kc; p++) memcpy(dst + (long)p * mr, a + (long)i0 + (long)p * acs, sizeof(float) * mr);
+        if (ls == 1 && n == width) {  /* each p's lines lie side by side */
+            for (int p = 0; p < kc; p++) memcpy(dst + (long)p * width, x + l0 + (long)p * ps, sizeof(float) * width);
             continue;
         }
         for (int p = 0; p < kc; p++)
-            for (int r = 0; r < mr; r++)
-                dst[(long)p * mr + r] = r < rows ? a[(long)(i0 + r) * ars + (long)p * acs] : 0.0f;
-    }
-}
-
-/* B panels: nr columns, for each p its nr values; columns past nc are zeros. */
-static void pack_b(const float *b, long brs, long bcs, int kc, int nc, int nr, float *dst, int avx2) {
-    for (int j0 = 0; j0 < nc; j0 += nr, dst += (long)nr * kc) {
-        int cols = nc - j0 < nr ? nc - j0 : nr;
-        if (brs == 1 && cols == nr) {  /* column-major: each column read along p */
-            gather_rows(b + (long)j0 * bcs, bcs, nr, kc, dst, nr, avx2);
-            continue;
-        }
-        if (bcs == 1 && cols == nr) {  /* row-major */
-            for (int p = 0; p < kc; p++) memcpy(dst + (long)p * nr, b + (long)p * brs + j0, sizeof(float) * nr);
-            continue;
-        }
-        for (int p = 0; p < kc; p++) {
-            const float *row = b + (long)p * brs + (long)j0 * bcs;
-            for (int c = 0; c < nr; c++) dst[(long)p * nr + c] = c < cols ? row[(long)c * bcs] : 0.0f;
-        }
+            for (int l = 0; l < width; l++)
+                dst[(long)p * width + l] = l < n ? x[(long)(l0 + l) * ls + (long)p * ps] : 0.0f;
     }
 }
 
@@ -184,12 +167,12 @@ static void product(kernels ks, int m, int n, int k, const float *a, long ars, l
             int kc = k - pc < KC ? k - pc : KC, first = pc == 0;
             const float *bk = b + (long)pc * brs + (long)jc * bcs;
             if (!direct)
-                pack_b(bk, brs, bcs, kc, nc, NR, pb, avx2);
+                pack(bk, bcs, brs, nc, kc, NR, pb, avx2);
             else if (nc % NR)  /* the last, partial panel: packed (zeros past nc) */
-                pack_b(bk + nc / NR * NR, brs, bcs, kc, nc % NR, NR, pb + (long)nc / NR * NR * kc, avx2);
+                pack(bk + nc / NR * NR * bcs, bcs, brs, nc % NR, kc, NR, pb + (long)nc / NR * NR * kc, avx2);
             for (int ic = 0; ic < m; ic += MC) {
                 int mc = m - ic < MC ? m - ic : MC;
-                pack_a(a + (long)ic * ars + (long)pc * acs, ars, acs, mc, kc, MR, pa, avx2);
+                pack(a + (long)ic * ars + (long)pc * acs, ars, acs, mc, kc, MR, pa, avx2);
                 for (int jr = 0; jr < nc; jr += NR) {
                     int nr = nc - jr < NR ? nc - jr : NR;
                     const float *pbj = direct && nr == NR ? bk + jr : pb + (long)jr * kc;
