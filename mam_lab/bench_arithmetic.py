@@ -6,12 +6,14 @@
   shapes, one torch thread, one process per arithmetic (each library reads its pins when it
   loads): `native` (nothing pinned, the machine's own kernels), `portable` (mam's default: the
   pins of `mam_core.arithmetic.PINS`, the GEMMs in mam_core's own kernels, one FMA chain an
-  element), `portable-threads` (the same over 2 threads: the same bits), `portable-avx2` (their
-  AVX2 kernel, what a CPU without AVX-512 runs: the same bits), `portable-openblas` and
+  element), `portable-threads` (the same over 2 threads: the same bits), `portable-avx2` and
+  `portable-avx2-threads` (their AVX2 kernel, what a CPU without AVX-512 runs, 1 and 2 threads:
+  the same bits), `portable-openblas` and
   `portable-openblas-threads` (the GEMMs in pinned OpenBLAS, 1 and 2 threads: the default before
   the chain kernels, other bits), `portable-mkl` (the GEMMs in MKL's COMPATIBLE branch: the
   default before OpenBLAS, other bits again). The processes take turns in rounds whose order
-  rotates; a ratio is the median over rounds of the within-round ratio.
+  rotates; a ratio is the median over rounds of the within-round ratio. `--sides` times a few of
+  them (`native` always, the reference).
 * **actor** — the workers' and referee's forward pass (HalfCheetah shapes, 256x256): `dense`
   (fixed order, `mam_core.policy`) against `x @ w + b` (BLAS), batch 1 and 10, interleaved in
   this process; and worker steps/s: a HalfCheetah-v5 `env.step` plus the actor forward.
@@ -38,6 +40,7 @@ LEARNER_ARITHMETICS: dict[str, tuple[str, dict[str, str]]] = {
     "portable": ("portable", {}),
     "portable-threads": ("portable", {GEMM_THREADS_ENV: "2"}),
     "portable-avx2": ("portable", {"MAM_CHAIN_ISA": "2"}),
+    "portable-avx2-threads": ("portable", {"MAM_CHAIN_ISA": "2", GEMM_THREADS_ENV: "2"}),
     "portable-openblas": ("portable", {arithmetic.GEMM_ENV: "openblas"}),
     "portable-openblas-threads": ("portable", {arithmetic.GEMM_ENV: "openblas", GEMM_THREADS_ENV: "2"}),
     "portable-mkl": ("portable", {arithmetic.GEMM_ENV: "mkl"}),
@@ -85,9 +88,13 @@ def learner_child() -> None:
         print(json.dumps(out), flush=True)
 
 
-def bench_learner_arithmetic(rounds: int, updates: int, log: Callable[[str], None] = print) -> dict[str, Any]:
+def bench_learner_arithmetic(rounds: int, updates: int, log: Callable[[str], None] = print,
+                             sides: list[str] | None = None) -> dict[str, Any]:
     procs = {}
+    chosen = {"native", *(sides or LEARNER_ARITHMETICS)}
     for name, (mode, extra) in LEARNER_ARITHMETICS.items():
+        if name not in chosen:
+            continue
         env = {k: v for k, v in os.environ.items() if k not in (*arithmetic.PINS, arithmetic.GEMM_ENV, "MAM_CHAIN_ISA")}
         env.update(extra, **{arithmetic.ARITHMETIC_ENV: mode})  # the child pins (or not) as it starts
         procs[name] = subprocess.Popen([sys.executable, "-m", "mam_lab.bench_arithmetic", "--child"], env=env,
@@ -174,14 +181,21 @@ def bench_actor(rounds: int, steps: int) -> dict[str, Any]:
 def main(rounds: int = typer.Option(7, help="interleaved rounds"),
          updates: int = typer.Option(20, help="learner updates per contender per round"),
          steps: int = typer.Option(2000, help="worker steps per contender per round"),
+         sides: str = typer.Option("", help=f"learner sides to time, comma-separated (default all: "
+                                            f"{','.join(LEARNER_ARITHMETICS)}); native always"),
          child: bool = typer.Option(False, "--child", hidden=True)) -> None:
     """Print what the portable arithmetic costs, as one JSON object on the last line."""
     if child:
         learner_child()
         return
+    chosen = [s for s in sides.split(",") if s]
+    unknown = [s for s in chosen if s not in LEARNER_ARITHMETICS]
+    if unknown:
+        raise typer.BadParameter(f"unknown side(s) {', '.join(unknown)}; give some of {', '.join(LEARNER_ARITHMETICS)}",
+                                 param_hint="--sides")
     out: dict[str, Any] = {"arithmetic": arithmetic.status()["arithmetic"]}
     out.update(bench_actor(rounds, steps))
-    out.update(bench_learner_arithmetic(rounds, updates))
+    out.update(bench_learner_arithmetic(rounds, updates, sides=chosen or None))
     print(json.dumps(out))
 
 
