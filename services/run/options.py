@@ -140,7 +140,7 @@ RUN_OPTIONS: tuple[RunOption, ...] = (
     _opt("arithmetic", str, "portable (default): kernels pinned and the learner's GEMMs in mam's own (built with the "
          "C compiler), so the run reruns from --seed on any x86-64 CPU with AVX2 (its learner at 0.94-0.96x native's "
          "updates/s with two threads on an Intel Xeon with AVX-512, where mam run --algo td3 took 1.08x native's "
-         "wall time: docs/PERFORMANCE.md); "
+         "wall time, and 1.49-1.53x with 0.89x on an AMD EPYC Zen 5: docs/PERFORMANCE.md); "
          "native: the fastest kernels of this CPU, the run reruns only here (sets MAM_ARITHMETIC for the children; "
          "for roles started by hand export MAM_ARITHMETIC=native)", target=RUN),
     _opt("run", str, "run name: the key-expression namespace mam/<run>/...", target=RUN),
