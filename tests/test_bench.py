@@ -170,3 +170,22 @@ def test_accel_switch() -> None:
                   np.ones((8, 3), np.float32), np.zeros(8, bool))
     batch = buf.sample(4, groups=2)
     assert batch["obs"].shape == (2, 4, 3) and batch["obs"].device.type == "cpu" and not batch["obs"].is_pinned()
+
+
+def test_the_arithmetic_bench_times_the_sides_asked_for_beside_native() -> None:
+    """`python -m mam_lab.bench_arithmetic --sides S`: native (the reference) and S only, each a
+    positive rate and a ratio; an unknown side is a usage error that lists the known ones."""
+    env = dict(os.environ, PYTHONWARNINGS="ignore", COLUMNS="200")
+    cmd = [sys.executable, "-m", "mam_lab.bench_arithmetic", "--rounds", "1", "--updates", "2", "--steps", "20"]
+    out = subprocess.run([*cmd, "--sides", "portable-avx2"], cwd=ROOT, env=env, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    learner = sorted(k for k in result if k.startswith("learner_"))
+    assert learner == sorted(f"learner_{algo}_{side}" for algo in ("td3", "ma-td3") for side in
+                             ("native_updates_per_s", "portable-avx2_updates_per_s", "portable-avx2_vs_native"))
+    assert_positive(result, learner)
+    bad = subprocess.run([*cmd, "--sides", "portable,nope"], cwd=ROOT, env=env, capture_output=True, text=True,
+                         timeout=120)
+    assert bad.returncode == 2 and "unknown side(s) nope" in bad.stderr and "portable-openblas" in bad.stderr, \
+        bad.stderr[-2000:]
