@@ -34,13 +34,14 @@ import services  # noqa: F401  (OPENBLAS_NUM_THREADS=1 as in a worker; mam_core 
 from mam_core import arithmetic
 
 GEMM_THREADS_ENV = "MAM_BENCH_GEMM_THREADS"
+ISA_ENV = "MAM_CHAIN_ISA"  # mam_core.chain.Chain.ISA_ENV (not imported: that module loads torch)
 # name: (the child's MAM_ARITHMETIC, extra variables)
 LEARNER_ARITHMETICS: dict[str, tuple[str, dict[str, str]]] = {
     "native": ("native", {}),
     "portable": ("portable", {}),
     "portable-threads": ("portable", {GEMM_THREADS_ENV: "2"}),
-    "portable-avx2": ("portable", {"MAM_CHAIN_ISA": "2"}),
-    "portable-avx2-threads": ("portable", {"MAM_CHAIN_ISA": "2", GEMM_THREADS_ENV: "2"}),
+    "portable-avx2": ("portable", {ISA_ENV: "2"}),
+    "portable-avx2-threads": ("portable", {ISA_ENV: "2", GEMM_THREADS_ENV: "2"}),
     "portable-openblas": ("portable", {arithmetic.GEMM_ENV: "openblas"}),
     "portable-openblas-threads": ("portable", {arithmetic.GEMM_ENV: "openblas", GEMM_THREADS_ENV: "2"}),
     "portable-mkl": ("portable", {arithmetic.GEMM_ENV: "mkl"}),
@@ -95,7 +96,7 @@ def bench_learner_arithmetic(rounds: int, updates: int, log: Callable[[str], Non
     for name, (mode, extra) in LEARNER_ARITHMETICS.items():
         if name not in chosen:
             continue
-        env = {k: v for k, v in os.environ.items() if k not in (*arithmetic.PINS, arithmetic.GEMM_ENV, "MAM_CHAIN_ISA")}
+        env = {k: v for k, v in os.environ.items() if k not in (*arithmetic.PINS, arithmetic.GEMM_ENV, ISA_ENV)}
         env.update(extra, **{arithmetic.ARITHMETIC_ENV: mode})  # the child pins (or not) as it starts
         procs[name] = subprocess.Popen([sys.executable, "-m", "mam_lab.bench_arithmetic", "--child"], env=env,
                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
